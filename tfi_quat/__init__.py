@@ -1,0 +1,24 @@
+"""tfi_quat: multiblock structured grids and quaternion TFI mesh deformation.
+
+Reads and writes Plot3D (every common variant) and HDF5 grids, finds how
+blocks connect, and deforms a volume grid when its walls move with
+transfinite interpolation of translations *and* rotations (quaternions),
+after Samareh, NASA/TM-2002-211646.
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from .errors import (CaseError, ConnectivityError, DeformationError, GridFormatError,
+                     GridValueError, OverwriteError, TfiQuatError)
+from .grid import FACES, Block, Grid
+from .io import read, write
+
+__all__ = [
+    "__version__",
+    "Block", "Grid", "FACES",
+    "read", "write",
+    "TfiQuatError", "GridFormatError", "GridValueError", "ConnectivityError",
+    "CaseError", "DeformationError", "OverwriteError",
+]

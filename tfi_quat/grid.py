@@ -1,0 +1,275 @@
+"""Multiblock structured grid model.
+
+A :class:`Block` holds its coordinates as one float64 array ``xyz`` of shape
+``(ni, nj, nk, 3)`` in **Fortran order**: all x with i fastest, then all y, then
+all z.  That is byte for byte the Plot3D whole-block layout, so binary readers
+and writers move bytes without a transpose.  A 2-D block has ``nk == 1`` and
+z = 0.  An optional ``iblank`` int32 array ``(ni, nj, nk)`` (Fortran order) is
+carried through untouched.
+
+A :class:`Grid` is an ordered list of blocks with a dimension ``ndim`` (2 or 3)
+and, when it was read from a file, the detected file variant
+(``source_format``) and path (``source_path``), so it can be written back in
+the same variant and an input is never overwritten by accident.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+
+from .errors import GridValueError
+
+__all__ = ["Block", "Grid", "FACES", "face_index"]
+
+#: face names in the order used everywhere (imin=0 ... kmax=5)
+FACES = ("imin", "imax", "jmin", "jmax", "kmin", "kmax")
+
+
+def face_index(face: str | int) -> int:
+    """Return the face number 0..5 of a face name (``"imin"`` ... ``"kmax"``) or number."""
+    if isinstance(face, (int, np.integer)) and not isinstance(face, bool):
+        if 0 <= int(face) < 6:
+            return int(face)
+        raise GridValueError(f"face number {face} is out of range 0..5")
+    try:
+        return FACES.index(str(face).strip().lower())
+    except ValueError:
+        raise GridValueError(f"unknown face {face!r}: expected one of {', '.join(FACES)}") from None
+
+
+def _where(name: str | None) -> str:
+    return f"block {name!r}" if name else "block"
+
+
+class Block:
+    """One structured block.
+
+    Parameters
+    ----------
+    xyz : array_like, shape (ni, nj, nk, 3) or (ni, nj, 3)
+        Coordinates.  A 3-D input ``(ni, nj, 3)`` is taken as a 2-D block
+        (``nk = 1``); ``(ni, nj, 2)`` as a 2-D block with z = 0.  Stored as
+        float64 in Fortran order (copied only when needed, or when
+        ``copy=True``).
+    iblank : array_like of int, shape (ni, nj, nk), optional
+        Plot3D IBLANK values, stored as int32 in Fortran order.
+    name : str, optional
+        Block name (HDF5 group name, messages).
+    copy : bool
+        Always copy the input arrays.
+    allow_nonfinite : bool
+        Accept NaN or infinite coordinates (default: error).
+
+    Raises
+    ------
+    GridValueError
+        Wrong shape, a dimension < 1, or non-finite coordinates.
+    """
+
+    __slots__ = ("xyz", "iblank", "name")
+
+    def __init__(self, xyz, iblank=None, name: str | None = None, *, copy: bool = False,
+                 allow_nonfinite: bool = False):
+        where = _where(name)
+        arr = np.asarray(xyz)
+        if arr.ndim == 3 and arr.shape[-1] in (2, 3):
+            if arr.shape[-1] == 2:
+                full = np.zeros(arr.shape[:2] + (3,), dtype=np.float64)
+                full[..., :2] = arr
+                arr = full
+            arr = arr[:, :, np.newaxis, :]
+        if arr.ndim != 4 or arr.shape[-1] != 3:
+            raise GridValueError(f"{where}: xyz must have shape (ni, nj, nk, 3), got {arr.shape}")
+        if min(arr.shape[:3]) < 1:
+            raise GridValueError(f"{where}: dimensions must be >= 1, got {arr.shape[:3]}")
+        if not np.issubdtype(arr.dtype, np.number) or np.issubdtype(arr.dtype, np.complexfloating):
+            raise GridValueError(f"{where}: xyz must be real numbers, got dtype {arr.dtype}")
+        arr = np.array(arr, dtype=np.float64, order="F", copy=True) if copy else \
+            np.asarray(arr, dtype=np.float64, order="F")
+        if not allow_nonfinite:
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                i, j, k, c = np.argwhere(bad)[0]
+                raise GridValueError(
+                    f"{where}: {int(bad.sum())} non-finite coordinate value(s); first at "
+                    f"(i, j, k) = ({i + 1}, {j + 1}, {k + 1}) (1-based), component {'xyz'[c]} "
+                    "(pass allow_nonfinite=True to accept)")
+        self.xyz = arr
+        if iblank is not None:
+            ib = np.asarray(iblank)
+            if ib.shape != arr.shape[:3]:
+                if ib.size == int(np.prod(arr.shape[:3])) and ib.ndim == 1:
+                    ib = ib.reshape(arr.shape[:3], order="F")
+                else:
+                    raise GridValueError(f"{where}: iblank shape {ib.shape} does not match "
+                                         f"block dimensions {arr.shape[:3]}")
+            if not np.issubdtype(ib.dtype, np.integer):
+                if not np.all(np.isfinite(ib)) or np.any(ib != np.round(ib)):
+                    raise GridValueError(f"{where}: iblank must hold integers")
+            ib = np.array(ib, dtype=np.int32, order="F", copy=True) if copy else \
+                np.asarray(ib, dtype=np.int32, order="F")
+        self.iblank = ib if iblank is not None else None
+        self.name = None if name is None else str(name)
+
+    # ------------------------------------------------------------------ shape
+    @property
+    def dims(self) -> tuple[int, int, int]:
+        """``(ni, nj, nk)``."""
+        return tuple(int(n) for n in self.xyz.shape[:3])  # type: ignore[return-value]
+
+    @property
+    def npoints(self) -> int:
+        ni, nj, nk = self.dims
+        return ni * nj * nk
+
+    @property
+    def x(self) -> np.ndarray:
+        return self.xyz[..., 0]
+
+    @property
+    def y(self) -> np.ndarray:
+        return self.xyz[..., 1]
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.xyz[..., 2]
+
+    def face(self, face: str | int) -> np.ndarray:
+        """View of one face's points, shape ``(na, nb, 3)``.
+
+        The two running indices are the block's remaining indices in order:
+        imin/imax -> (j, k), jmin/jmax -> (i, k), kmin/kmax -> (i, j).
+        """
+        f = face_index(face)
+        d, side = divmod(f, 2)
+        idx = [slice(None)] * 3
+        idx[d] = -1 if side else 0
+        return self.xyz[tuple(idx)]
+
+    def copy(self) -> "Block":
+        return Block(self.xyz, self.iblank, self.name, copy=True, allow_nonfinite=True)
+
+    def bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``(lo, hi)`` corner coordinates, each shape (3,)."""
+        flat = self.xyz.reshape(-1, 3, order="F")
+        return flat.min(axis=0), flat.max(axis=0)
+
+    def __repr__(self) -> str:
+        ib = ", iblank" if self.iblank is not None else ""
+        nm = f"{self.name!r}, " if self.name else ""
+        return f"Block({nm}{self.dims[0]}x{self.dims[1]}x{self.dims[2]}{ib})"
+
+    def __eq__(self, other) -> bool:  # value equality, for tests and round trips
+        if not isinstance(other, Block):
+            return NotImplemented
+        if self.dims != other.dims or not np.array_equal(self.xyz, other.xyz):
+            return False
+        if (self.iblank is None) != (other.iblank is None):
+            return False
+        return self.iblank is None or np.array_equal(self.iblank, other.iblank)
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+class Grid:
+    """Ordered list of :class:`Block` with a dimension.
+
+    Parameters
+    ----------
+    blocks : iterable of Block or array_like
+        The blocks; arrays are wrapped in :class:`Block`.
+    ndim : {2, 3}, optional
+        Grid dimension.  Default: 2 when every block has ``nk == 1`` and
+        z == 0 everywhere, else 3.  A 2-D grid must have ``nk == 1`` and
+        z == 0 in every block.
+    source_format : object, optional
+        The file variant the grid was read from (e.g. a
+        :class:`tfi_quat.io.plot3d.Plot3DFormat`); ``write(..., like=grid)``
+        writes that variant again.
+    source_path : str or path, optional
+        The file the grid was read from; writing over it needs ``overwrite=True``.
+    allow_nonfinite : bool
+        Passed on to :class:`Block` for array inputs.
+    """
+
+    def __init__(self, blocks: Iterable[Block | np.ndarray] | Block, ndim: int | None = None, *,
+                 source_format=None, source_path=None, allow_nonfinite: bool = False):
+        if isinstance(blocks, (Block, np.ndarray)):
+            blocks = [blocks]
+        blist: list[Block] = []
+        for n, b in enumerate(blocks):
+            if not isinstance(b, Block):
+                b = Block(b, name=f"block{n + 1}", allow_nonfinite=allow_nonfinite)
+            blist.append(b)
+        if not blist:
+            raise GridValueError("a grid needs at least one block")
+        flat2d = all(b.dims[2] == 1 and not np.any(b.xyz[..., 2]) for b in blist)
+        if ndim is None:
+            ndim = 2 if flat2d else 3
+        if ndim not in (2, 3):
+            raise GridValueError(f"ndim must be 2 or 3, got {ndim!r}")
+        if ndim == 2:
+            for n, b in enumerate(blist):
+                if b.dims[2] != 1:
+                    raise GridValueError(f"block {n + 1}: a 2-D grid needs nk == 1, got nk = {b.dims[2]}")
+                if np.any(b.xyz[..., 2]):
+                    raise GridValueError(f"block {n + 1}: a 2-D grid needs z == 0")
+        self.blocks = blist
+        self.ndim = int(ndim)
+        self.source_format = source_format
+        self.source_path = None if source_path is None else os.fspath(source_path)
+
+    # ------------------------------------------------------------ container
+    def __len__(self) -> int:
+        return len(self.blocks)
+
+    def __iter__(self) -> Iterator[Block]:
+        return iter(self.blocks)
+
+    def __getitem__(self, b: int) -> Block:
+        return self.blocks[b]
+
+    @property
+    def nblocks(self) -> int:
+        return len(self.blocks)
+
+    @property
+    def npoints(self) -> int:
+        return sum(b.npoints for b in self.blocks)
+
+    @property
+    def dims(self) -> list[tuple[int, int, int]]:
+        return [b.dims for b in self.blocks]
+
+    @property
+    def has_iblank(self) -> bool:
+        return any(b.iblank is not None for b in self.blocks)
+
+    def bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        """Return ``(lo, hi)`` over all blocks, each shape (3,)."""
+        lo, hi = zip(*(b.bbox() for b in self.blocks))
+        return np.min(lo, axis=0), np.max(hi, axis=0)
+
+    def copy(self) -> "Grid":
+        """Deep copy (coordinates and iblank); keeps ``source_format``, drops ``source_path``."""
+        return Grid([b.copy() for b in self.blocks], self.ndim, source_format=self.source_format)
+
+    def with_blocks(self, blocks: Sequence[Block]) -> "Grid":
+        """A new grid with other blocks and this grid's ndim and source format."""
+        return Grid(list(blocks), self.ndim, source_format=self.source_format)
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Grid):
+            return NotImplemented
+        return self.ndim == other.ndim and len(self) == len(other) and \
+            all(a == b for a, b in zip(self.blocks, other.blocks))
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        dims = ", ".join("x".join(map(str, d)) for d in self.dims[:4])
+        more = ", ..." if len(self) > 4 else ""
+        return f"Grid(ndim={self.ndim}, {len(self)} block(s): {dims}{more})"

@@ -1,0 +1,123 @@
+"""Grid file I/O: a small registry of formats.
+
+Each format module registers a reader and a writer with :func:`register`;
+:func:`read` and :func:`write` pick the format from the ``format`` argument,
+from ``like`` (a grid read earlier, or a format description), or from the
+file extension.
+
+===========  ===============================================
+format       extensions
+===========  ===============================================
+``plot3d``   ``.x .xyz .g .grd .p3d .p2dfmt .p3dfmt .fmt .bin .xyzb``
+``hdf5``     ``.h5 .hdf5 .hdf``
+===========  ===============================================
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from ..errors import GridFormatError
+
+__all__ = ["read", "write", "register", "format_for", "FORMATS"]
+
+
+@dataclass(frozen=True)
+class _Format:
+    name: str
+    extensions: tuple[str, ...]
+    reader: Callable
+    writer: Callable
+    #: class of the variant object a reader stores in ``grid.source_format``
+    variant_type: type | None = None
+
+
+FORMATS: dict[str, _Format] = {}
+
+
+def register(name, extensions, reader, writer, variant_type=None) -> None:
+    """Register a format: ``reader(path, **kw) -> Grid``, ``writer(path, grid, **kw)``."""
+    FORMATS[name] = _Format(name, tuple(e.lower() for e in extensions), reader, writer, variant_type)
+
+
+def _ensure_loaded() -> None:
+    if not FORMATS:
+        from . import hdf5, plot3d  # noqa: F401  (they register themselves)
+
+
+def format_for(path=None, format: str | None = None, like=None) -> _Format:
+    """Choose the format: explicit name, then ``like``, then the file extension."""
+    _ensure_loaded()
+    if format is not None:
+        key = str(format).lower()
+        if key not in FORMATS:
+            raise GridFormatError(f"unknown format {format!r}: expected one of {', '.join(sorted(FORMATS))}")
+        return FORMATS[key]
+    if like is not None:
+        variant = getattr(like, "source_format", like)
+        for f in FORMATS.values():
+            if f.variant_type is not None and isinstance(variant, f.variant_type):
+                return f
+    if path is not None:
+        name = Path(os.fspath(path)).name.lower()
+        for f in FORMATS.values():
+            if any(name.endswith(ext) for ext in f.extensions):
+                return f
+        raise GridFormatError(
+            f"{path}: unknown file extension; give format= ('plot3d' or 'hdf5'), "
+            f"known extensions: {', '.join(e for f in FORMATS.values() for e in f.extensions)}")
+    raise GridFormatError("no format given and no path or reference grid to infer it from")
+
+
+def read(path, format: str | None = None, **kw):
+    """Read a grid file.
+
+    Parameters
+    ----------
+    path : str or path-like
+    format : {"plot3d", "hdf5"}, optional
+        Default: from the extension.
+    **kw
+        Passed on to the format's reader (e.g. Plot3D variant overrides,
+        ``allow_nonfinite``).
+
+    Returns
+    -------
+    Grid
+        With ``source_format`` (the detected variant) and ``source_path`` set.
+    """
+    p = Path(os.fspath(path))
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file")
+    if p.is_dir():
+        raise GridFormatError(f"{p}: is a directory, not a grid file")
+    return format_for(p, format).reader(p, **kw)
+
+
+def write(path, grid, format: str | None = None, *, like=None, overwrite: bool = False, **kw) -> None:
+    """Write a grid file atomically.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Target file; written to a temporary file in the same folder and
+        renamed into place.
+    grid : Grid
+    format : {"plot3d", "hdf5"}, optional
+        Default: the format of ``like``, else the extension.
+    like : Grid or variant, optional
+        Write the same variant as this grid was read in (its
+        ``source_format``), or as this variant object.
+    overwrite : bool
+        Allow writing over the grid's own input file (``grid.source_path``).
+    **kw
+        Variant options of the format's writer (override ``like``).
+    """
+    fmt = format_for(path, format, like)
+    variant = getattr(like, "source_format", like) if like is not None else None
+    if variant is not None and fmt.variant_type is not None and not isinstance(variant, fmt.variant_type):
+        variant = None
+    return fmt.writer(path, grid, like=variant, overwrite=overwrite, **kw)
