@@ -32,8 +32,8 @@ import numpy as np
 from .errors import GridValueError
 from .grid import Block, Grid
 
-__all__ = ["naca4", "airfoil", "cylinder", "channel", "two_block", "wing", "GENERATORS",
-           "geometric_spacing"]
+__all__ = ["naca4", "airfoil", "airfoil_wall_range", "cylinder", "channel", "two_block", "wing",
+           "wing_geometry", "wing_wall_range", "geometric_spacing", "boundary_patches", "GENERATORS"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -529,21 +529,24 @@ def _bump(x, x0, x1, height):
     return height * np.sin(np.pi * t) ** 2
 
 
-def _channel_points(ni, nj, length, height, bump_height, bump_start, bump_end, first_spacing):
+def _channel_points(ni, nj, length, height, bump_height, bump_start, bump_end, first_spacing,
+                    n_ortho=10):
     x = np.linspace(0.0, length, ni)
     yw = _bump(x, bump_start, bump_end, bump_height)
-    t = np.clip((x - bump_start) / (bump_end - bump_start), 0.0, 1.0)
-    inside = (x > bump_start) & (x < bump_end)
-    slope = np.where(inside, bump_height * np.pi / (bump_end - bump_start) * np.sin(2 * np.pi * t), 0.0)
-    nrm = np.stack([-slope, np.ones_like(x)], axis=-1) / np.sqrt(1.0 + slope ** 2)[:, None]
+    wall = np.stack([x, yw], axis=-1)
+    # discrete wall normal (central differences), as for the airfoils
+    t = np.gradient(wall, axis=0)
+    nrm = np.stack([-t[:, 1], t[:, 0]], axis=-1)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
     eta = geometric_spacing(nj - 1, 1.0, first_spacing / height)
     hloc = height - yw
-    wall = np.stack([x, yw], axis=-1)
     ext = wall[:, None, :] + (eta[None, :, None] * hloc[:, None, None]) * nrm[:, None, :]
     vert = np.stack([np.broadcast_to(x[:, None], (ni, nj)),
                      yw[:, None] + eta[None, :] * hloc[:, None]], axis=-1)
-    # blend from wall-normal lines (near the wall) to vertical lines (upper half)
-    s = np.clip(eta / 0.5, 0.0, 1.0)
+    # straight wall-normal lines for the first n_ortho layers, then a smooth
+    # blend into vertical lines, reached at mid-height
+    e0 = eta[min(n_ortho, nj - 1)]
+    s = np.clip((eta - e0) / max(0.5 - e0, 1e-12), 0.0, 1.0)
     beta = (s * s * (3.0 - 2.0 * s))[None, :, None]
     xy = (1.0 - beta) * ext + beta * vert
     xy[:, 0] = wall
@@ -559,7 +562,8 @@ def channel(ni: int = 129, nj: int = 49, length: float = 3.0, height: float = 1.
     The lower wall is ``y = h sin^2(pi (x - x0)/(x1 - x0))`` on
     ``[bump_start, bump_end]`` and ``y = 0`` elsewhere; the upper wall is
     ``y = height``.  j-lines leave the lower wall along its normal and turn
-    into vertical lines by mid-height.
+    into vertical lines by mid-height (straight along the discrete wall normal
+    for the first 10 layers).
 
     Parameters
     ----------
@@ -883,3 +887,55 @@ GENERATORS = {
     "two-block": two_block,
     "wing": wing,
 }
+
+
+# --------------------------------------------------------------------------- boundaries
+def boundary_patches(kind: str, grid: Grid, n_wake: int | None = None, topology: str = "C") -> dict:
+    """Walls, symmetry planes and fixed (far-field) patches of a generated grid.
+
+    Parameters
+    ----------
+    kind : {"airfoil", "cylinder", "channel", "two-block", "wing"}
+        The generator that made ``grid``.
+    grid : Grid
+        Its output.
+    n_wake : int, optional
+        The ``n_wake`` given to :func:`airfoil` or :func:`wing`.
+    topology : {"C", "O"}
+        The airfoil topology.
+
+    Returns
+    -------
+    dict
+        ``{"walls": [...], "symmetry": [...], "fixed": [...]}``, lists of
+        :class:`tfi_quat.spec.PatchSpec` (0-based, explicit wall ranges).
+    """
+    from .spec import PatchSpec
+
+    def whole(b, *faces):
+        return [PatchSpec(b, f) for f in faces]
+
+    if kind not in GENERATORS:
+        raise GridValueError(f"unknown generator {kind!r}: expected one of {', '.join(GENERATORS)}")
+    if kind == "airfoil":
+        ni = grid[0].dims[0]
+        if str(topology).upper() == "O":
+            return {"walls": whole(0, "jmin"), "symmetry": [], "fixed": whole(0, "jmax")}
+        lo, hi = airfoil_wall_range(ni, "C", n_wake)
+        return {"walls": [PatchSpec(0, "jmin", ((lo, hi), (0, 0)))], "symmetry": [],
+                "fixed": whole(0, "jmax", "imin", "imax")}
+    if kind == "cylinder":
+        return {"walls": whole(0, "jmin"), "symmetry": [], "fixed": whole(0, "jmax")}
+    if kind == "channel":
+        return {"walls": whole(0, "jmin"), "symmetry": [], "fixed": whole(0, "jmax", "imin", "imax")}
+    if kind == "two-block":
+        return {"walls": whole(0, "jmin"), "symmetry": [],
+                "fixed": whole(0, "imin", "imax") + whole(1, "imin", "jmin", "jmax")}
+    ni, _, nk1 = grid[0].dims
+    nk2 = grid[1].dims[2]
+    lo, hi = wing_wall_range(ni, n_wake)
+    return {"walls": [PatchSpec(0, "jmin", ((lo, hi), (0, nk1 - 1))),
+                      PatchSpec(1, "jmin", ((lo, hi), (0, nk2 - 1)))],
+            "symmetry": whole(0, "kmin"),
+            "fixed": whole(0, "imin", "imax", "jmax") + whole(1, "imin", "imax", "jmax") +
+            whole(2, "imin", "jmax", "kmax") + whole(3, "imax", "jmax", "kmax")}
