@@ -321,7 +321,7 @@ def load_case(path, check_grid: bool = True) -> Case:
         if key in data:
             if not isinstance(data[key], str) or not data[key].strip():
                 raise CaseError(f"{where}: key {key!r}: expected a file name, got {data[key]!r}")
-            paths[key] = base / data[key]
+            paths[key] = Path(os.path.normpath(base / data[key]))
     if check_grid and not paths["grid"].is_file():
         raise CaseError(f"{where}: key 'grid': grid file {paths['grid']} does not exist")
     motion = _motion(data["motion"], where) if "motion" in data else None
