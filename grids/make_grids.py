@@ -59,6 +59,17 @@ def build(name: str):
     return grid, case
 
 
+def sha256(path) -> str:
+    """Hex SHA-256 of a file."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def main(names) -> int:
     import tfi_quat
     from tfi_quat.case import save_case
@@ -68,6 +79,8 @@ def main(names) -> int:
         tfi_quat.write(HERE / f"{name}.x", grid, overwrite=True)
         save_case(HERE / f"{name}.toml", case)
         print(f"{name}: {len(grid)} block(s), {grid.npoints} points")
+    lines = [f"{sha256(HERE / f'{n}.x')}  {n}.x" for n in SAMPLES if (HERE / f"{n}.x").exists()]
+    (HERE / "SHA256SUMS").write_text("\n".join(lines) + "\n")
     return 0
 
 

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+import tfi_quat
 from tfi_quat import Grid, GridValueError
 from tfi_quat import generate as gen
+from tfi_quat.case import load_case
 from tfi_quat.generate import _cell_volumes
 
 from conftest import sheared_box
@@ -326,3 +331,146 @@ def test_boundary_patches_resolve_and_sit_on_the_walls(small_wing):
     assert pw["walls"][0].range[0] == (lo, hi)
     with pytest.raises(GridValueError, match="unknown generator"):
         gen.boundary_patches("sphere", g)
+
+
+# ----------------------------------------------------------------- shipped grids
+GRIDS = Path(__file__).resolve().parent.parent / "grids"
+
+
+def _samples():
+    spec = importlib.util.spec_from_file_location("make_grids", GRIDS / "make_grids.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+SAMPLES = _samples()
+SMALL_SAMPLES = [n for n in SAMPLES.SAMPLES if not n.startswith("wing")]
+
+
+def test_shipped_files_are_the_recorded_ones():
+    sums = dict(reversed(line.split()) for line in (GRIDS / "SHA256SUMS").read_text().splitlines())
+    assert set(sums) == {f"{n}.x" for n in SAMPLES.SAMPLES}
+    total = 0
+    for name, digest in sums.items():
+        assert SAMPLES.sha256(GRIDS / name) == digest, name
+        total += (GRIDS / name).stat().st_size
+    assert total < 20e6
+    readme = (GRIDS / "README.md").read_text()
+    for n in SAMPLES.SAMPLES:
+        assert f"{n}.x" in readme and f"{n}.toml" in readme
+
+
+@pytest.mark.parametrize("name", SMALL_SAMPLES)
+def test_shipped_small_grids_match_the_generator(name):
+    shipped = tfi_quat.read(GRIDS / f"{name}.x")
+    grid, case = SAMPLES.build(name)
+    assert shipped.ndim == grid.ndim and shipped.dims == grid.dims
+    for a, b in zip(shipped, grid):
+        # equal to round-off (other CPUs may differ in the last bits of sin/cos)
+        assert np.allclose(a.xyz, b.xyz, rtol=0.0, atol=1e-12 * np.abs(b.xyz).max())
+    loaded = load_case(GRIDS / f"{name}.toml")
+    assert loaded.grid == (GRIDS / f"{name}.x").resolve()
+    assert (loaded.walls, loaded.symmetry, loaded.fixed, loaded.motion) == \
+        (case.walls, case.symmetry, case.fixed, case.motion)
+    loaded.check(shipped)
+    for b in shipped:
+        assert _cell_volumes(b.xyz).min() > 0.0
+
+
+def test_shipped_naca0012_is_the_memo_case():
+    case = load_case(GRIDS / "naca0012_c_257x65.toml")
+    assert [str(w) for w in case.walls] == ["1:jmin:65-193,1-1"]
+    g = tfi_quat.read(case.grid)
+    x = g[0].xyz[64:193, 0, 0]
+    assert g.dims == [(257, 65, 1)] and x[:, 0].min() == 0.0 and x[0, 0] == x[-1, 0] == 1.0
+    assert np.array_equal(g[0].xyz[:65, 0], g[0].xyz[192:, 0][::-1])
+
+
+def test_shipped_wing_properties():
+    case = load_case(GRIDS / "wing_ch_475k.toml")
+    g = tfi_quat.read(case.grid)
+    case = case.check(g)
+    params = SAMPLES.SAMPLES["wing_ch_475k"][1]
+    ni, nj = params["ni"], params["nj"]
+    nh = (ni + 1) // 2
+    assert g.ndim == 3 and g.dims == [(ni, nj, 41), (ni, nj, 9), (nh, nj, 25), (25, nh, nj)]
+    assert 0.4e6 < g.npoints < 2e6
+    for n, b in enumerate(g):
+        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+    b1, b2, b3, b4 = (b.xyz for b in g)
+    ih = (ni - 1) // 2
+    assert np.array_equal(b1[:, :, -1], b2[:, :, 0])
+    assert np.array_equal(b2[:ih + 1, :, -1], b3[:, :, 0])
+    assert np.array_equal(b2[ih:, :, -1], b4[0])
+    assert np.array_equal(b3[:, 0, :], b4[:, ::-1, 0].transpose(1, 0, 2))
+    assert np.array_equal(b3[-1], b4[:, 0, :].transpose(1, 0, 2))
+    lo, hi = gen.wing_wall_range(ni)
+    assert case.walls[0].range == ((lo, hi), (0, 40))
+    assert np.array_equal(b1[:lo + 1, 0], b1[hi:, 0][::-1])
+    assert np.all(b1[:, :, 0, 1] == 0.0)
+    # wall orthogonality of the first 10 layers (interior span stations)
+    w = b1[:, 0]
+    n = np.cross(np.gradient(w, axis=0), np.gradient(w, axis=1))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    d = b1[lo:hi + 1, 1:11] - b1[lo:hi + 1, :10]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    cos = np.abs(np.einsum("ijkc,ikc->ijk", d, n[lo:hi + 1]))[:, :, 1:-1]
+    assert np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) <= 0.5
+
+
+# ----------------------------------------------------------------- CLI
+@pytest.fixture
+def cli(monkeypatch):
+    """``tfi_quat.cli.main`` with only this subcommand registered (others live elsewhere)."""
+    from tfi_quat import cli as cli_mod
+    monkeypatch.setattr(cli_mod, "SUBCOMMANDS", {"generate": "._generate"})
+    return cli_mod.main
+
+
+def test_cli_generate_airfoil_with_case(cli, tmp_path, capsys):
+    out, case = tmp_path / "a.x", tmp_path / "sub" / "a.toml"
+    case.parent.mkdir()
+    rc = cli(["generate", "airfoil", "--naca", "4412", "--ni", "97", "--nj", "33", "-o", str(out),
+              "--case", str(case)])
+    assert rc == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1 and "97x33x1" in lines[0] and str(out) in lines[0]
+    assert tfi_quat.read(out) == gen.airfoil("4412", "C", ni=97, nj=33)
+    c = load_case(case)
+    assert c.grid == out.resolve() and [str(w) for w in c.walls] == ["1:jmin:25-73,1-1"]
+    assert 'grid = "../a.x"' in case.read_text()
+
+
+@pytest.mark.parametrize("argv,dims", [
+    (["cylinder", "--ni", "17", "--nj", "9"], [(17, 9, 1)]),
+    (["channel", "--ni", "17", "--nj", "9"], [(17, 9, 1)]),
+    (["two-block", "--ni", "17", "--nj", "9"], [(17, 5, 1), (5, 17, 1)]),
+    (["airfoil", "--topology", "o", "--ni", "65", "--nj", "25", "--blunt-te"], [(65, 25, 1)]),
+    (["wing", "--ni", "65", "--nj", "25", "--nk-wing", "5", "--nk-cap", "3", "--nk-out", "4"],
+     [(65, 25, 5), (65, 25, 3), (33, 25, 4), (4, 33, 25)]),
+])
+def test_cli_generate_every_kind(cli, tmp_path, capsys, argv, dims):
+    out = tmp_path / "g.x"
+    assert cli(["generate", *argv, "-o", str(out), "--case", str(tmp_path / "g.toml")]) == 0
+    assert len(capsys.readouterr().out.strip().splitlines()) == 1
+    g = tfi_quat.read(out)
+    assert g.dims == dims
+    load_case(tmp_path / "g.toml").check(g)
+
+
+def test_cli_refuses_to_overwrite_without_force(cli, tmp_path, capsys):
+    out = tmp_path / "c.x"
+    out.write_bytes(b"keep")
+    assert cli(["generate", "cylinder", "--ni", "9", "--nj", "5", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "exists" in err and "--force" in err and out.read_bytes() == b"keep"
+    assert cli(["generate", "cylinder", "--ni", "9", "--nj", "5", "-o", str(out), "--force"]) == 0
+    assert tfi_quat.read(out) == gen.cylinder(9, 5)
+
+
+def test_cli_reports_bad_parameters(cli, tmp_path, capsys):
+    assert cli(["generate", "airfoil", "--ni", "128", "-o", str(tmp_path / "x.x")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "odd" in err
+    assert not (tmp_path / "x.x").exists()
