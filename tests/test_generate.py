@@ -150,6 +150,15 @@ def test_o_grid_seam_is_bit_identical():
         assert np.array_equal(x[0], x[-1])
 
 
+def test_impossible_parameters_raise_instead_of_folding():
+    # 65 x 17 points from 1e-3 to 20 chords folds cells at the trailing-edge junction;
+    # the generator says so rather than returning folded cells
+    with pytest.raises(GridValueError, match="folded"):
+        gen.airfoil("0012", "C", ni=65, nj=17, first_spacing=1e-3)
+    with pytest.raises(GridValueError, match="folded"):
+        gen.wing(ni=33, nj=17, nk_wing=9, nk_cap=5, nk_out=7, first_spacing=1e-4)
+
+
 def test_airfoil_is_deterministic():
     a = gen.airfoil("4412", "C", ni=97, nj=33)
     b = gen.airfoil("4412", "C", ni=97, nj=33)

@@ -300,6 +300,20 @@ def _cell_volumes(xyz: np.ndarray) -> np.ndarray:
     return vol / 6.0
 
 
+def _checked(grid: Grid, what: str) -> Grid:
+    """Return ``grid`` if every cell is positive, else raise naming the first folded cell."""
+    for n, b in enumerate(grid):
+        v = _cell_volumes(b.xyz)
+        bad = v <= 0.0
+        if bad.any():
+            idx = tuple(int(c) + 1 for c in np.argwhere(bad)[0])
+            raise GridValueError(
+                f"{what}: {int(bad.sum())} folded or degenerate cell(s) in block {n + 1}, first at "
+                f"cell {idx} (1-based); the parameters ask too much of the marcher: use more points "
+                "(ni, nj) or a gentler wall-normal stretching")
+    return grid
+
+
 # --------------------------------------------------------------------------- NACA
 def _naca_digits(naca) -> tuple[float, float, float]:
     s = str(naca).strip()
@@ -458,7 +472,7 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
         curve, _ = _section_curve(naca, n_side, blunt, nb)
         xy = _march2d(curve[None], dist, True, n_ortho, smoothing)[0]
         xy[-1] = xy[0]
-        return Grid([_block2d(xy, "airfoil_O")], ndim=2)
+        return _checked(Grid([_block2d(xy, "airfoil_O")], ndim=2), f"airfoil {naca} O-grid")
     wl = farfield if wake_length is None else _check_pos("wake_length", wake_length)
     nw = (ni - 1) // 4 if n_wake is None else _check_int("n_wake", n_wake, 1)
     n_side2 = ni - 1 - 2 * nw - 2 * nb
@@ -472,7 +486,7 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
     c_curve = np.concatenate([wake[::-1], curve, wake])
     xy = _march2d(c_curve[None], dist, False, n_ortho, smoothing,
                   end_normals=(np.array([0.0, -1.0]), np.array([0.0, 1.0])))[0]
-    return Grid([_block2d(xy, "airfoil_C")], ndim=2)
+    return _checked(Grid([_block2d(xy, "airfoil_C")], ndim=2), f"airfoil {naca} C-grid")
 
 
 def airfoil_wall_range(ni: int, topology="C", n_wake: int | None = None) -> tuple[int, int]:
@@ -595,7 +609,7 @@ def channel(ni: int = 129, nj: int = 49, length: float = 3.0, height: float = 1.
     first_spacing = _check_pos("first_spacing", first_spacing, hi=0.5 * height)
     xy = _channel_points(ni, nj, length, height, bump_height, float(bump_start), float(bump_end),
                          first_spacing)
-    return Grid([_block2d(xy, "channel")], ndim=2)
+    return _checked(Grid([_block2d(xy, "channel")], ndim=2), "channel")
 
 
 def two_block(ni: int = 65, nj: int = 33, length: float = 3.0, height: float = 1.0,
@@ -637,7 +651,8 @@ def two_block(ni: int = 65, nj: int = 33, length: float = 3.0, height: float = 1
     lower = xy[:, :jc + 1]
     upper = xy[:, jc:]                       # (ni, nu): i along, j up
     turned = upper[:, ::-1].transpose(1, 0, 2)   # i' = down (j reversed), j' = along (i)
-    return Grid([_block2d(lower, "lower"), _block2d(np.ascontiguousarray(turned), "upper")], ndim=2)
+    return _checked(Grid([_block2d(lower, "lower"), _block2d(np.ascontiguousarray(turned), "upper")],
+                         ndim=2), "two_block")
 
 
 # --------------------------------------------------------------------------- wing
@@ -870,7 +885,7 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     b4 = g[ih:, :, kc:].transpose(2, 0, 1, 3)
     blocks = [Block(np.asfortranarray(b), name=nm) for b, nm in
               ((b1, "wing"), (b2, "cap"), (b3, "outer_lower"), (b4, "outer_upper"))]
-    return Grid(blocks, ndim=3)
+    return _checked(Grid(blocks, ndim=3), "wing")
 
 
 def wing_wall_range(ni: int, n_wake: int | None = None) -> tuple[int, int]:
