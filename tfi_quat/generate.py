@@ -605,7 +605,8 @@ def channel(ni: int = 129, nj: int = 49, length: float = 3.0, height: float = 1.
     if not 0.0 <= bump_height < 0.5 * height:
         raise GridValueError(f"bump_height must be in [0, height/2), got {bump_height}")
     if not 0.0 < float(bump_start) < float(bump_end) < length:
-        raise GridValueError(f"need 0 < bump_start < bump_end < length, got {bump_start}, {bump_end}, {length}")
+        raise GridValueError(f"need 0 < bump_start < bump_end < length, "
+                             f"got {bump_start}, {bump_end}, {length}")
     first_spacing = _check_pos("first_spacing", first_spacing, hi=0.5 * height)
     xy = _channel_points(ni, nj, length, height, bump_height, float(bump_start), float(bump_end),
                          first_spacing)
@@ -724,7 +725,10 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     round a zero-thickness sheet (collapsed section) to the spanwise far
     field.
 
-    Blocks (1-based as in case files):
+    Blocks (1-based as in case files); i runs from the upper end of the wake
+    cut (outflow, z > 0) upstream, over the upper surface, round the leading
+    edge and back along the lower surface and wake; j outwards; k (blocks
+    1-3) along +y.
 
     1. ``wing``: ``(ni, nj, nk_wing)``, root to tip.  Wall: ``jmin``, i in
        the airfoil range; wake cut: ``jmin`` i in ``1..n_wake+1`` matches
@@ -732,9 +736,9 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     2. ``cap``: ``(ni, nj, nk_cap)``, tip cap.  Wall: ``jmin`` airfoil range
        (its last k line is the collapsed edge); wake cut as block 1;
        ``kmin`` = block 1 ``kmax``.
-    3. ``outer_lower``: ``(ni_half, nj, nk_out)`` beyond the cap, the half
-       of the C with the lower surface (``ni_half = (ni+1)/2``).
-    4. ``outer_upper``: the other half with its axes permuted cyclically,
+    3. ``outer_upper``: ``(ni_half, nj, nk_out)`` beyond the cap, the half
+       of the C on the upper side (``ni_half = (ni+1)/2``).
+    4. ``outer_lower``: the lower half with its axes permuted cyclically,
        ``(nk_out, ni_half, nj)``: its i runs along the span, j round the
        C, k outwards.  Its ``imin`` face is part of block 2's ``kmax``
        (swapped axes); block 3's ``jmin`` matches block 4's ``kmin`` with
@@ -801,7 +805,10 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     span_farfield = _check_pos("span_farfield", span_farfield)
     wake_length = _check_pos("wake_length", wake_length)
     n_ortho = _check_int("n_ortho", n_ortho, 0)
-    m, p, t = _naca_digits(naca)
+    smoothing = float(smoothing)
+    if not 0.0 <= smoothing <= 0.5:
+        raise GridValueError(f"smoothing must be in [0, 0.5], got {smoothing}")
+    t = _naca_digits(naca)[2]
     nw = (ni - 1) // 4 if n_wake is None else _check_int("n_wake", n_wake, 1)
     n_side2 = ni - 1 - 2 * nw
     if n_side2 < 8 or n_side2 % 2:
@@ -884,7 +891,7 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     b3 = g[:ih + 1, :, kc:]
     b4 = g[ih:, :, kc:].transpose(2, 0, 1, 3)
     blocks = [Block(np.asfortranarray(b), name=nm) for b, nm in
-              ((b1, "wing"), (b2, "cap"), (b3, "outer_lower"), (b4, "outer_upper"))]
+              ((b1, "wing"), (b2, "cap"), (b3, "outer_upper"), (b4, "outer_lower"))]
     return _checked(Grid(blocks, ndim=3), "wing")
 
 
