@@ -131,6 +131,33 @@ def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
     assert ds[ile] < 0.5 * ds.mean() and min(ds[0], ds[-1]) < 0.5 * ds.mean()
 
 
+@pytest.mark.parametrize("naca,ni,nj,fs", [("0012", 257, 65, 1e-5), ("0024", 129, 49, 1e-5),
+                                           ("4412", 257, 65, 1e-6)])
+def test_blunt_c_grid(naca, ni, nj, fs):
+    nb = 4
+    g = gen.airfoil(naca, "C", ni=ni, nj=nj, first_spacing=fs, blunt_te=True, n_base=nb)
+    x = g[0].xyz
+    assert _cell_volumes(x).min() > 0.0
+    lo, hi = gen.airfoil_wall_range(ni, "C")
+    # the cut ends at the middle of the base, bit-identical on both sides
+    assert np.array_equal(x[:lo + 1, 0], x[hi:, 0][::-1])
+    base = x[lo:lo + nb + 1, 0, 0]
+    chord = base[-1, :2] - base[0, :2]                          # a straight base, going down
+    rel = base[:, :2] - base[0, :2]
+    assert np.allclose(chord[0] * rel[:, 1] - chord[1] * rel[:, 0], 0.0, atol=1e-15)
+    assert chord[1] < -5e-4
+    # orthogonal everywhere on the wall but on the base, whose ends meet the cut
+    # at concave right angles (no positive grid can leave those orthogonally)
+    assert max_deviation_2d(x[:, :, 0, :2], lo + nb, hi - nb, False) <= 0.5
+
+
+def test_small_c_grids_do_not_fold():
+    # regression: coarse C-grids used to fold cells at the trailing-edge junction
+    for ni, nj, fs in ((33, 9, 1e-5), (65, 17, 1e-4), (49, 13, 1e-3), (97, 25, 1e-3), (65, 17, 1e-3)):
+        g = gen.airfoil("0012", "C", ni=ni, nj=nj, first_spacing=fs)
+        assert _cell_volumes(g[0].xyz).min() > 0.0, (ni, nj, fs)
+
+
 def test_c_grid_wake_cut_is_bit_identical():
     ni, nj, nw = 129, 41, 30
     g = gen.airfoil("4412", "C", ni=ni, nj=nj, n_wake=nw)
@@ -151,10 +178,8 @@ def test_o_grid_seam_is_bit_identical():
 
 
 def test_impossible_parameters_raise_instead_of_folding():
-    # 65 x 17 points from 1e-3 to 20 chords folds cells at the trailing-edge junction;
-    # the generator says so rather than returning folded cells
-    with pytest.raises(GridValueError, match="folded"):
-        gen.airfoil("0012", "C", ni=65, nj=17, first_spacing=1e-3)
+    # a wing with 8 intervals per section side and 17 points outwards folds cells;
+    # the generator says so rather than returning them
     with pytest.raises(GridValueError, match="folded"):
         gen.wing(ni=33, nj=17, nk_wing=9, nk_cap=5, nk_out=7, first_spacing=1e-4)
 
@@ -172,7 +197,6 @@ def test_airfoil_is_deterministic():
     (dict(first_spacing=0.1), "first_spacing"),
     (dict(first_spacing=-1.0), "first_spacing"),
     (dict(farfield=1.0), "farfield"),
-    (dict(blunt_te=True), "topology='O'"),
     (dict(n_wake=63, ni=129), "even"),
     (dict(naca="00120"), "naca"),
     (dict(smoothing=0.9), "smoothing"),

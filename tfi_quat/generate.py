@@ -163,7 +163,14 @@ def _limited(lap: np.ndarray, nrm: np.ndarray, eps: float, dh: float) -> np.ndar
 
 
 def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> np.ndarray:
-    """Per point: a quarter of the distance at which straight extrusion folds a neighbour cell."""
+    """Per point: how far straight extrusion along the wall normal is safe.
+
+    A quarter of the distance at which the straight lines from a point and
+    a neighbour would cross (concave spots).  On open curves (C-grids,
+    whose wake junction is concave and whose wake spacing grows fast) also
+    at most twice the local point spacing, so that the points round the
+    junction switch to marching together.
+    """
     e = wall[:, 1:] - wall[:, :-1]
     dn = n0[:, 1:] - n0[:, :-1]
     conv = -np.einsum("bij,bij->bi", dn, e)
@@ -174,7 +181,12 @@ def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> np.ndarra
     out[:, 1:] = np.minimum(out[:, 1:], dstar)
     if closed:
         out[:, 0] = out[:, -1] = np.minimum(out[:, 0], out[:, -1])
-    return 0.25 * out
+        return 0.25 * out
+    seg = np.sqrt(ll)
+    loc = np.full(wall.shape[:2], np.inf)
+    loc[:, :-1] = np.minimum(loc[:, :-1], seg)
+    loc[:, 1:] = np.minimum(loc[:, 1:], seg)
+    return np.minimum(0.25 * out, 2.0 * loc)
 
 
 def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
@@ -413,7 +425,7 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
     topology : {"C", "O"}
         C-grid: i runs from the lower end of the wake cut (outflow) along the
         wake, clockwise round the airfoil and back along the wake; the wake cut
-        ``jmin[0:n_wake]`` matches ``jmin[ni-n_wake-1:]`` reversed, bit for bit.
+        ``jmin[0:n_wake+1]`` matches ``jmin[ni-n_wake-1:]`` reversed, bit for bit.
         O-grid: i runs clockwise from the trailing edge (base middle when
         blunt); ``imin`` and ``imax`` are the same line (periodic seam).
     ni, nj : int
@@ -427,7 +439,10 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
         ``farfield``).
     blunt_te : bool
         Blunt trailing edge (original NACA thickness polynomial, base closed
-        by a straight segment with ``2 * n_base`` intervals); O-grids only.
+        by a straight segment with ``2 * n_base`` intervals).  C-grid: the
+        wake cut starts at the middle of the base; the base points next to
+        it sit in concave right-angle corners and cannot leave the wall
+        orthogonally (every other wall point does).
     n_wake : int, optional
         C-grid: intervals along each side of the wake (default ``(ni-1)//4``).
     n_base : int
@@ -460,9 +475,6 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
     if not 0.0 <= smoothing <= 0.5:
         raise GridValueError(f"smoothing must be in [0, 0.5], got {smoothing}")
     blunt = bool(blunt_te)
-    if blunt and topo == "C":
-        raise GridValueError("blunt_te=True needs topology='O': the C-grid marcher does not "
-                             "resolve the concave corners where a wake cut meets a blunt base")
     nb = _check_int("n_base", n_base, 1) if blunt else 0
     dist = geometric_spacing(nj - 1, farfield, first_spacing)
     if topo == "O":
