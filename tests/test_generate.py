@@ -177,11 +177,22 @@ def test_o_grid_seam_is_bit_identical():
         assert np.array_equal(x[0], x[-1])
 
 
-def test_impossible_parameters_raise_instead_of_folding():
-    # a wing with 8 intervals per section side and 17 points outwards folds cells;
-    # the generator says so rather than returning them
-    with pytest.raises(GridValueError, match="folded"):
-        gen.wing(ni=33, nj=17, nk_wing=9, nk_cap=5, nk_out=7, first_spacing=1e-4)
+def test_folded_cells_are_reported_not_returned():
+    xyz = np.zeros((4, 3, 1, 3), order="F")
+    xyz[..., 0] = np.arange(4.0)[:, None, None]
+    xyz[..., 1] = np.arange(3.0)[None, :, None]
+    assert gen._checked(Grid([xyz], ndim=2), "test") is not None
+    xyz[2, 1, 0, 0] = -0.5                     # pull a point back over two neighbours
+    with pytest.raises(GridValueError, match=r"test: 2 folded .* block 1, first at cell \(2, 1\)"):
+        gen._checked(Grid([xyz], ndim=2), "test")
+
+
+def test_small_wings_do_not_fold():
+    # regression: coarse wings used to twist hexahedra near the tip (3-D normal correction
+    # larger than the span spacing)
+    for ni, nj, fs in ((33, 13, 1e-3), (49, 17, 1e-4), (33, 21, 1e-5)):
+        g = gen.wing(ni=ni, nj=nj, nk_wing=5, nk_cap=3, nk_out=4, first_spacing=fs)
+        assert min(_cell_volumes(b.xyz).min() for b in g) > 0.0
 
 
 def test_airfoil_is_deterministic():

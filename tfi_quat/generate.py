@@ -895,6 +895,13 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     bj = bj * np.minimum(1.0, dist[min(n_ortho, nj - 1)] / np.maximum(dist, 1e-300))
     corr = (wk[None, None, :, None] * (bj * dist)[None, :, None, None]) * (n3 - n2)[:, None, :, :]
     corr[:, 0] = 0.0
+    # never shift a point by more than half the span spacing at its station,
+    # or neighbouring stations' hexahedra twist (only bites on coarse grids)
+    dy = np.diff(y)
+    dyk = np.minimum(np.concatenate([dy[:1], dy]), np.concatenate([dy, dy[-1:]]))
+    size = np.linalg.norm(corr, axis=-1, keepdims=True)
+    lim = 0.5 * dyk[None, None, :, None]
+    corr *= np.minimum(1.0, lim / np.maximum(size, 1e-300))
     g += corr
 
     ih = (ni - 1) // 2
