@@ -37,8 +37,8 @@ SAMPLES = {
         "two-block", dict(ni=65, nj=33, length=3.0, height=1.0, bump_height=0.1, first_spacing=2e-3),
         None,
         "two blocks, interface with swapped index axes, one block with a wall"),
-    "wing_ch_475k": (
-        "wing", dict(naca="0012", aspect_ratio=4.0, taper=0.5, sweep=30.0, ni=129, nj=49, nk_wing=41,
+    "wing_ch_501k": (
+        "wing", dict(naca="0012", aspect_ratio=4.0, taper=0.5, sweep=30.0, ni=129, nj=49, nk_wing=45,
                      nk_cap=9, nk_out=25, first_spacing=2e-5, farfield=15.0, span_farfield=10.0),
         dict(deformation="bend", amplitude=0.15, span_axis=[0.0, 1.0, 0.0], span=1.5,
              direction=[0.0, 0.0, 1.0]),
@@ -85,4 +85,5 @@ def main(names) -> int:
 
 
 if __name__ == "__main__":
+    sys.path.insert(0, str(HERE.parent))      # the checkout's tfi_quat, installed or not
     sys.exit(main(sys.argv[1:]))

@@ -432,13 +432,13 @@ def test_shipped_naca0012_is_the_memo_case():
 
 
 def test_shipped_wing_properties():
-    case = load_case(GRIDS / "wing_ch_475k.toml")
+    case = load_case(GRIDS / "wing_ch_501k.toml")
     g = tfi_quat.read(case.grid)
     case = case.check(g)
-    params = SAMPLES.SAMPLES["wing_ch_475k"][1]
+    params = SAMPLES.SAMPLES["wing_ch_501k"][1]
     ni, nj = params["ni"], params["nj"]
     nh = (ni + 1) // 2
-    assert g.ndim == 3 and g.dims == [(ni, nj, 41), (ni, nj, 9), (nh, nj, 25), (25, nh, nj)]
+    assert g.ndim == 3 and g.dims == [(ni, nj, 45), (ni, nj, 9), (nh, nj, 25), (25, nh, nj)]
     assert 0.4e6 < g.npoints < 2e6
     for n, b in enumerate(g):
         assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
@@ -450,7 +450,7 @@ def test_shipped_wing_properties():
     assert np.array_equal(b3[:, 0, :], b4[:, ::-1, 0].transpose(1, 0, 2))
     assert np.array_equal(b3[-1], b4[:, 0, :].transpose(1, 0, 2))
     lo, hi = gen.wing_wall_range(ni)
-    assert case.walls[0].range == ((lo, hi), (0, 40))
+    assert case.walls[0].range == ((lo, hi), (0, 44))
     assert np.array_equal(b1[:lo + 1, 0], b1[hi:, 0][::-1])
     assert np.all(b1[:, :, 0, 1] == 0.0)
     # wall orthogonality of the first 10 layers (interior span stations)

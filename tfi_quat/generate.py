@@ -724,7 +724,7 @@ def _stations(n, a, b, first_at_b=None, first_at_a=None):
 
 
 def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: float = 30.0,
-         ni: int = 129, nj: int = 49, nk_wing: int = 41, nk_cap: int = 9, nk_out: int = 25,
+         ni: int = 129, nj: int = 49, nk_wing: int = 45, nk_cap: int = 9, nk_out: int = 25,
          first_spacing: float = 2e-5, farfield: float = 15.0, span_farfield: float = 10.0,
          wake_length: float = 15.0, n_wake: int | None = None, n_ortho: int = 12,
          smoothing: float = 0.3) -> Grid:

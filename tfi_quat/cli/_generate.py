@@ -56,7 +56,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     w = kind("wing", "C-H multiblock grid round a swept, tapered half wing (3-D)")
     w.add_argument("--naca", default="0012")
     _common(w, 129, 49, 2e-5, 15.0)
-    w.add_argument("--nk-wing", type=int, default=41)
+    w.add_argument("--nk-wing", type=int, default=45)
     w.add_argument("--nk-cap", type=int, default=9)
     w.add_argument("--nk-out", type=int, default=25)
     w.add_argument("--aspect-ratio", type=float, default=4.0)
