@@ -136,7 +136,8 @@ class Motion:
             raise CaseError(f"motion.span: must be > 0, got {self.span}")
 
     # dict-like access, for code that treats the motion as a mapping
-    def keys(self):
+    def keys(self) -> list[str]:
+        """Field names, in declaration order."""
         return [f.name for f in fields(self)]
 
     def __getitem__(self, key: str):
@@ -145,6 +146,7 @@ class Motion:
         return getattr(self, key)
 
     def get(self, key: str, default=None):
+        """Field value by name, ``default`` for an unknown name."""
         return getattr(self, key) if key in self.keys() else default
 
     def to_dict(self) -> dict:

@@ -20,7 +20,9 @@ Viscous grids (airfoil, wing) are built in two layers:
 
 C-grid wake cuts and O-grid seams share their wall points by copy, so the two
 sides of a cut are bit-identical; multiblock grids are cut out of one global
-point array, so block interfaces are bit-identical too.
+point array, so block interfaces are bit-identical too.  Every generator
+checks its cells and raises :class:`~tfi_quat.errors.GridValueError` rather
+than return a folded grid.
 """
 
 from __future__ import annotations
