@@ -1,14 +1,89 @@
 """Plot3D grid files: every common variant, detected automatically.
 
-(Skeleton: the variant description below is the contract; reader and writer
-are being written.)
+A Plot3D grid file is a header (the block count, then the dimensions of every
+block) followed by each block's coordinates as whole arrays: all x with i
+fastest, then all y, then (3-D) all z, then optionally an integer IBLANK
+array.  The variants differ in framing and number types; one
+:class:`Plot3DFormat` describes one variant:
+
+=============  =====================================================  ==============
+field          values (detection prefers the first)                   where it counts
+=============  =====================================================  ==============
+encoding       ``binary`` (C stream), ``fortran`` (unformatted,        all
+               sequential, records framed by length markers),
+               ``ascii``
+endian         ``<``, ``>``                                           binary, fortran
+int_size       4, 8 (header integers and IBLANK values)               binary, fortran
+marker_size    4, 8 (Fortran record-length markers)                   fortran
+multiblock     True (block count first), False (no block count)       all
+ndim           3 (``ni nj nk``; x y z), 2 (``ni nj``; x y)             all
+precision      8 (float64), 4 (float32)                               all
+iblank         False, True                                            all
+records        ``block`` (one record per block: x y z [iblank]),      fortran
+               ``coordinate`` (one record per array: x, y, z,
+               [iblank])
+=============  =====================================================  ==============
+
+Fortran files hold the block count in one record and all block dimensions
+in the next (single-block files: one record with the dimensions).
+
+Detection (:func:`detect`) tries every variant left open by the caller's
+overrides: for binary files it parses the header, computes the exact file
+size each variant implies and, for Fortran files, checks every record
+marker; for text files it counts the values.  A variant fits only when the
+sizes add up exactly.  When several fit (possible for tiny grids), the
+preferred values above decide, deterministically; when none fits, the error
+lists what was tried and the closest misses (truncation, a bad record
+marker, a bad dimension), with the block and byte offset.
+
+Binary reads move the file bytes straight into each block's final
+Fortran-order float64 array (``os.preadv`` in chunks, two threads for large
+files); float32 values and the other byte order are converted chunk by
+chunk, so the peak memory stays at the grid's own size plus a few
+megabytes.  ASCII files are parsed in one bulk conversion and written with
+17 significant digits, so float64 values round-trip exactly.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import math
+import os
+import re
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import GridFormatError, GridValueError
+from ..grid import Block, Grid
+from . import register
+from ._atomic import atomic_output, check_target
 
 __all__ = ["Plot3DFormat", "read", "write", "detect"]
+
+#: allowed values of each field, the preferred (most common) value first
+_CHOICES = {
+    "encoding": ("binary", "fortran", "ascii"),
+    "endian": ("<", ">"),
+    "precision": (8, 4),
+    "ndim": (3, 2),
+    "multiblock": (True, False),
+    "iblank": (False, True),
+    "records": ("block", "coordinate"),
+    "int_size": (4, 8),
+    "marker_size": (4, 8),
+}
+#: field order of the detection preference (earlier fields weigh more)
+_PRIORITY = ("encoding", "endian", "int_size", "marker_size", "multiblock", "ndim",
+             "precision", "iblank", "records")
+_ENDIAN_ALIASES = {"<": "<", ">": ">", "little": "<", "big": ">", "l": "<", "b": ">"}
+#: fields that mean nothing for an encoding (kept at their default there)
+_IGNORED = {
+    "binary": ("records", "marker_size"),
+    "ascii": ("endian", "records", "int_size", "marker_size"),
+    "fortran": (),
+}
 
 
 @dataclass(frozen=True)
@@ -23,8 +98,11 @@ class Plot3DFormat:
         ``ascii``: formatted text.
     endian : {"<", ">"}
         Byte order of binary and Fortran files (ignored for ASCII).
+        ``"little"`` and ``"big"`` are accepted.
     precision : {4, 8}
-        Bytes per coordinate value (float32 / float64).
+        Bytes per coordinate value (float32 / float64).  ASCII: 8 writes 17
+        significant digits, 4 writes 9 and a reader given ``precision=4``
+        rounds the values to float32.
     ndim : {2, 3}
         2: ``ni nj`` headers and x, y only; 3: ``ni nj nk`` and x, y, z.
     multiblock : bool
@@ -40,6 +118,11 @@ class Plot3DFormat:
         8 for codes that write 64-bit default integers.
     marker_size : {4, 8}
         Fortran only: bytes per record-length marker.
+
+    Raises
+    ------
+    GridFormatError
+        A field holds a value outside the lists above.
     """
 
     encoding: str = "binary"
@@ -52,5 +135,880 @@ class Plot3DFormat:
     int_size: int = 4
     marker_size: int = 4
 
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            choices = _CHOICES[f.name]
+            if isinstance(choices[0], str):
+                ok = isinstance(value, str)
+                if ok:
+                    value = value.strip().lower()
+                    if f.name == "endian":
+                        value = _ENDIAN_ALIASES.get(value, value)
+                    ok = value in choices
+            elif isinstance(choices[0], bool):
+                ok = isinstance(value, (bool, np.bool_))
+                value = bool(value) if ok else value
+            else:
+                ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_)) \
+                    and int(value) in choices
+                value = int(value) if ok else value
+            if not ok:
+                raise GridFormatError(f"Plot3D format: {f.name}={value!r} is not one of "
+                                      f"{', '.join(repr(c) for c in choices)}")
+            object.__setattr__(self, f.name, value)
+
     def replace(self, **changes) -> "Plot3DFormat":
+        """A copy with some fields changed (unknown field names raise GridFormatError)."""
+        _check_names(changes, "Plot3D format")
         return replace(self, **changes)
+
+    def canonical(self) -> "Plot3DFormat":
+        """The same variant with the fields its encoding ignores set to their defaults."""
+        return replace(self, **{n: _DEFAULT_VALUES[n] for n in _IGNORED[self.encoding]})
+
+    def describe(self) -> str:
+        """One line for people, e.g. ``Fortran unformatted, big-endian, float64, 3-D, ...``."""
+        enc = {"binary": "C binary", "fortran": "Fortran unformatted", "ascii": "ASCII"}[self.encoding]
+        parts = [enc]
+        if self.encoding != "ascii":
+            parts.append("little-endian" if self.endian == "<" else "big-endian")
+        parts += [f"float{8 * self.precision}", f"{self.ndim}-D",
+                  "multi-block" if self.multiblock else "single-block",
+                  "iblank" if self.iblank else "no iblank"]
+        if self.encoding != "ascii":
+            parts.append(f"int{8 * self.int_size}")
+        if self.encoding == "fortran":
+            parts += [f"{self.marker_size}-byte markers",
+                      "one record per block" if self.records == "block" else
+                      "one record per coordinate"]
+        return ", ".join(parts)
+
+    def _key(self) -> tuple:
+        c = self.canonical()
+        return tuple(_CHOICES[n].index(getattr(c, n)) for n in _PRIORITY)
+
+
+_DEFAULT_VALUES = {f.name: f.default for f in fields(Plot3DFormat)}
+_FIELD_NAMES = tuple(_DEFAULT_VALUES)
+
+
+def _check_names(kw, what) -> None:
+    bad = [k for k in kw if k not in _FIELD_NAMES]
+    if bad:
+        raise GridFormatError(f"{what}: unknown option(s) {', '.join(map(repr, bad))}; "
+                              f"expected Plot3D format fields: {', '.join(_FIELD_NAMES)}")
+
+
+# ---------------------------------------------------------------- layout
+
+class _Miss(Exception):
+    """One variant does not fit the file: ``rank`` (lower = more plausible) and why."""
+
+    def __init__(self, rank: int, msg: str, distance: float = 0.0):
+        super().__init__(msg)
+        self.rank = rank
+        self.msg = msg
+        self.distance = distance
+
+
+@dataclass
+class _BlockLayout:
+    dims: tuple            # (ni, nj, nk)
+    npoints: int
+    runs: list             # [(file offset, first value index in xyz flat, count)]
+    iblank: int | None     # file offset of the IBLANK array
+    markers: list          # [(file offset, expected record length)]
+    start: int
+    end: int
+
+
+def _layout(fmt: Plot3DFormat, dims) -> tuple[int, list[_BlockLayout], int, list]:
+    """File offsets of every array and record marker of ``fmt`` with these block dims.
+
+    Returns ``(header_end, blocks, total_size, header_markers)``.
+    """
+    ms = fmt.marker_size if fmt.encoding == "fortran" else 0
+    isz, prec, nd = fmt.int_size, fmt.precision, fmt.ndim
+    off = 0
+    markers: list = []
+
+    def record(length):
+        nonlocal off
+        if ms:
+            markers.append((off, length))
+            markers.append((off + ms + length, length))
+        start = off + ms
+        off = start + length + ms
+        return start
+
+    if fmt.multiblock:
+        record(isz)
+    record(isz * nd * len(dims))
+    header_end, header_markers = off, markers
+    blocks = []
+    for d in dims:
+        markers = []
+        n = d[0] * d[1] * d[2]
+        start = off
+        if fmt.encoding == "fortran" and fmt.records == "coordinate":
+            runs = [(record(n * prec), c * n, n) for c in range(nd)]
+            ib = record(n * isz) if fmt.iblank else None
+        else:
+            s = record(n * (nd * prec + (isz if fmt.iblank else 0)))
+            runs = [(s, 0, nd * n)]
+            ib = s + nd * n * prec if fmt.iblank else None
+        blocks.append(_BlockLayout(tuple(d), n, runs, ib, markers, start, off))
+    return header_end, blocks, off, header_markers
+
+
+def _int_dtype(fmt) -> np.dtype:
+    return np.dtype(f"{fmt.endian}i{fmt.int_size}")
+
+
+def _float_dtype(fmt) -> np.dtype:
+    return np.dtype(f"{fmt.endian}f{fmt.precision}")
+
+
+def _pread(fd, nbytes: int, offset: int) -> bytes:
+    return os.pread(fd, nbytes, offset)
+
+
+def _read_ints(fd, size, offset, count, dtype) -> np.ndarray:
+    raw = _pread(fd, count * dtype.itemsize, offset)
+    if len(raw) != count * dtype.itemsize:
+        raise _Miss(3, f"header at byte offset {offset} runs past the end of the file ({size} bytes)")
+    return np.frombuffer(raw, dtype=dtype).astype(np.int64)
+
+
+def _check_marker(fd, size, offset, expected, ms, endian, where, rank):
+    raw = _pread(fd, ms, offset)
+    if len(raw) != ms:
+        raise _Miss(rank, f"{where}: record marker at byte offset {offset} is past the end of the "
+                          f"file ({size} bytes): the file is truncated")
+    got = int(np.frombuffer(raw, dtype=f"{endian}i{ms}")[0])
+    if got != expected:
+        raise _Miss(rank, f"{where}: inconsistent Fortran record marker at byte offset {offset}: "
+                          f"reads {got}, the record holds {expected} bytes")
+
+
+def _parse_header(fd, size: int, fmt: Plot3DFormat) -> list[tuple[int, int, int]]:
+    """Block dims of a binary/Fortran file read as ``fmt`` (only its framing fields count)."""
+    it = _int_dtype(fmt)
+    isz, nd = fmt.int_size, fmt.ndim
+    ms = fmt.marker_size if fmt.encoding == "fortran" else 0
+    off = 0
+    if fmt.multiblock:
+        if ms:
+            # the first marker decides whether this framing is plausible at all
+            first = _pread(fd, ms, 0)
+            if len(first) < ms or int(np.frombuffer(first, f"{fmt.endian}i{ms}")[0]) != isz:
+                raise _Miss(4, "first record marker does not frame a block count")
+            _check_marker(fd, size, ms + isz, isz, ms, fmt.endian, "header", 1)
+        nb = int(_read_ints(fd, size, off + ms, 1, it)[0])
+        off += isz + 2 * ms
+        need = off + ms + nb * nd * isz + ms
+        if nb < 1 or need > size:
+            rank = 1 if ms else (2 if -(1 << 20) < nb < 1 else 3)
+            raise _Miss(rank, f"header: block count {nb} at byte offset {ms} "
+                              + ("must be >= 1" if nb < 1 else
+                                 f"needs a {need}-byte header, the file has {size} bytes"))
+    else:
+        nb = 1
+    if ms:
+        raw = _pread(fd, ms, off)
+        lead = int(np.frombuffer(raw, f"{fmt.endian}i{ms}")[0]) if len(raw) == ms else None
+        if lead != nb * nd * isz:
+            rank = 1 if fmt.multiblock else 4
+            raise _Miss(rank, f"header: the dimensions record marker at byte offset {off} reads "
+                              f"{lead}, expected {nb * nd * isz} ({nb} block(s) x {nd} x {isz} bytes)")
+        _check_marker(fd, size, off + ms + nb * nd * isz, nb * nd * isz, ms, fmt.endian,
+                      "header", 1)
+    doff = off + ms
+    vals = _read_ints(fd, size, doff, nb * nd, it).reshape(nb, nd)
+    bad = np.argwhere((vals < 1) | (vals >= (1 << 31)))
+    if bad.size:
+        b, c = (int(v) for v in bad[0])
+        v = int(vals[b, c])
+        plausible = bool(np.all((vals > -(1 << 20)) & (vals <= size)))
+        rank = 1 if ms else (2 if plausible else 3)
+        raise _Miss(rank, f"header: block {b + 1} dimension {'ijk'[c]} = {v} at byte offset "
+                          f"{doff + (b * nd + c) * isz} " + ("must be >= 1" if v < 1 else "is too large"))
+    if nd == 2:
+        vals = np.concatenate([vals, np.ones((nb, 1), dtype=np.int64)], axis=1)
+    return [tuple(int(v) for v in row) for row in vals]
+
+
+def _check_layout(fd, size: int, fmt: Plot3DFormat, dims, header_rank: int):
+    """Check that ``fmt`` with these dims accounts for every byte (and marker) of the file."""
+    header_end, blocks, total, _ = _layout(fmt, dims)
+    if total != size:
+        if total > size:
+            cut = next(n for n, b in enumerate(blocks) if b.end > size)
+            b = blocks[cut]
+            msg = (f"the file is truncated: block {cut + 1} of {len(blocks)} "
+                   f"({'x'.join(map(str, b.dims[:fmt.ndim]))}) occupies byte offsets "
+                   f"{b.start}..{b.end}, but the file ends at byte offset {size} "
+                   f"(the header claims {sum(x.npoints for x in blocks)} points, {total} bytes)")
+        else:
+            msg = (f"{size - total} unexpected bytes after the last block "
+                   f"(block {len(blocks)} ends at byte offset {total}, the file has {size} bytes)")
+        raise _Miss(header_rank + 1, msg, abs(math.log(max(total, 1) / size)))
+    if fmt.encoding == "fortran":
+        ms = fmt.marker_size
+        for n, b in enumerate(blocks):
+            for off, length in b.markers:
+                _check_marker(fd, size, off, length, ms, fmt.endian, f"block {n + 1}", 0)
+    return blocks
+
+
+def _framings(fixed: dict) -> list[Plot3DFormat]:
+    """Every binary/Fortran framing (fields fixing the header) compatible with ``fixed``."""
+    out = []
+    for enc in ("binary", "fortran"):
+        for endian in _CHOICES["endian"]:
+            for isz in _CHOICES["int_size"]:
+                for ms in (_CHOICES["marker_size"] if enc == "fortran" else (4,)):
+                    for mb in _CHOICES["multiblock"]:
+                        for nd in _CHOICES["ndim"]:
+                            f = Plot3DFormat(encoding=enc, endian=endian, int_size=isz,
+                                             marker_size=ms, multiblock=mb, ndim=nd)
+                            if _compatible(f, fixed, ("encoding", "endian", "int_size",
+                                                      "marker_size", "multiblock", "ndim")):
+                                out.append(f)
+    return out
+
+
+def _completions(framing: Plot3DFormat, fixed: dict) -> list[Plot3DFormat]:
+    out = []
+    recs = _CHOICES["records"] if framing.encoding == "fortran" else ("block",)
+    for prec in _CHOICES["precision"]:
+        for ib in _CHOICES["iblank"]:
+            for rec in recs:
+                f = framing.replace(precision=prec, iblank=ib, records=rec)
+                if _compatible(f, fixed, ("precision", "iblank", "records")):
+                    out.append(f)
+    return out
+
+
+def _compatible(f: Plot3DFormat, fixed: dict, names) -> bool:
+    ignored = _IGNORED[f.encoding]
+    return all(getattr(f, n) == fixed[n] for n in names if n in fixed and n not in ignored)
+
+
+def _summary(tried: list[Plot3DFormat]) -> str:
+    parts = []
+    for n in _PRIORITY:
+        vals = sorted({getattr(t, n) for t in tried if n not in _IGNORED[t.encoding]},
+                      key=lambda v: _CHOICES[n].index(v))
+        if vals:
+            parts.append(f"{n} in {{{', '.join(map(str, vals))}}}")
+    return f"{len(tried)} variant(s): " + "; ".join(parts)
+
+
+def _no_fit(path, size, tried, misses, what="") -> GridFormatError:
+    """The error for a file no variant fits; ``misses``: (rank, framing key, distance, key, msg, fmt)."""
+    misses = sorted(misses, key=lambda m: m[:4])
+    if len(tried) == 1 and misses:
+        return GridFormatError(f"{path}: not a {tried[0].describe()} Plot3D file: {misses[0][4]}")
+    shown = [f"  as {m[5].describe()}: {m[4]}" for m in misses if m[0] <= 2][:3]
+    text = f"{path}: no Plot3D variant fits this {size}-byte file{what}; tried {_summary(tried)}"
+    if shown:
+        text += ". Closest:\n" + "\n".join(shown)
+    return GridFormatError(text)
+
+
+def _looks_like_text(fd, size) -> bool:
+    head = _pread(fd, min(size, 1 << 16), 0)
+    return not head.translate(None, _TEXT_BYTES)
+
+
+_TEXT_BYTES = bytes(range(0x20, 0x7F)) + b"\t\n\r\f\v"
+
+
+def _detect_binary(fd, size, path, fixed):
+    tried, misses, fits = [], [], []
+    for fr in _framings(fixed):
+        comps = _completions(fr, fixed)
+        tried += comps
+        try:
+            dims = _parse_header(fd, size, fr)
+        except _Miss as m:
+            misses.append((m.rank, fr._key(), 0.0, fr._key(), m.msg, fr))
+            continue
+        header_rank = 0 if fr.encoding == "fortran" else 1
+        for f in comps:
+            try:
+                blocks = _check_layout(fd, size, f, dims, header_rank)
+            except _Miss as m:
+                misses.append((m.rank, fr._key(), m.distance, f._key(), m.msg, f))
+                continue
+            fits.append((f._key(), f, dims, blocks))
+    if not fits:
+        raise _no_fit(path, size, tried, misses)
+    fits.sort(key=lambda t: t[0])
+    return fits[0][1:], [f[1] for f in fits]
+
+
+# ---------------------------------------------------------------- binary read
+
+_CHUNK = 1 << 18            # values per read/convert/check chunk (2 MiB of float64)
+_PARALLEL_BYTES = 32 << 20  # files larger than this are read with two threads
+
+
+def _pread_into(fd, buf: memoryview, offset: int) -> int:
+    done = 0
+    while done < len(buf):
+        k = os.preadv(fd, [buf[done:]], offset + done)
+        if k <= 0:
+            break
+        done += k
+    return done
+
+
+def _read_task(fd, task):
+    """Read one chunk into its destination; return a problem tuple or None."""
+    offset, dest, fdtype, check, first = task
+    need = dest.shape[0] * fdtype.itemsize
+    if fdtype == dest.dtype or fdtype.newbyteorder("=") == dest.dtype:
+        got = _pread_into(fd, memoryview(dest).cast("B"), offset)
+        if got != need:
+            return ("short", offset + got, None)
+        if fdtype != dest.dtype:
+            dest.byteswap(inplace=True)
+    else:
+        tmp = np.empty(dest.shape[0], dtype=fdtype)
+        got = _pread_into(fd, memoryview(tmp).cast("B"), offset)
+        if got != need:
+            return ("short", offset + got, None)
+        if dest.dtype.kind == "i" and (tmp.min() < -(1 << 31) or tmp.max() >= (1 << 31)):
+            bad = int(np.argmax((tmp < -(1 << 31)) | (tmp >= (1 << 31))))
+            return ("range", first + bad, int(tmp[bad]))
+        dest[...] = tmp
+    if check and not np.isfinite(np.add.reduce(dest)):
+        bad = ~np.isfinite(dest)
+        if bad.any():
+            return ("nonfinite", first + int(np.argmax(bad)), None)
+    return None
+
+
+def _read_blocks(fd, path, fmt, blocks, allow_nonfinite) -> list[Block]:
+    fdt, idt = _float_dtype(fmt), _int_dtype(fmt)
+    out, tasks = [], []
+    for n, b in enumerate(blocks):
+        ni, nj, nk = b.dims
+        xyz = np.empty((ni, nj, nk, 3), dtype=np.float64, order="F")
+        flat = xyz.reshape(-1, order="F")
+        if fmt.ndim == 2:
+            flat[2 * b.npoints:] = 0.0
+        ib = np.empty((ni, nj, nk), dtype=np.int32, order="F") if fmt.iblank else None
+        out.append((xyz, ib))
+        for off, v0, count in b.runs:
+            for s in range(0, count, _CHUNK):
+                e = min(count, s + _CHUNK)
+                tasks.append((n, "xyz", off + s * fmt.precision, v0 + s,
+                              (off + s * fmt.precision, flat[v0 + s:v0 + e], fdt,
+                               not allow_nonfinite, v0 + s)))
+        if ib is not None:
+            ibf = ib.reshape(-1, order="F")
+            for s in range(0, b.npoints, _CHUNK):
+                e = min(b.npoints, s + _CHUNK)
+                tasks.append((n, "iblank", b.iblank + s * fmt.int_size, s,
+                              (b.iblank + s * fmt.int_size, ibf[s:e], idt, False, s)))
+    total = sum(t[4][1].nbytes for t in tasks)
+    nthreads = min(2, os.cpu_count() or 1) if total > _PARALLEL_BYTES else 1
+    if nthreads > 1:
+        with ThreadPoolExecutor(nthreads) as pool:
+            results = list(pool.map(lambda t: _read_task(fd, t[4]), tasks))
+    else:
+        results = [_read_task(fd, t[4]) for t in tasks]
+    for t, r in zip(tasks, results):
+        if r is None:
+            continue
+        n, kind = t[0], t[1]
+        b = blocks[n]
+        where = f"{path}: block {n + 1} of {len(blocks)}"
+        if r[0] == "short":
+            raise GridFormatError(f"{where}: the file ended at byte offset {r[1]} while reading "
+                                  f"its {kind} values (truncated while being read?)")
+        if r[0] == "range":
+            raise GridFormatError(f"{where}: IBLANK value {r[2]} at byte offset "
+                                  f"{b.iblank + r[1] * fmt.int_size} does not fit a 32-bit integer")
+        idx = r[1]
+        c, rem = divmod(idx, b.npoints)
+        ni, nj, _ = b.dims
+        i, j, k = rem % ni, (rem // ni) % nj, rem // (ni * nj)
+        off = next(o + (idx - v0) * fmt.precision for o, v0, cnt in b.runs if v0 <= idx < v0 + cnt)
+        raise GridFormatError(f"{where}: non-finite coordinate {'xyz'[c]} = {out[n][0][i, j, k, c]} "
+                              f"at (i, j, k) = ({i + 1}, {j + 1}, {k + 1}) (1-based), byte offset "
+                              f"{off} (pass allow_nonfinite=True to accept)")
+    return [Block(xyz, ib, name=f"block{n + 1}", allow_nonfinite=True)
+            for n, (xyz, ib) in enumerate(out)]
+
+
+# ---------------------------------------------------------------- ASCII read
+
+_TOKEN = re.compile(rb"\S+")
+
+
+def _token_position(data: bytes, index: int):
+    """Line (1-based), column (1-based) and text of token number ``index`` (error paths only)."""
+    for n, m in enumerate(_TOKEN.finditer(data)):
+        if n == index:
+            line = data.count(b"\n", 0, m.start()) + 1
+            col = m.start() - (data.rfind(b"\n", 0, m.start()) + 1) + 1
+            return line, col, m.group().decode("ascii", "replace")
+    return None
+
+
+def _parse_text(data: bytes, path) -> np.ndarray:
+    """All whitespace-separated numbers of the file as float64, in one bulk conversion."""
+    try:
+        return np.fromstring(data, dtype=np.float64, sep=" ")
+    except ValueError:
+        pass
+    if re.search(rb"\d[dD][-+]?\d", data):      # Fortran D exponents: 1.5D+00
+        try:
+            return np.fromstring(data.translate(_D_TO_E), dtype=np.float64, sep=" ")
+        except ValueError:
+            pass
+    for n, m in enumerate(_TOKEN.finditer(data)):
+        tok = m.group()
+        try:
+            float(tok.translate(_D_TO_E))
+        except ValueError:
+            line = data.count(b"\n", 0, m.start()) + 1
+            col = m.start() - (data.rfind(b"\n", 0, m.start()) + 1) + 1
+            raise GridFormatError(
+                f"{path}: line {line}, column {col}: non-numeric token "
+                f"{tok[:40].decode('ascii', 'replace')!r} (value number {n + 1}"
+                f"{_ascii_block_hint(data, n)})") from None
+    raise GridFormatError(f"{path}: the text could not be read as numbers")
+
+
+_D_TO_E = bytes.maketrans(b"dD", b"eE")
+
+
+def _ascii_block_hint(data: bytes, index: int) -> str:
+    """Best effort: which block token number ``index`` falls in, from the header (error path only)."""
+    toks = _TOKEN.findall(data)
+    head = []
+    for t in toks[:index]:
+        try:
+            head.append(float(t.translate(_D_TO_E)))
+        except ValueError:
+            return ""
+    vals = np.array(head, dtype=np.float64)
+    for mb in _CHOICES["multiblock"]:
+        for nd in _CHOICES["ndim"]:
+            for ib in _CHOICES["iblank"]:
+                layout = _ascii_layout(vals, mb, nd, ib, len(toks))
+                if layout is None:
+                    continue
+                hend, blocks = layout
+                if index < hend:
+                    return ", in the header"
+                for n, (start, dims, npts) in enumerate(blocks):
+                    if start <= index < start + npts * (nd + ib):
+                        return f", in block {n + 1} of {len(blocks)}"
+    return ""
+
+
+def _ascii_layout(vals: np.ndarray, mb: bool, nd: int, ib: bool, total: int):
+    """Header of a text file read as (multiblock, ndim, iblank): None if the counts do not add up.
+
+    Returns ``(header_end, [(first value index, dims, npoints), ...])``.
+    """
+    if mb:
+        if len(vals) < 1 or not 1 <= vals[0] <= total or vals[0] != int(vals[0]):
+            return None
+        nb, h = int(vals[0]), 1
+    else:
+        nb, h = 1, 0
+    if len(vals) < h + nb * nd or h + nb * nd > total:
+        return None
+    d = vals[h:h + nb * nd]
+    if np.any(d != np.round(d)) or np.any(d < 1) or np.any(d >= 2 ** 31):
+        return None
+    d = d.astype(np.int64).reshape(nb, nd)
+    pos = h + nb * nd
+    blocks = []
+    for row in d:
+        dims = (int(row[0]), int(row[1]), int(row[2]) if nd == 3 else 1)
+        npts = dims[0] * dims[1] * dims[2]
+        blocks.append((pos, dims, npts))
+        pos += npts * (nd + ib)
+        if pos > total:
+            return None
+    return (h + nb * nd, blocks) if pos == total else None
+
+
+def _ascii_candidates(vals, fixed):
+    out = []
+    for mb in _CHOICES["multiblock"]:
+        for nd in _CHOICES["ndim"]:
+            for ib in _CHOICES["iblank"]:
+                f = Plot3DFormat(encoding="ascii", multiblock=mb, ndim=nd, iblank=ib,
+                                 precision=fixed.get("precision", 8))
+                if _compatible(f, fixed, ("multiblock", "ndim", "iblank")):
+                    out.append(f)
+    return out
+
+
+def _ascii_header_error(path, data, vals, fmt) -> str:
+    """Explain why the text does not fit ``fmt`` (error path only)."""
+    total = len(vals)
+    h = 1 if fmt.multiblock else 0
+    if fmt.multiblock:
+        if total < 1 or vals[0] != int(vals[0]) or vals[0] < 1:
+            pos = _token_position(data, 0)
+            return f"line {pos[0] if pos else 1}: block count {vals[0] if total else None} must be an integer >= 1"
+        nb = int(vals[0])
+        if h + nb * fmt.ndim > total:
+            return (f"the header claims {nb} blocks ({h + nb * fmt.ndim} header values), "
+                    f"the file holds {total} values")
+    else:
+        nb = 1
+    if h + nb * fmt.ndim > total:
+        return f"the file holds only {total} values, fewer than the header needs"
+    for n in range(nb * fmt.ndim):
+        v = vals[h + n]
+        if v != round(v) or v < 1 or v >= 2 ** 31:
+            line, col, tok = _token_position(data, h + n)
+            return (f"line {line}: block {n // fmt.ndim + 1} dimension {'ijk'[n % fmt.ndim]} = {tok} "
+                    "must be an integer >= 1")
+    pos = h + nb * fmt.ndim
+    for b in range(nb):
+        d = vals[h + b * fmt.ndim:h + (b + 1) * fmt.ndim].astype(np.int64)
+        npts = int(np.prod(d))
+        end = pos + npts * (fmt.ndim + fmt.iblank)
+        if end > total:
+            last = _token_position(data, total - 1)
+            return (f"the file is truncated: block {b + 1} of {nb} ({'x'.join(map(str, d))}) needs "
+                    f"values {pos + 1}..{end}, the file ends after value {total}"
+                    + (f" (line {last[0]})" if last else ""))
+        pos = end
+    line = _token_position(data, pos)
+    return (f"{total - pos} unexpected values after the last block"
+            + (f", from line {line[0]}" if line else ""))
+
+
+def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
+    data = fh.read()
+    vals = _parse_text(data, path)
+    if vals.size == 0:
+        raise GridFormatError(f"{path}: no numbers in the file")
+    cands = _ascii_candidates(vals, fixed)
+    fits = []
+    for f in cands:
+        lay = _ascii_layout(vals, f.multiblock, f.ndim, f.iblank, len(vals))
+        if lay is not None:
+            fits.append((f._key(), f, lay))
+    if not fits:
+        if len(cands) == 1:
+            raise GridFormatError(f"{path}: not a {cands[0].describe()} Plot3D file: "
+                                  f"{_ascii_header_error(path, data, vals, cands[0])}")
+        misses = [(1, f._key(), 0.0, f._key(), _ascii_header_error(path, data, vals, f), f)
+                  for f in cands]
+        raise _no_fit(path, len(data), cands, misses, f" ({len(vals)} values of text)")
+    fits.sort(key=lambda t: t[0])
+    _, fmt, (hend, layout) = fits[0]
+    if fmt.precision == 4:
+        vals = vals.astype(np.float32).astype(np.float64)
+    nd = fmt.ndim
+    blocks = []
+    for n, (start, dims, npts) in enumerate(layout):
+        xyz = np.zeros(dims + (3,), dtype=np.float64, order="F")
+        flat = xyz.reshape(-1, order="F")
+        flat[:nd * npts] = vals[start:start + nd * npts]
+        where = f"{path}: block {n + 1} of {len(layout)}"
+        if not allow_nonfinite and not np.isfinite(np.add.reduce(flat)):
+            bad = ~np.isfinite(flat)
+            if bad.any():
+                idx = int(np.argmax(bad))
+                line, col, tok = _token_position(data, start + idx)
+                c, rem = divmod(idx, npts)
+                i, j, k = rem % dims[0], (rem // dims[0]) % dims[1], rem // (dims[0] * dims[1])
+                raise GridFormatError(f"{where}: line {line}, column {col}: non-finite coordinate "
+                                      f"{'xyz'[c]} = {tok} at (i, j, k) = ({i + 1}, {j + 1}, {k + 1}) "
+                                      "(1-based) (pass allow_nonfinite=True to accept)")
+        ib = None
+        if fmt.iblank:
+            raw = vals[start + nd * npts:start + (nd + 1) * npts]
+            badi = (raw != np.round(raw)) | (np.abs(raw) >= 2 ** 31) | ~np.isfinite(raw)
+            if badi.any():
+                line, col, tok = _token_position(data, start + nd * npts + int(np.argmax(badi)))
+                raise GridFormatError(f"{where}: line {line}, column {col}: IBLANK value {tok} "
+                                      "is not a 32-bit integer")
+            ib = raw.astype(np.int32).reshape(dims, order="F")
+        blocks.append(Block(xyz, ib, name=f"block{n + 1}", allow_nonfinite=True))
+    return fmt, blocks, [f[1] for f in fits]
+
+
+# ---------------------------------------------------------------- public read
+
+def _fixed_fields(format, overrides) -> tuple[dict, bool]:
+    _check_names(overrides, "Plot3D read")
+    if format is not None:
+        if not isinstance(format, Plot3DFormat):
+            raise GridFormatError(f"format must be a Plot3DFormat, got {type(format).__name__}")
+        fmt = format.replace(**overrides)
+        return {f: getattr(fmt, f) for f in _FIELD_NAMES}, True
+    # validate the override values through the dataclass
+    probe = Plot3DFormat().replace(**overrides)
+    return {k: getattr(probe, k) for k in overrides}, False
+
+
+def _open_and_dispatch(path, format, overrides, allow_nonfinite, load: bool):
+    path = Path(os.fspath(path))
+    fixed, given = _fixed_fields(format, overrides)
+    try:
+        fh = open(path, "rb", buffering=0)
+    except IsADirectoryError:
+        raise GridFormatError(f"{path}: is a directory, not a grid file") from None
+    with fh:
+        fd = fh.fileno()
+        size = os.fstat(fd).st_size
+        if size == 0:
+            raise GridFormatError(f"{path}: the file is empty (0 bytes)")
+        enc = fixed.get("encoding")
+        if enc == "ascii" or (enc is None and _looks_like_text(fd, size)):
+            fmt, blocks, fits = _read_ascii(path, fh, fixed, given, allow_nonfinite)
+            return fmt.canonical(), blocks
+        (fmt, dims, layout), fits = _detect_binary(fd, size, path, fixed)
+        if not load:
+            return fmt.canonical(), None
+        return fmt.canonical(), _read_blocks(fd, path, fmt, layout, allow_nonfinite)
+
+
+def detect(path, **overrides) -> Plot3DFormat:
+    """Detect the Plot3D variant of a file.
+
+    Parameters
+    ----------
+    path : str or path-like
+    **overrides
+        :class:`Plot3DFormat` fields to take as given (e.g. ``endian=">"``);
+        the others are detected.
+
+    Returns
+    -------
+    Plot3DFormat
+        The variant (fields its encoding ignores at their defaults).  When
+        several variants fit the file, the preferred one (see the module
+        docstring).
+
+    Raises
+    ------
+    GridFormatError
+        Empty file, or no variant fits: the message lists what was tried and
+        the closest misses with block and byte offset.
+    """
+    return _open_and_dispatch(path, None, overrides, True, load=False)[0]
+
+
+def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = False,
+         **overrides) -> Grid:
+    """Read a Plot3D grid file of any supported variant.
+
+    Parameters
+    ----------
+    path : str or path-like
+    format : Plot3DFormat, optional
+        Read as exactly this variant (no detection; the file must fit it).
+    allow_nonfinite : bool
+        Accept NaN and infinite coordinates (default: error naming the block).
+    **overrides
+        :class:`Plot3DFormat` fields to take as given; the rest is detected
+        (with ``format``: fields replaced in it).
+
+    Returns
+    -------
+    Grid
+        ``ndim`` from the variant; each block's ``xyz`` float64
+        ``(ni, nj, nk, 3)`` Fortran order (z = 0 and nk = 1 for 2-D files),
+        ``iblank`` int32 ``(ni, nj, nk)`` when the file has one;
+        ``source_format`` the variant, ``source_path`` the path.
+
+    Raises
+    ------
+    GridFormatError
+        Empty, truncated or over-long file, bad dimensions, inconsistent
+        Fortran record markers, a non-numeric token (with its line),
+        non-finite coordinates, or no variant fits; the message names the
+        file, block and byte offset or line.
+    """
+    fmt, blocks = _open_and_dispatch(path, format, overrides, allow_nonfinite, load=True)
+    return Grid(blocks, fmt.ndim, source_format=fmt, source_path=path)
+
+
+# ---------------------------------------------------------------- write
+
+def _resolve_write_format(grid: Grid, like, options) -> Plot3DFormat:
+    _check_names(options, "Plot3D write")
+    if like is None:
+        base = grid.source_format if isinstance(grid.source_format, Plot3DFormat) else Plot3DFormat()
+    elif isinstance(like, Plot3DFormat):
+        base = like
+    elif isinstance(getattr(like, "source_format", None), Plot3DFormat):
+        base = like.source_format
+    else:
+        raise GridFormatError(f"like= must be a Plot3DFormat or a grid read from a Plot3D file, "
+                              f"got {type(like).__name__}")
+    opts = dict(options)
+    opts.setdefault("ndim", grid.ndim)
+    opts.setdefault("iblank", grid.has_iblank)
+    return base.replace(**opts)
+
+
+def write(path, grid: Grid, *, like: Plot3DFormat | None = None, overwrite: bool = False,
+          **options) -> None:
+    """Write a grid as a Plot3D file, atomically.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Target file; written to a temporary file in its folder and renamed
+        into place.
+    grid : Grid
+    like : Plot3DFormat or Grid, optional
+        Variant to write (default: ``grid.source_format`` when it is a
+        Plot3D variant, else C binary little-endian float64 multi-block).
+    overwrite : bool
+        Allow writing over ``grid.source_path``.
+    **options
+        :class:`Plot3DFormat` fields overriding ``like`` (``encoding``,
+        ``endian``, ``precision``, ``ndim``, ``multiblock``, ``iblank``,
+        ``records``, ``int_size``, ``marker_size``).  ``ndim`` defaults to
+        ``grid.ndim``, ``iblank`` to ``grid.has_iblank`` (blocks without
+        IBLANK are written as all 1).
+
+    Raises
+    ------
+    GridFormatError
+        Unknown option, several blocks in a single-block variant, a 3-D grid
+        written as 2-D (unless nk == 1 and z == 0 everywhere), a Fortran
+        record too long for its markers.
+    OverwriteError
+        ``path`` is the grid's own input file and ``overwrite`` is False.
+    """
+    if not isinstance(grid, Grid):
+        raise GridValueError(f"write needs a Grid, got {type(grid).__name__}")
+    fmt = _resolve_write_format(grid, like, options)
+    if not fmt.multiblock and len(grid) > 1:
+        raise GridFormatError(f"{path}: a single-block Plot3D variant cannot hold {len(grid)} blocks "
+                              "(write with multiblock=True)")
+    if fmt.ndim == 2:
+        for n, b in enumerate(grid):
+            if b.dims[2] != 1 or np.any(b.xyz[..., 2]):
+                raise GridFormatError(f"{path}: block {n + 1} is 3-D (nk = {b.dims[2]}, or z != 0); "
+                                      "it cannot be written as a 2-D Plot3D file")
+    if fmt.encoding == "fortran":
+        limit = (1 << (8 * fmt.marker_size - 1)) - 1
+        _, layouts, _, _ = _layout(fmt, [b.dims for b in grid])
+        for n, lay in enumerate(layouts):
+            longest = max(length for _, length in lay.markers)
+            if longest > limit:
+                raise GridFormatError(f"{path}: block {n + 1} needs a Fortran record of {longest} "
+                                      f"bytes, more than {fmt.marker_size}-byte markers can frame; "
+                                      "write with marker_size=8 or records='coordinate'")
+    target = check_target(path, overwrite=overwrite, protect=[grid.source_path])
+    if fmt.encoding == "ascii":
+        with atomic_output(target, "w") as fh:
+            _write_ascii(fh, grid, fmt)
+    else:
+        with atomic_output(target, "wb") as fh:
+            _write_binary(fh, grid, fmt)
+
+
+def _write_array(fh, arr: np.ndarray, dtype: np.dtype) -> None:
+    """Write a contiguous 1-D array as ``dtype``, converting chunk by chunk when needed."""
+    if arr.dtype == dtype:
+        fh.write(memoryview(arr).cast("B"))
+        return
+    for s in range(0, arr.shape[0], _CHUNK):
+        fh.write(memoryview(arr[s:s + _CHUNK].astype(dtype)).cast("B"))
+
+
+def _write_binary(fh, grid: Grid, fmt: Plot3DFormat) -> None:
+    nd = fmt.ndim
+    dims = [b.dims[:nd] for b in grid]
+    ms = fmt.marker_size if fmt.encoding == "fortran" else 0
+    mdt = np.dtype(f"{fmt.endian}i{ms}") if ms else None
+    idt, fdt = _int_dtype(fmt), _float_dtype(fmt)
+
+    def marker(length):
+        if ms:
+            fh.write(np.array([length], dtype=mdt).tobytes())
+
+    if fmt.multiblock:
+        marker(fmt.int_size)
+        fh.write(np.array([len(grid)], dtype=idt).tobytes())
+        marker(fmt.int_size)
+    header = np.array(dims, dtype=idt).reshape(-1)
+    marker(header.nbytes)
+    fh.write(header.tobytes())
+    marker(header.nbytes)
+    for b in grid:
+        n = b.npoints
+        flat = b.xyz.reshape(-1, order="F")
+        if b.iblank is not None:
+            ib = b.iblank.reshape(-1, order="F")
+        else:
+            ib = np.ones(n, dtype=np.int32)
+        if fmt.encoding == "fortran" and fmt.records == "coordinate":
+            for c in range(nd):
+                marker(n * fmt.precision)
+                _write_array(fh, flat[c * n:(c + 1) * n], fdt)
+                marker(n * fmt.precision)
+            if fmt.iblank:
+                marker(n * fmt.int_size)
+                _write_array(fh, ib, idt)
+                marker(n * fmt.int_size)
+        else:
+            length = n * (nd * fmt.precision + (fmt.int_size if fmt.iblank else 0))
+            marker(length)
+            _write_array(fh, flat[:nd * n], fdt)
+            if fmt.iblank:
+                _write_array(fh, ib, idt)
+            marker(length)
+
+
+_PER_LINE = 4
+_ASCII_CHUNK = 1 << 16   # values formatted per string operation (a multiple of _PER_LINE)
+
+
+def _write_values_text(fh, vals: np.ndarray, spec: str) -> None:
+    line = " ".join([spec] * _PER_LINE) + "\n"
+    for s in range(0, vals.shape[0], _ASCII_CHUNK):
+        chunk = vals[s:s + _ASCII_CHUNK].tolist()
+        full = len(chunk) // _PER_LINE * _PER_LINE
+        text = (line * (full // _PER_LINE)) % tuple(chunk[:full])
+        if full < len(chunk):
+            rest = chunk[full:]
+            text += " ".join([spec] * len(rest)) % tuple(rest) + "\n"
+        fh.write(text)
+
+
+def _write_ascii(fh, grid: Grid, fmt: Plot3DFormat) -> None:
+    nd = fmt.ndim
+    if fmt.multiblock:
+        fh.write(f"{len(grid)}\n")
+    for b in grid:
+        fh.write(" ".join(str(d) for d in b.dims[:nd]) + "\n")
+    for b in grid:
+        n = b.npoints
+        flat = b.xyz.reshape(-1, order="F")
+        for c in range(nd):
+            vals = flat[c * n:(c + 1) * n]
+            if fmt.precision == 4:
+                _write_values_text(fh, vals.astype(np.float32).astype(np.float64), "%.9g")
+            else:
+                _write_values_text(fh, vals, "%.17g")
+        if fmt.iblank:
+            ib = b.iblank.reshape(-1, order="F") if b.iblank is not None else np.ones(n, np.int32)
+            _write_values_text(fh, ib, "%d")
+
+
+register("plot3d", (".x", ".xyz", ".g", ".grd", ".p3d", ".p2dfmt", ".p3dfmt", ".fmt", ".bin", ".xyzb"),
+         read, write, Plot3DFormat)
