@@ -485,11 +485,20 @@ def _read_task(fd, task):
             bad = int(np.argmax((tmp < -(1 << 31)) | (tmp >= (1 << 31))))
             return ("range", first + bad, int(tmp[bad]))
         dest[...] = tmp
-    if check and not np.isfinite(np.add.reduce(dest)):
-        bad = ~np.isfinite(dest)
-        if bad.any():
-            return ("nonfinite", first + int(np.argmax(bad)), None)
+    if check:
+        bad = _first_nonfinite(dest)
+        if bad is not None:
+            return ("nonfinite", first + bad, None)
     return None
+
+
+def _first_nonfinite(a: np.ndarray) -> int | None:
+    """Index of the first NaN/inf of a 1-D float array, or None (one fast reduction if all finite)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(np.add.reduce(a)):
+            return None
+    bad = ~np.isfinite(a)
+    return int(np.argmax(bad)) if bad.any() else None
 
 
 def _read_blocks(fd, path, fmt, blocks, allow_nonfinite) -> list[Block]:
@@ -643,6 +652,20 @@ def _ascii_layout(vals: np.ndarray, mb: bool, nd: int, ib: bool, total: int):
     return (h + nb * nd, blocks) if pos == total else None
 
 
+def _ascii_iblank_error(data, vals, fmt, layout) -> str | None:
+    """Why the IBLANK values of a text file read as ``fmt`` are not integers, or None."""
+    for n, (start, dims, npts) in enumerate(layout):
+        s = start + fmt.ndim * npts
+        raw = vals[s:s + npts]
+        with np.errstate(invalid="ignore"):
+            badi = ~np.isfinite(raw) | (raw != np.round(raw)) | (np.abs(raw) >= 2 ** 31)
+        if badi.any():
+            line, col, tok = _token_position(data, s + int(np.argmax(badi)))
+            return (f"block {n + 1} of {len(layout)}: line {line}, column {col}: IBLANK value {tok} "
+                    "is not a 32-bit integer")
+    return None
+
+
 def _ascii_candidates(vals, fixed):
     out = []
     for mb in _CHOICES["multiblock"]:
@@ -699,17 +722,18 @@ def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
     if vals.size == 0:
         raise GridFormatError(f"{path}: no numbers in the file")
     cands = _ascii_candidates(vals, fixed)
-    fits = []
+    fits, misses = [], []
     for f in cands:
         lay = _ascii_layout(vals, f.multiblock, f.ndim, f.iblank, len(vals))
-        if lay is not None:
-            fits.append((f._key(), f, lay))
+        if lay is None:
+            misses.append((1, f._key(), 0.0, f._key(), _ascii_header_error(path, data, vals, f), f))
+            continue
+        bad = _ascii_iblank_error(data, vals, f, lay[1]) if f.iblank else None
+        if bad is not None:
+            misses.append((0, f._key(), 0.0, f._key(), bad, f))
+            continue
+        fits.append((f._key(), f, lay))
     if not fits:
-        if len(cands) == 1:
-            raise GridFormatError(f"{path}: not a {cands[0].describe()} Plot3D file: "
-                                  f"{_ascii_header_error(path, data, vals, cands[0])}")
-        misses = [(1, f._key(), 0.0, f._key(), _ascii_header_error(path, data, vals, f), f)
-                  for f in cands]
         raise _no_fit(path, len(data), cands, misses, f" ({len(vals)} values of text)")
     fits.sort(key=lambda t: t[0])
     _, fmt, (hend, layout) = fits[0]
@@ -722,24 +746,17 @@ def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
         flat = xyz.reshape(-1, order="F")
         flat[:nd * npts] = vals[start:start + nd * npts]
         where = f"{path}: block {n + 1} of {len(layout)}"
-        if not allow_nonfinite and not np.isfinite(np.add.reduce(flat)):
-            bad = ~np.isfinite(flat)
-            if bad.any():
-                idx = int(np.argmax(bad))
-                line, col, tok = _token_position(data, start + idx)
-                c, rem = divmod(idx, npts)
-                i, j, k = rem % dims[0], (rem // dims[0]) % dims[1], rem // (dims[0] * dims[1])
-                raise GridFormatError(f"{where}: line {line}, column {col}: non-finite coordinate "
-                                      f"{'xyz'[c]} = {tok} at (i, j, k) = ({i + 1}, {j + 1}, {k + 1}) "
-                                      "(1-based) (pass allow_nonfinite=True to accept)")
+        idx = None if allow_nonfinite else _first_nonfinite(flat)
+        if idx is not None:
+            line, col, tok = _token_position(data, start + idx)
+            c, rem = divmod(idx, npts)
+            i, j, k = rem % dims[0], (rem // dims[0]) % dims[1], rem // (dims[0] * dims[1])
+            raise GridFormatError(f"{where}: line {line}, column {col}: non-finite coordinate "
+                                  f"{'xyz'[c]} = {tok} at (i, j, k) = ({i + 1}, {j + 1}, {k + 1}) "
+                                  "(1-based) (pass allow_nonfinite=True to accept)")
         ib = None
         if fmt.iblank:
             raw = vals[start + nd * npts:start + (nd + 1) * npts]
-            badi = (raw != np.round(raw)) | (np.abs(raw) >= 2 ** 31) | ~np.isfinite(raw)
-            if badi.any():
-                line, col, tok = _token_position(data, start + nd * npts + int(np.argmax(badi)))
-                raise GridFormatError(f"{where}: line {line}, column {col}: IBLANK value {tok} "
-                                      "is not a 32-bit integer")
             ib = raw.astype(np.int32).reshape(dims, order="F")
         blocks.append(Block(xyz, ib, name=f"block{n + 1}", allow_nonfinite=True))
     return fmt, blocks, [f[1] for f in fits]
