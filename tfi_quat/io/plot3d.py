@@ -362,6 +362,20 @@ def _check_layout(fd, size: int, fmt: Plot3DFormat, dims, header_rank: int):
     return blocks
 
 
+def _check_iblank_range(fd, fmt, blocks) -> None:
+    """64-bit IBLANK values must fit int32 (tells such variants from float64 look-alikes)."""
+    dt = _int_dtype(fmt)
+    for n, b in enumerate(blocks):
+        for s in range(0, b.npoints, _CHUNK):
+            count = min(_CHUNK, b.npoints - s)
+            vals = np.frombuffer(_pread(fd, count * 8, b.iblank + 8 * s), dtype=dt)
+            bad = (vals < -(1 << 31)) | (vals >= (1 << 31))
+            if bad.any():
+                k = int(np.argmax(bad))
+                raise _Miss(0, f"block {n + 1}: IBLANK value {int(vals[k])} at byte offset "
+                               f"{b.iblank + 8 * (s + k)} does not fit a 32-bit integer")
+
+
 def _framings(fixed: dict) -> list[Plot3DFormat]:
     """Every binary/Fortran framing (fields fixing the header) compatible with ``fixed``."""
     out = []
@@ -440,6 +454,8 @@ def _detect_binary(fd, size, path, fixed):
         for f in comps:
             try:
                 blocks = _check_layout(fd, size, f, dims, header_rank)
+                if f.iblank and f.int_size == 8:
+                    _check_iblank_range(fd, f, blocks)
             except _Miss as m:
                 misses.append((m.rank, fr._key(), m.distance, f._key(), m.msg, f))
                 continue
