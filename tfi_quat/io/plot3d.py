@@ -46,6 +46,7 @@ megabytes.  ASCII files are parsed in one bulk conversion and written with
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import re
@@ -185,11 +186,16 @@ class Plot3DFormat:
         return ", ".join(parts)
 
     def _key(self) -> tuple:
-        c = self.canonical()
-        return tuple(_CHOICES[n].index(getattr(c, n)) for n in _PRIORITY)
+        return _preference_key(self)
 
 
 _DEFAULT_VALUES = {f.name: f.default for f in fields(Plot3DFormat)}
+
+
+@functools.lru_cache(maxsize=1024)
+def _preference_key(fmt: Plot3DFormat) -> tuple:
+    c = fmt.canonical()
+    return tuple(_CHOICES[n].index(getattr(c, n)) for n in _PRIORITY)
 _FIELD_NAMES = tuple(_DEFAULT_VALUES)
 
 
@@ -376,32 +382,35 @@ def _check_iblank_range(fd, fmt, blocks) -> None:
                                f"{b.iblank + 8 * (s + k)} does not fit a 32-bit integer")
 
 
-def _framings(fixed: dict) -> list[Plot3DFormat]:
-    """Every binary/Fortran framing (fields fixing the header) compatible with ``fixed``."""
-    out = []
-    for enc in ("binary", "fortran"):
-        for endian in _CHOICES["endian"]:
-            for isz in _CHOICES["int_size"]:
-                for ms in (_CHOICES["marker_size"] if enc == "fortran" else (4,)):
-                    for mb in _CHOICES["multiblock"]:
-                        for nd in _CHOICES["ndim"]:
-                            f = Plot3DFormat(encoding=enc, endian=endian, int_size=isz,
-                                             marker_size=ms, multiblock=mb, ndim=nd)
-                            if _compatible(f, fixed, ("encoding", "endian", "int_size",
-                                                      "marker_size", "multiblock", "ndim")):
-                                out.append(f)
-    return out
+def _all_binary_variants() -> list[tuple[Plot3DFormat, list[Plot3DFormat]]]:
+    """Every binary/Fortran framing with its completions, in preference order (built once)."""
+    if not _BINARY_VARIANTS:
+        for enc in ("binary", "fortran"):
+            for endian in _CHOICES["endian"]:
+                for isz in _CHOICES["int_size"]:
+                    for ms in (_CHOICES["marker_size"] if enc == "fortran" else (4,)):
+                        for mb in _CHOICES["multiblock"]:
+                            for nd in _CHOICES["ndim"]:
+                                fr = Plot3DFormat(encoding=enc, endian=endian, int_size=isz,
+                                                  marker_size=ms, multiblock=mb, ndim=nd)
+                                recs = _CHOICES["records"] if enc == "fortran" else ("block",)
+                                comps = [fr.replace(precision=p, iblank=ib, records=r)
+                                         for p in _CHOICES["precision"] for ib in _CHOICES["iblank"]
+                                         for r in recs]
+                                _BINARY_VARIANTS.append((fr, comps))
+    return _BINARY_VARIANTS
 
 
-def _completions(framing: Plot3DFormat, fixed: dict) -> list[Plot3DFormat]:
+_BINARY_VARIANTS: list = []
+_FRAMING_FIELDS = ("encoding", "endian", "int_size", "marker_size", "multiblock", "ndim")
+
+
+def _framings(fixed: dict) -> list[tuple[Plot3DFormat, list[Plot3DFormat]]]:
+    """Binary/Fortran framings compatible with ``fixed``, each with its compatible completions."""
     out = []
-    recs = _CHOICES["records"] if framing.encoding == "fortran" else ("block",)
-    for prec in _CHOICES["precision"]:
-        for ib in _CHOICES["iblank"]:
-            for rec in recs:
-                f = framing.replace(precision=prec, iblank=ib, records=rec)
-                if _compatible(f, fixed, ("precision", "iblank", "records")):
-                    out.append(f)
+    for fr, comps in _all_binary_variants():
+        if _compatible(fr, fixed, _FRAMING_FIELDS):
+            out.append((fr, [f for f in comps if _compatible(f, fixed, ("precision", "iblank", "records"))]))
     return out
 
 
@@ -433,7 +442,7 @@ def _no_fit(path, size, tried, misses, what="") -> GridFormatError:
 
 
 def _looks_like_text(fd, size) -> bool:
-    head = _pread(fd, min(size, 1 << 16), 0)
+    head = _pread(fd, min(size, 4096), 0)
     return not head.translate(None, _TEXT_BYTES)
 
 
@@ -442,8 +451,7 @@ _TEXT_BYTES = bytes(range(0x20, 0x7F)) + b"\t\n\r\f\v"
 
 def _detect_binary(fd, size, path, fixed):
     tried, misses, fits = [], [], []
-    for fr in _framings(fixed):
-        comps = _completions(fr, fixed)
+    for fr, comps in _framings(fixed):
         tried += comps
         try:
             dims = _parse_header(fd, size, fr)
@@ -742,7 +750,7 @@ def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
     for f in cands:
         lay = _ascii_layout(vals, f.multiblock, f.ndim, f.iblank, len(vals))
         if lay is None:
-            misses.append((1, f._key(), 0.0, f._key(), _ascii_header_error(path, data, vals, f), f))
+            misses.append((1, f._key(), 0.0, f._key(), None, f))
             continue
         bad = _ascii_iblank_error(data, vals, f, lay[1]) if f.iblank else None
         if bad is not None:
@@ -750,6 +758,8 @@ def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
             continue
         fits.append((f._key(), f, lay))
     if not fits:
+        misses = [m if m[4] is not None else m[:4] + (_ascii_header_error(path, data, vals, m[5]), m[5])
+                  for m in misses]
         raise _no_fit(path, len(data), cands, misses, f" ({len(vals)} values of text)")
     fits.sort(key=lambda t: t[0])
     _, fmt, (hend, layout) = fits[0]
