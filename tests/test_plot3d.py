@@ -566,3 +566,56 @@ def test_package_level_read_write_dispatch(tmp_path):
     assert g.source_path == os.fspath(p)
     assert np.array_equal(g[0].xyz, sheared_box(3, 3, 3))
     assert tfi_quat.read(p, endian=">", multiblock=True).dims == [(3, 3, 3)]
+
+
+# ---------------------------------------------------------------- text number parser
+
+def _parse(text: str) -> np.ndarray:
+    return plot3d._parse_text(text.encode(), "t.fmt")
+
+
+def _assert_parses_like_python(tokens):
+    got = _parse(" \n".join(tokens))
+    want = np.array([float(t.replace("d", "e").replace("D", "E")) for t in tokens])
+    assert got.shape == want.shape
+    same = (got.view(np.uint64) == want.view(np.uint64)) | (np.isnan(got) & np.isnan(want))
+    assert same.all(), [t for t, ok in zip(tokens, same) if not ok][:5]
+
+
+@given(st.lists(st.floats(allow_nan=False, allow_infinity=False), min_size=1, max_size=50),
+       st.sampled_from(["%r", "%.17g", "%.16g", "%.9g", "%.25e", "%.3f", "%.17E", "%.0f"]))
+def test_text_parser_is_correctly_rounded_for_formatted_floats(values, spec):
+    _assert_parses_like_python([spec % v for v in values])
+
+
+@given(st.lists(st.from_regex(r"\A[-+]?([0-9]{1,22}(\.[0-9]{0,22})?|\.[0-9]{1,22})([eEdD][-+]?[0-9]{1,3})?\Z"),
+                min_size=1, max_size=30))
+def test_text_parser_is_correctly_rounded_for_arbitrary_decimals(tokens):
+    _assert_parses_like_python(tokens)
+
+
+def test_text_parser_hard_cases():
+    _assert_parses_like_python([
+        "9007199254740993", "9007199254740992.5", "2.2250738585072011e-308", "2.2250738585072014e-308",
+        "4.9406564584124654e-324", "2.4703282292062328e-324", "1e-400", "1e23", "8.98846567431158e307",
+        "1.7976931348623157e308", "1.7976931348623158e308", "1.7976931348623159e308", "1e309",
+        "0.1", "-0", "-0.0e0", "+.5", "5.", "1D-3", "123456789012345678901234567890",
+        "0.000000000000000000000000000001", "7.2057594037927933e16", "3.0517578125e-05",
+        "1.00000000000000011102230246251565404236316680908203125", "nan", "-inf", "Infinity"])
+
+
+def test_text_parser_many_random_values_bit_exact():
+    rng = np.random.default_rng(11)
+    a = np.concatenate([rng.standard_normal(20000) * 10.0 ** rng.integers(-300, 300, 20000),
+                        rng.integers(0, 2 ** 63, 20000).astype(np.uint64).view(np.float64)])
+    a = a[np.isfinite(a)]
+    for spec in ("%.17g", "%r"):
+        got = _parse(" ".join(spec % v for v in a.tolist()))
+        assert np.array_equal(got.view(np.uint64), a.view(np.uint64))
+
+
+def test_fortran_exponent_without_e_letter(tmp_path):
+    p = tmp_path / "f.fmt"
+    p.write_text("2 1\n0.1234567-100 1.5+002\n0 0\n")
+    g = read(p)
+    assert g[0].xyz[0, 0, 0, 0] == 0.1234567e-100 and g[0].xyz[1, 0, 0, 0] == 150.0
