@@ -62,6 +62,19 @@ def best(fn, repeat: int, setup=None) -> float:
     return min(times)
 
 
+def paired(fa, fb, repeat: int, setup=None) -> tuple[float, float]:
+    """Best times of two operations timed alternately (so both see the same machine load)."""
+    ta, tb = [], []
+    for _ in range(repeat):
+        for fn, acc in ((fa, ta), (fb, tb)):
+            if setup is not None:
+                setup()
+            t0 = time.perf_counter()
+            fn()
+            acc.append(time.perf_counter() - t0)
+    return min(ta), min(tb)
+
+
 def tofile_same_bytes(grid: Grid, path: Path, fsync: bool) -> None:
     with open(path, "wb") as fh:
         for b in grid:
@@ -118,26 +131,23 @@ def bench_binary(grid: Grid, folder: Path, repeat: int) -> list[str]:
     data_bytes = 24 * npts
     raw = folder / "raw.bin"
     p = folder / "grid.x"
-    t_tofile = best(lambda: tofile_same_bytes(grid, raw, False), repeat, fresh(raw))
-    t_tofile_sync = best(lambda: tofile_same_bytes(grid, raw, True), repeat, fresh(raw))
-    t_fromfile = best(lambda: np.fromfile(raw, dtype="<f8"), repeat)
-    lines.append(row("ndarray.tofile (same bytes)", t_tofile, npts, data_bytes))
-    lines.append(row("ndarray.tofile + fsync (same bytes)", t_tofile_sync, npts, data_bytes))
-    lines.append(row("np.fromfile (same bytes)", t_fromfile, npts, data_bytes))
     for fmt in (Plot3DFormat(), Plot3DFormat(encoding="fortran")):
         tag = "C binary" if fmt.encoding == "binary" else "Fortran"
-        t_wo = best(lambda: writer_only(grid, p, fmt), repeat, fresh(p))
-        t_w = best(lambda: plot3d.write(p, grid, like=fmt), repeat, fresh(p))
-        # the numpy read of the same bytes again, next to ours (page cache state alike)
-        t_ff = best(lambda: np.fromfile(raw, dtype="<f8"), repeat)
-        t_r = best(lambda: plot3d.read(p), repeat)
+        t_tofile, t_wo = paired(lambda: tofile_same_bytes(grid, raw, False),
+                                lambda: writer_only(grid, p, fmt), repeat, fresh(raw, p))
+        t_sync, t_w = paired(lambda: tofile_same_bytes(grid, raw, True),
+                             lambda: plot3d.write(p, grid, like=fmt), repeat, fresh(raw, p))
+        tofile_same_bytes(grid, raw, False)
+        t_ff, t_r = paired(lambda: np.fromfile(raw, dtype="<f8"), lambda: plot3d.read(p), repeat)
         assert plot3d.detect(p) == fmt
+        lines.append(row(f"{tag}: ndarray.tofile (same bytes)", t_tofile, npts, data_bytes))
         lines.append(row(f"{tag}: byte writer alone vs tofile", t_wo, npts, data_bytes, t_tofile))
-        lines.append(row(f"{tag}: write() (atomic, fsync) vs tofile+fsync", t_w, npts, data_bytes,
-                         t_tofile_sync))
-        lines.append(row(f"{tag}: read() vs fromfile", t_r, npts, data_bytes, min(t_ff, t_fromfile)))
+        lines.append(row(f"{tag}: ndarray.tofile + fsync", t_sync, npts, data_bytes))
+        lines.append(row(f"{tag}: write() (atomic, fsync) vs tofile+fsync", t_w, npts, data_bytes, t_sync))
+        lines.append(row(f"{tag}: np.fromfile (same bytes)", t_ff, npts, data_bytes))
+        lines.append(row(f"{tag}: read() vs fromfile", t_r, npts, data_bytes, t_ff))
         lines.append(f"  {tag}: peak memory of read() / grid size: {peak_memory(p):.3f}")
-        p.unlink()
+    p.unlink()
     raw.unlink()
     return lines
 
@@ -149,10 +159,9 @@ def bench_ascii(grid: Grid, folder: Path, repeat: int) -> list[str]:
     t_w = best(lambda: plot3d.write(p, grid, encoding="ascii"), repeat, fresh(p))
     size = p.stat().st_size
     text = p.read_bytes()
-    t_parse = best(lambda: np.fromstring(text, dtype=np.float64, sep=" "), repeat)
-    t_r = best(lambda: plot3d.read(p), repeat)
-    back = plot3d.read(p)
-    assert back == grid, "ASCII round trip is not exact"
+    assert plot3d.read(p) == grid, "ASCII round trip is not exact"
+    t_parse, t_r = paired(lambda: np.fromstring(text, dtype=np.float64, sep=" "),
+                          lambda: plot3d.read(p), repeat)
     lines.append(row("ASCII write (17 digits)", t_w, npts, size))
     lines.append(row("np.fromstring of the same text", t_parse, npts, size))
     lines.append(row("ASCII read() vs fromstring", t_r, npts, size, t_parse))
@@ -169,12 +178,13 @@ def main(argv=None) -> None:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--dir", default=tempfile.gettempdir())
     args = ap.parse_args(argv)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     with tempfile.TemporaryDirectory(dir=args.dir, prefix="bench_io_") as d:
         folder = Path(d)
         grid = make_grid(args.points)
         print(f"binary: {grid.npoints:,} points in {len(grid)} blocks, "
               f"{24 * grid.npoints / 1e6:.0f} MB of float64, best of {args.repeat}; "
-              f"{os.cpu_count()} CPU(s)")
+              f"{os.cpu_count()} CPU(s), load average {load:.1f} at start")
         print(f"  {'':<48s} {'time':>10s} {'points/s':>15s} {'bytes/s':>12s} {'ratio':>7s}")
         for line in bench_binary(grid, folder, args.repeat):
             print(line)
