@@ -40,8 +40,12 @@ Binary reads move the file bytes straight into each block's final
 Fortran-order float64 array (``os.preadv`` in chunks, two threads for large
 files); float32 values and the other byte order are converted chunk by
 chunk, so the peak memory stays at the grid's own size plus a few
-megabytes.  ASCII files are parsed in one bulk conversion and written with
-17 significant digits, so float64 values round-trip exactly.
+megabytes.  ASCII files are written with 17 significant digits and read by
+one compiled pass over the text that converts every plain decimal exactly
+(correctly rounded, Clinger's fast path and the Eisel-Lemire algorithm), so
+float64 values round-trip bit for bit; the rare other tokens (more than 19
+digits, subnormals, ``nan``) go through Python's ``float``, which also
+reports a non-numeric token with its line.
 """
 
 from __future__ import annotations
@@ -472,7 +476,7 @@ def _detect_binary(fd, size, path, fixed):
     if not fits:
         raise _no_fit(path, size, tried, misses)
     fits.sort(key=lambda t: t[0])
-    return fits[0][1:], [f[1] for f in fits]
+    return fits[0][1:]
 
 
 # ---------------------------------------------------------------- binary read
@@ -916,7 +920,7 @@ def _ascii_candidates(vals, fixed):
     return out
 
 
-def _ascii_header_error(path, data, vals, fmt) -> str:
+def _ascii_header_error(data, vals, fmt) -> str:
     """Explain why the text does not fit ``fmt`` (error path only)."""
     total = len(vals)
     h = 1 if fmt.multiblock else 0
@@ -954,7 +958,7 @@ def _ascii_header_error(path, data, vals, fmt) -> str:
             + (f", from line {line[0]}" if line else ""))
 
 
-def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
+def _read_ascii(path, fh, fixed, allow_nonfinite):
     data = fh.read()
     vals = _parse_text(data, path)
     if vals.size == 0:
@@ -972,7 +976,7 @@ def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
             continue
         fits.append((f._key(), f, lay))
     if not fits:
-        misses = [m if m[4] is not None else m[:4] + (_ascii_header_error(path, data, vals, m[5]), m[5])
+        misses = [m if m[4] is not None else m[:4] + (_ascii_header_error(data, vals, m[5]), m[5])
                   for m in misses]
         raise _no_fit(path, len(data), cands, misses, f" ({len(vals)} values of text)")
     fits.sort(key=lambda t: t[0])
@@ -999,26 +1003,27 @@ def _read_ascii(path, fh, fixed, format_given, allow_nonfinite):
             raw = vals[start + nd * npts:start + (nd + 1) * npts]
             ib = raw.astype(np.int32).reshape(dims, order="F")
         blocks.append(Block(xyz, ib, name=f"block{n + 1}", allow_nonfinite=True))
-    return fmt, blocks, [f[1] for f in fits]
+    return fmt, blocks
 
 
 # ---------------------------------------------------------------- public read
 
-def _fixed_fields(format, overrides) -> tuple[dict, bool]:
+def _fixed_fields(format, overrides) -> dict:
+    """The fields the caller fixed: all of ``format`` (with overrides applied), or the overrides."""
     _check_names(overrides, "Plot3D read")
     if format is not None:
         if not isinstance(format, Plot3DFormat):
             raise GridFormatError(f"format must be a Plot3DFormat, got {type(format).__name__}")
         fmt = format.replace(**overrides)
-        return {f: getattr(fmt, f) for f in _FIELD_NAMES}, True
+        return {f: getattr(fmt, f) for f in _FIELD_NAMES}
     # validate the override values through the dataclass
     probe = Plot3DFormat().replace(**overrides)
-    return {k: getattr(probe, k) for k in overrides}, False
+    return {k: getattr(probe, k) for k in overrides}
 
 
 def _open_and_dispatch(path, format, overrides, allow_nonfinite, load: bool):
     path = Path(os.fspath(path))
-    fixed, given = _fixed_fields(format, overrides)
+    fixed = _fixed_fields(format, overrides)
     try:
         fh = open(path, "rb", buffering=0)
     except IsADirectoryError:
@@ -1030,9 +1035,9 @@ def _open_and_dispatch(path, format, overrides, allow_nonfinite, load: bool):
             raise GridFormatError(f"{path}: the file is empty (0 bytes)")
         enc = fixed.get("encoding")
         if enc == "ascii" or (enc is None and _looks_like_text(fd, size)):
-            fmt, blocks, fits = _read_ascii(path, fh, fixed, given, allow_nonfinite)
+            fmt, blocks = _read_ascii(path, fh, fixed, allow_nonfinite)
             return fmt.canonical(), blocks
-        (fmt, dims, layout), fits = _detect_binary(fd, size, path, fixed)
+        fmt, dims, layout = _detect_binary(fd, size, path, fixed)
         if not load:
             return fmt.canonical(), None
         return fmt.canonical(), _read_blocks(fd, path, fmt, layout, allow_nonfinite)
@@ -1181,7 +1186,7 @@ def write(path, grid: Grid, *, like: Plot3DFormat | None = None, overwrite: bool
 def _write_array(fh, arr: np.ndarray, dtype: np.dtype) -> None:
     """Write a contiguous 1-D array as ``dtype``, converting chunk by chunk when needed."""
     if arr.dtype == dtype:
-        fh.write(memoryview(arr).cast("B"))
+        arr.tofile(fh)      # the buffer itself, as numpy writes it
         return
     for s in range(0, arr.shape[0], _CHUNK):
         fh.write(memoryview(arr[s:s + _CHUNK].astype(dtype)).cast("B"))
