@@ -513,6 +513,19 @@ def test_write_2d_from_flat_3d_grid_and_refusals(tmp_path):
     assert not (tmp_path / "b.x").exists() and not (tmp_path / "c.x").exists()
 
 
+@pytest.mark.parametrize("encoding", ["binary", "fortran", "ascii"])
+def test_float32_overflow_is_an_error_not_inf(tmp_path, encoding):
+    xyz = sheared_box()
+    xyz[2, 1, 1, 2] = 1e39
+    p = tmp_path / "o.x"
+    p.write_bytes(b"old")
+    with pytest.raises(GridFormatError, match=r"o\.x: block 2 of 2: coordinate 1e\+?39 is beyond the float32"):
+        write(p, Grid([sheared_box(), xyz]), precision=4, encoding=encoding)
+    assert p.read_bytes() == b"old"
+    write(p, Grid([sheared_box(), xyz]), encoding=encoding, overwrite=True)
+    assert read(p)[1].xyz[2, 1, 1, 2] == 1e39
+
+
 def test_fortran_record_too_long_for_4_byte_markers(tmp_path, monkeypatch):
     class Huge:
         dims = (2 ** 11, 2 ** 10, 2 ** 9)
@@ -535,7 +548,7 @@ def test_failed_write_leaves_target_untouched_and_no_temp_file(tmp_path, monkeyp
     p = tmp_path / "t.x"
     p.write_bytes(b"precious")
 
-    def broken(fh, arr, dtype):
+    def broken(fh, arr, dtype, where=""):
         fh.write(b"partial")
         raise OSError("disk full")
     monkeypatch.setattr(plot3d, "_write_array", broken)

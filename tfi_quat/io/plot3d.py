@@ -982,7 +982,8 @@ def _read_ascii(path, fh, fixed, allow_nonfinite):
     fits.sort(key=lambda t: t[0])
     _, fmt, (hend, layout) = fits[0]
     if fmt.precision == 4:
-        vals = vals.astype(np.float32).astype(np.float64)
+        with np.errstate(over="ignore"):    # out-of-range values become inf: reported below
+            vals = vals.astype(np.float32).astype(np.float64)
     nd = fmt.ndim
     blocks = []
     for n, (start, dims, npts) in enumerate(layout):
@@ -1177,22 +1178,35 @@ def write(path, grid: Grid, *, like: Plot3DFormat | None = None, overwrite: bool
     target = check_target(path, overwrite=overwrite, protect=[grid.source_path])
     if fmt.encoding == "ascii":
         with atomic_output(target, "w") as fh:
-            _write_ascii(fh, grid, fmt)
+            _write_ascii(fh, grid, fmt, path)
     else:
         with atomic_output(target, "wb") as fh:
-            _write_binary(fh, grid, fmt)
+            _write_binary(fh, grid, fmt, path)
 
 
-def _write_array(fh, arr: np.ndarray, dtype: np.dtype) -> None:
+def _write_array(fh, arr: np.ndarray, dtype: np.dtype, where: str = "") -> None:
     """Write a contiguous 1-D array as ``dtype``, converting chunk by chunk when needed."""
     if arr.dtype == dtype:
         arr.tofile(fh)      # the buffer itself, as numpy writes it
         return
     for s in range(0, arr.shape[0], _CHUNK):
-        fh.write(memoryview(arr[s:s + _CHUNK].astype(dtype)).cast("B"))
+        fh.write(memoryview(_convert(arr[s:s + _CHUNK], dtype, where)).cast("B"))
 
 
-def _write_binary(fh, grid: Grid, fmt: Plot3DFormat) -> None:
+def _convert(chunk: np.ndarray, dtype: np.dtype, where: str) -> np.ndarray:
+    """``chunk`` as ``dtype``; float values beyond the float32 range are an error, not inf."""
+    with np.errstate(over="ignore"):
+        out = chunk.astype(dtype)
+    if dtype.kind == "f" and dtype.itemsize == 4:
+        lost = np.isinf(out) & np.isfinite(chunk)
+        if lost.any():
+            v = chunk[int(np.argmax(lost))]
+            raise GridFormatError(f"{where}: coordinate {float(v)!r} is beyond the float32 range; "
+                                  "write with precision=8")
+    return out
+
+
+def _write_binary(fh, grid: Grid, fmt: Plot3DFormat, path="Plot3D file") -> None:
     nd = fmt.ndim
     dims = [b.dims[:nd] for b in grid]
     ms = fmt.marker_size if fmt.encoding == "fortran" else 0
@@ -1211,7 +1225,10 @@ def _write_binary(fh, grid: Grid, fmt: Plot3DFormat) -> None:
     marker(header.nbytes)
     fh.write(header.tobytes())
     marker(header.nbytes)
-    for b in grid:
+    def where(bn):
+        return f"{path}: block {bn + 1} of {len(grid)}"
+
+    for bn, b in enumerate(grid):
         n = b.npoints
         flat = b.xyz.reshape(-1, order="F")
         if b.iblank is not None:
@@ -1221,7 +1238,7 @@ def _write_binary(fh, grid: Grid, fmt: Plot3DFormat) -> None:
         if fmt.encoding == "fortran" and fmt.records == "coordinate":
             for c in range(nd):
                 marker(n * fmt.precision)
-                _write_array(fh, flat[c * n:(c + 1) * n], fdt)
+                _write_array(fh, flat[c * n:(c + 1) * n], fdt, where(bn))
                 marker(n * fmt.precision)
             if fmt.iblank:
                 marker(n * fmt.int_size)
@@ -1230,7 +1247,7 @@ def _write_binary(fh, grid: Grid, fmt: Plot3DFormat) -> None:
         else:
             length = n * (nd * fmt.precision + (fmt.int_size if fmt.iblank else 0))
             marker(length)
-            _write_array(fh, flat[:nd * n], fdt)
+            _write_array(fh, flat[:nd * n], fdt, where(bn))
             if fmt.iblank:
                 _write_array(fh, ib, idt)
             marker(length)
@@ -1252,19 +1269,20 @@ def _write_values_text(fh, vals: np.ndarray, spec: str) -> None:
         fh.write(text)
 
 
-def _write_ascii(fh, grid: Grid, fmt: Plot3DFormat) -> None:
+def _write_ascii(fh, grid: Grid, fmt: Plot3DFormat, path="Plot3D file") -> None:
     nd = fmt.ndim
     if fmt.multiblock:
         fh.write(f"{len(grid)}\n")
     for b in grid:
         fh.write(" ".join(str(d) for d in b.dims[:nd]) + "\n")
-    for b in grid:
+    for bn, b in enumerate(grid):
         n = b.npoints
         flat = b.xyz.reshape(-1, order="F")
         for c in range(nd):
             vals = flat[c * n:(c + 1) * n]
             if fmt.precision == 4:
-                _write_values_text(fh, vals.astype(np.float32).astype(np.float64), "%.9g")
+                single = _convert(vals, np.dtype(np.float32), f"{path}: block {bn + 1} of {len(grid)}")
+                _write_values_text(fh, single.astype(np.float64), "%.9g")
             else:
                 _write_values_text(fh, vals, "%.17g")
         if fmt.iblank:
