@@ -201,20 +201,18 @@ def test_binary_read_peak_memory_is_the_grid_size(tmp_path, fmt):
 # ---------------------------------------------------------------- foreign files
 
 def test_reads_handmade_2d_single_block_ascii(tmp_path):
-    x = [0.0, 1.0, 2.0, 0.0, 1.0, 2.5]
-    y = [0.0, 0.0, 0.0, 1.0, 1.0, 1.25]
-    text = "  3  2\n" + " ".join(map(str, x[:4])) + "\n" + " ".join(map(str, x[4:] + y[:1])) + \
-        "\n" + "1.0D-30 0.0000000E+00\n" + " ".join(map(str, y[3:])) + "\n"
-    text = text.replace("0.0 1.0 1.0", "0.0 1.0 1.0", 1)
+    # ni nj, then x(i, j) with i fastest, then y; any line layout, Fortran D exponents
+    text = ("  3  2\n"
+            " 0.0 1.0 2.0\n 0.0 1.0\n"
+            "     2.5 0.0\n1.0D-30 0.0000000E+00 1.0 1.0 1.25\n")
     p = tmp_path / "airfoil.p2dfmt"
-    y = [0.0, 1e-30, 0.0, 1.0, 1.0, 1.25]
     p.write_text(text)
     g = read(p)
     assert g.source_format == Plot3DFormat(encoding="ascii", ndim=2, multiblock=False)
     assert g.ndim == 2 and g.dims == [(3, 2, 1)]
-    assert np.array_equal(g[0].x.ravel(order="F"), x)
-    assert np.array_equal(g[0].y.ravel(order="F"), y)
-    assert not g[0].z.any()
+    assert np.array_equal(g[0].x[:, :, 0], [[0.0, 0.0], [1.0, 1.0], [2.0, 2.5]])
+    assert np.array_equal(g[0].y[:, :, 0], [[0.0, 1.0], [1e-30, 1.0], [0.0, 1.25]])
+    assert not g[0].z.any() and g[0].iblank is None
 
 
 def test_reads_handmade_big_endian_fortran_multiblock_with_iblank(tmp_path):
@@ -526,7 +524,7 @@ def test_float32_overflow_is_an_error_not_inf(tmp_path, encoding):
     assert read(p)[1].xyz[2, 1, 1, 2] == 1e39
 
 
-def test_fortran_record_too_long_for_4_byte_markers(tmp_path, monkeypatch):
+def test_fortran_record_too_long_for_4_byte_markers(tmp_path):
     class Huge:
         dims = (2 ** 11, 2 ** 10, 2 ** 9)
     with pytest.raises(GridFormatError, match=r"more than 4-byte markers can frame"):
