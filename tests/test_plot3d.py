@@ -178,6 +178,16 @@ def test_large_read_uses_chunks_and_threads_and_stays_exact(tmp_path, monkeypatc
         assert_same_grid(got, grid, fmt)
 
 
+def test_read_without_positioned_reads(tmp_path, monkeypatch):
+    # platforms without os.pread/os.preadv: seek + read, one thread
+    monkeypatch.setattr(plot3d, "_HAVE_PREAD", False)
+    monkeypatch.setattr(plot3d, "_CHUNK", 100)
+    monkeypatch.setattr(plot3d, "_PARALLEL_BYTES", 100)
+    grid = Grid([sheared_box(9, 8, 7), Block(sheared_box(3, 2, 4), np.arange(24).reshape(3, 2, 4))])
+    for fmt in (Plot3DFormat(iblank=True), Plot3DFormat(encoding="fortran", endian=">", precision=4, iblank=True)):
+        assert_same_grid(write_read(grid, tmp_path / "g.x", fmt), grid, fmt)
+
+
 @pytest.mark.parametrize("fmt", [Plot3DFormat(), Plot3DFormat(endian=">"),
                                  Plot3DFormat(precision=4, iblank=True),
                                  Plot3DFormat(encoding="fortran", iblank=True)])

@@ -281,8 +281,15 @@ def _float_dtype(fmt) -> np.dtype:
     return np.dtype(f"{fmt.endian}f{fmt.precision}")
 
 
+#: positioned reads without a shared file offset (POSIX); elsewhere seek + read, one thread
+_HAVE_PREAD = hasattr(os, "pread") and hasattr(os, "preadv")
+
+
 def _pread(fd, nbytes: int, offset: int) -> bytes:
-    return os.pread(fd, nbytes, offset)
+    if _HAVE_PREAD:
+        return os.pread(fd, nbytes, offset)
+    os.lseek(fd, offset, os.SEEK_SET)
+    return os.read(fd, nbytes)
 
 
 def _read_ints(fd, size, offset, count, dtype) -> np.ndarray:
@@ -486,9 +493,15 @@ _PARALLEL_BYTES = 32 << 20  # files larger than this are read with two threads
 
 
 def _pread_into(fd, buf: memoryview, offset: int) -> int:
+    """Fill ``buf`` from byte ``offset``; returns the bytes read (fewer at end of file)."""
     done = 0
     while done < len(buf):
-        k = os.preadv(fd, [buf[done:]], offset + done)
+        if _HAVE_PREAD:
+            k = os.preadv(fd, [buf[done:]], offset + done)
+        else:
+            chunk = _pread(fd, len(buf) - done, offset + done)
+            k = len(chunk)
+            buf[done:done + k] = chunk
         if k <= 0:
             break
         done += k
@@ -554,7 +567,7 @@ def _read_blocks(fd, path, fmt, blocks, allow_nonfinite) -> list[Block]:
                 tasks.append((n, "iblank", b.iblank + s * fmt.int_size, s,
                               (b.iblank + s * fmt.int_size, ibf[s:e], idt, False, s)))
     total = sum(t[4][1].nbytes for t in tasks)
-    nthreads = min(2, os.cpu_count() or 1) if total > _PARALLEL_BYTES else 1
+    nthreads = min(2, os.cpu_count() or 1) if total > _PARALLEL_BYTES and _HAVE_PREAD else 1
     if nthreads > 1:
         with ThreadPoolExecutor(nthreads) as pool:
             results = list(pool.map(lambda t: _read_task(fd, t[4]), tasks))
