@@ -184,7 +184,8 @@ def test_read_without_positioned_reads(tmp_path, monkeypatch):
     monkeypatch.setattr(plot3d, "_CHUNK", 100)
     monkeypatch.setattr(plot3d, "_PARALLEL_BYTES", 100)
     grid = Grid([sheared_box(9, 8, 7), Block(sheared_box(3, 2, 4), np.arange(24).reshape(3, 2, 4))])
-    for fmt in (Plot3DFormat(iblank=True), Plot3DFormat(encoding="fortran", endian=">", precision=4, iblank=True)):
+    for fmt in (Plot3DFormat(iblank=True),
+                Plot3DFormat(encoding="fortran", endian=">", precision=4, iblank=True)):
         assert_same_grid(write_read(grid, tmp_path / "g.x", fmt), grid, fmt)
 
 
@@ -373,7 +374,8 @@ def test_zero_dimension_in_header(tmp_path):
     p = tmp_path / "zero.x"
     vals = sheared_box(5, 2, 3).ravel(order="K")
     p.write_bytes(struct.pack("<3i", 5, 0, 3) + vals.tobytes())
-    with pytest.raises(GridFormatError, match=r"(?s)zero\.x.*block 1 dimension j = 0 at byte offset 4 must be >= 1"):
+    with pytest.raises(GridFormatError,
+                       match=r"(?s)zero\.x.*block 1 dimension j = 0 at byte offset 4 must be >= 1"):
         read(p)
     p.write_bytes(struct.pack("<i3i", 1, 5, -2, 3) + vals.tobytes())
     with pytest.raises(GridFormatError, match=r"block 1 dimension j = -2 at byte offset 8"):
@@ -527,7 +529,8 @@ def test_float32_overflow_is_an_error_not_inf(tmp_path, encoding):
     xyz[2, 1, 1, 2] = 1e39
     p = tmp_path / "o.x"
     p.write_bytes(b"old")
-    with pytest.raises(GridFormatError, match=r"o\.x: block 2 of 2: coordinate 1e\+?39 is beyond the float32"):
+    with pytest.raises(GridFormatError,
+                       match=r"o\.x: block 2 of 2: coordinate 1e\+?39 is beyond the float32"):
         write(p, Grid([sheared_box(), xyz]), precision=4, encoding=encoding)
     assert p.read_bytes() == b"old"
     write(p, Grid([sheared_box(), xyz]), encoding=encoding, overwrite=True)
@@ -609,8 +612,10 @@ def test_text_parser_is_correctly_rounded_for_formatted_floats(values, spec):
     _assert_parses_like_python([spec % v for v in values])
 
 
-@given(st.lists(st.from_regex(r"\A[-+]?([0-9]{1,22}(\.[0-9]{0,22})?|\.[0-9]{1,22})([eEdD][-+]?[0-9]{1,3})?\Z"),
-                min_size=1, max_size=30))
+_DECIMAL = r"\A[-+]?([0-9]{1,22}(\.[0-9]{0,22})?|\.[0-9]{1,22})([eEdD][-+]?[0-9]{1,3})?\Z"
+
+
+@given(st.lists(st.from_regex(_DECIMAL), min_size=1, max_size=30))
 def test_text_parser_is_correctly_rounded_for_arbitrary_decimals(tokens):
     _assert_parses_like_python(tokens)
 

@@ -201,6 +201,8 @@ _DEFAULT_VALUES = {f.name: f.default for f in fields(Plot3DFormat)}
 def _preference_key(fmt: Plot3DFormat) -> tuple:
     c = fmt.canonical()
     return tuple(_CHOICES[n].index(getattr(c, n)) for n in _PRIORITY)
+
+
 _FIELD_NAMES = tuple(_DEFAULT_VALUES)
 
 
@@ -940,7 +942,8 @@ def _ascii_header_error(data, vals, fmt) -> str:
     if fmt.multiblock:
         if total < 1 or vals[0] != int(vals[0]) or vals[0] < 1:
             pos = _token_position(data, 0)
-            return f"line {pos[0] if pos else 1}: block count {vals[0] if total else None} must be an integer >= 1"
+            return (f"line {pos[0] if pos else 1}: block count {vals[0] if total else None} "
+                    "must be an integer >= 1")
         nb = int(vals[0])
         if h + nb * fmt.ndim > total:
             return (f"the header claims {nb} blocks ({h + nb * fmt.ndim} header values), "
