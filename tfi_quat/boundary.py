@@ -1,0 +1,516 @@
+"""Boundary quaternions: the rotation and translation of every wall point (DESIGN 3.1).
+
+For each point of a structured wall patch, with undeformed position ``r_u``
+and deformed position ``r_d``:
+
+1. normals ``n_u``, ``n_d`` from in-surface tangents (central differences,
+   one-sided at patch ends, central across an edge where a halo row gives the
+   neighbour in the next block or across a periodic seam).  A 2-D wall is a
+   curve in the plane with normal ``e``: ``n = t x e``;
+2. ``Q1``: the minimal rotation taking ``n_u`` to ``n_d`` (normalised axis;
+   for a curve the rotation about ``e`` by the signed angle between them);
+3. ``Q2``: the rotation about ``n_d`` by
+   ``theta = atan2(sum n_d . (a x b), sum a . b)``, ``a``/``b`` the unit
+   projections onto the plane normal to ``n_d`` of the undeformed edges to
+   the neighbours rotated by ``Q1`` / of the deformed edges;
+4. ``Q = Q2 ⊗ Q1`` (``Q1`` applied first);
+5. ``delta = r_d - c - rot(Q, r_u - c)``, so ``c + delta + rot(Q, r_u - c)``
+   is ``r_d`` to round-off.
+
+Degenerate points (no normal: zero-length or collapsed edges, wing-tip caps,
+O-O poles, coincident neighbours) take ``Q`` as the hemisphere-aligned blend
+(:func:`tfi_quat.quaternion.kblend`) of their valid neighbours, propagated
+sweep by sweep when whole rows are degenerate; a patch without a single
+valid point gets the identity.  Signs are made consistent along the patch
+(``q . q_neighbour >= 0``, first point ``w >= 0``).  See ``docs/method.md``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._jit import jit, pjit, prange
+from .errors import DeformationError, GridValueError
+from .quaternion import _from_two_vectors_s, _mul_s, kblend
+
+__all__ = ["boundary_motion", "surface_normals"]
+
+#: a normal is undefined where |t_a x t_b| <= DEGENERATE * |t_a| |t_b|, or where
+#: one tangent is shorter than DEGENERATE times the other (collapsed edge)
+DEGENERATE = 1e-10
+
+
+# ------------------------------------------------------------------ kernels
+@jit(inline="always")
+def _valid(P, ii, jj):
+    """Is ``P[ii, jj]`` (padded index) inside the array and not NaN?"""
+    if ii < 0 or jj < 0 or ii >= P.shape[0] or jj >= P.shape[1]:
+        return False
+    return P[ii, jj, 0] == P[ii, jj, 0]
+
+
+@jit(inline="always")
+def _tangent(P, ii, jj, di, dj):
+    """Difference along (di, dj) at padded index (ii, jj): central, one-sided, or zero."""
+    p = _valid(P, ii + di, jj + dj)
+    m = _valid(P, ii - di, jj - dj)
+    if p and m:
+        a = ii + di
+        b = jj + dj
+        c = ii - di
+        d = jj - dj
+    elif p:
+        a = ii + di
+        b = jj + dj
+        c = ii
+        d = jj
+    elif m:
+        a = ii
+        b = jj
+        c = ii - di
+        d = jj - dj
+    else:
+        return 0.0, 0.0, 0.0
+    return P[a, b, 0] - P[c, d, 0], P[a, b, 1] - P[c, d, 1], P[a, b, 2] - P[c, d, 2]
+
+
+@jit(inline="always")
+def _normal(P, ii, jj, curve, e):
+    """Unit normal at padded index (ii, jj); returns (nx, ny, nz, defined)."""
+    ax, ay, az = _tangent(P, ii, jj, 1, 0)
+    if curve:
+        bx = e[0]
+        by = e[1]
+        bz = e[2]
+    else:
+        bx, by, bz = _tangent(P, ii, jj, 0, 1)
+    la = math.sqrt(ax * ax + ay * ay + az * az)
+    lb = math.sqrt(bx * bx + by * by + bz * bz)
+    nx = ay * bz - az * by
+    ny = az * bx - ax * bz
+    nz = ax * by - ay * bx
+    ln = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if (not (la > 0.0 and lb > 0.0)) or ln <= DEGENERATE * la * lb:
+        return 0.0, 0.0, 0.0, False
+    if not curve and (la <= DEGENERATE * lb or lb <= DEGENERATE * la):
+        return 0.0, 0.0, 0.0, False
+    return nx / ln, ny / ln, nz / ln, True
+
+
+@jit(inline="always")
+def _rot_s(w, x, y, z, vx, vy, vz):
+    """rot(q, v) for a unit quaternion given as scalars; returns a 3-tuple."""
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return (vx + w * tx + (y * tz - z * ty),
+            vy + w * ty + (z * tx - x * tz),
+            vz + w * tz + (x * ty - y * tx))
+
+
+@jit(inline="always")
+def _delta(Pu, Pd, ii, jj, c, q, out):
+    """out = r_d - c - rot(q, r_u - c)."""
+    rx, ry, rz = _rot_s(q[0], q[1], q[2], q[3],
+                        Pu[ii, jj, 0] - c[0], Pu[ii, jj, 1] - c[1], Pu[ii, jj, 2] - c[2])
+    out[0] = Pd[ii, jj, 0] - c[0] - rx
+    out[1] = Pd[ii, jj, 1] - c[1] - ry
+    out[2] = Pd[ii, jj, 2] - c[2] - rz
+
+
+@jit(inline="always")
+def _point_quaternion(Pu, Pd, ii, jj, curve, e):
+    """Q = Q2 ⊗ Q1 at padded index (ii, jj); returns (w, x, y, z, defined)."""
+    ux, uy, uz, oku = _normal(Pu, ii, jj, curve, e)
+    dx, dy, dz, okd = _normal(Pd, ii, jj, curve, e)
+    if not (oku and okd):
+        return 1.0, 0.0, 0.0, 0.0, False
+    if curve:
+        # rotation about the plane normal by the signed angle n_u -> n_d
+        cx = uy * dz - uz * dy
+        cy = uz * dx - ux * dz
+        cz = ux * dy - uy * dx
+        h = 0.5 * math.atan2(e[0] * cx + e[1] * cy + e[2] * cz, ux * dx + uy * dy + uz * dz)
+        sh = math.sin(h)
+        a0, a1, a2, a3 = math.cos(h), e[0] * sh, e[1] * sh, e[2] * sh
+    else:
+        a0, a1, a2, a3 = _from_two_vectors_s(ux, uy, uz, dx, dy, dz)
+    # in-plane angle about n_d from the edges to the (up to 4) neighbours
+    ss = 0.0
+    cc = 0.0
+    for k in range(4):
+        di = 0
+        dj = 0
+        if k == 0:
+            di = 1
+        elif k == 1:
+            di = -1
+        elif k == 2:
+            dj = 1
+        else:
+            dj = -1
+        if not (_valid(Pu, ii + di, jj + dj) and _valid(Pd, ii + di, jj + dj)):
+            continue
+        ex = Pu[ii + di, jj + dj, 0] - Pu[ii, jj, 0]
+        ey = Pu[ii + di, jj + dj, 1] - Pu[ii, jj, 1]
+        ez = Pu[ii + di, jj + dj, 2] - Pu[ii, jj, 2]
+        fx = Pd[ii + di, jj + dj, 0] - Pd[ii, jj, 0]
+        fy = Pd[ii + di, jj + dj, 1] - Pd[ii, jj, 1]
+        fz = Pd[ii + di, jj + dj, 2] - Pd[ii, jj, 2]
+        le = math.sqrt(ex * ex + ey * ey + ez * ez)
+        lf = math.sqrt(fx * fx + fy * fy + fz * fz)
+        if not (le > 0.0 and lf > 0.0):
+            continue
+        ax, ay, az = _rot_s(a0, a1, a2, a3, ex, ey, ez)
+        p = ax * dx + ay * dy + az * dz
+        ax -= p * dx
+        ay -= p * dy
+        az -= p * dz
+        p = fx * dx + fy * dy + fz * dz
+        bx = fx - p * dx
+        by = fy - p * dy
+        bz = fz - p * dz
+        la = math.sqrt(ax * ax + ay * ay + az * az)
+        lb = math.sqrt(bx * bx + by * by + bz * bz)
+        if la <= DEGENERATE * le or lb <= DEGENERATE * lf:
+            continue                       # edge along the normal: no in-plane direction
+        inv = 1.0 / (la * lb)
+        ss += (dx * (ay * bz - az * by) + dy * (az * bx - ax * bz) + dz * (ax * by - ay * bx)) * inv
+        cc += (ax * bx + ay * by + az * bz) * inv
+    h = 0.5 * math.atan2(ss, cc)
+    sh = math.sin(h)
+    w, x, y, z = _mul_s(math.cos(h), dx * sh, dy * sh, dz * sh, a0, a1, a2, a3)
+    inv = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    return w * inv, x * inv, y * inv, z * inv, True
+
+
+@pjit
+def _motion_kernel(Pu, Pd, oi, oj, curve, e, c, q, delta, ok):
+    """Q, delta and the defined flag at every patch point; rows in parallel.
+
+    Within a row the sign of q follows the previous defined point.
+    """
+    na = q.shape[0]
+    nb = q.shape[1]
+    for i in prange(na):
+        have = False
+        p0 = 1.0
+        p1 = 0.0
+        p2 = 0.0
+        p3 = 0.0
+        for j in range(nb):
+            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, curve, e)
+            if good:
+                if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
+                    w = -w
+                    x = -x
+                    y = -y
+                    z = -z
+                have = True
+                p0 = w
+                p1 = x
+                p2 = y
+                p3 = z
+                ok[i, j] = 1
+            else:
+                ok[i, j] = 0
+            q[i, j, 0] = w
+            q[i, j, 1] = x
+            q[i, j, 2] = y
+            q[i, j, 3] = z
+            _delta(Pu, Pd, i + oi, j + oj, c, q[i, j], delta[i, j])
+
+
+@jit
+def _fill_degenerate(Pu, Pd, oi, oj, c, q, delta, ok):
+    """Give undefined points the blend of their defined neighbours (8-neighbourhood).
+
+    Sweeps until every point is defined; a point filled in one sweep serves
+    its neighbours from the next sweep on, so the result does not depend on
+    the loop order.  Points with no defined point anywhere get the identity.
+    Returns the number of points filled.
+    """
+    na = q.shape[0]
+    nb = q.shape[1]
+    qs = np.empty((8, 4))
+    wt = np.ones(8)
+    orig = ok.copy()
+    cur = ok.copy()
+    while True:
+        filled = 0
+        left = 0
+        for i in range(na):
+            for j in range(nb):
+                if ok[i, j] != 0:
+                    continue
+                m = 0
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        a = i + di
+                        b = j + dj
+                        if (di == 0 and dj == 0) or a < 0 or b < 0 or a >= na or b >= nb:
+                            continue
+                        if ok[a, b] != 0:
+                            qs[m, 0] = q[a, b, 0]
+                            qs[m, 1] = q[a, b, 1]
+                            qs[m, 2] = q[a, b, 2]
+                            qs[m, 3] = q[a, b, 3]
+                            m += 1
+                if m > 0:
+                    kblend(qs[:m], wt[:m], q[i, j])
+                    cur[i, j] = 1
+                    filled += 1
+                else:
+                    left += 1
+        for i in range(na):
+            for j in range(nb):
+                ok[i, j] = cur[i, j]
+        if left == 0 or filled == 0:
+            break
+    count = 0
+    for i in range(na):
+        for j in range(nb):
+            if orig[i, j] == 0:
+                if ok[i, j] == 0:          # nothing defined anywhere
+                    q[i, j, 0] = 1.0
+                    q[i, j, 1] = 0.0
+                    q[i, j, 2] = 0.0
+                    q[i, j, 3] = 0.0
+                _delta(Pu, Pd, i + oi, j + oj, c, q[i, j], delta[i, j])
+                count += 1
+    return count
+
+
+@jit
+def _align_rows_serial(q):
+    """Make q . q_previous >= 0 along every row (used after filling)."""
+    for i in range(q.shape[0]):
+        for j in range(1, q.shape[1]):
+            if (q[i, j, 0] * q[i, j - 1, 0] + q[i, j, 1] * q[i, j - 1, 1]
+                    + q[i, j, 2] * q[i, j - 1, 2] + q[i, j, 3] * q[i, j - 1, 3]) < 0.0:
+                for k in range(4):
+                    q[i, j, k] = -q[i, j, k]
+
+
+@pjit
+def _align_columns(q):
+    """Flip whole rows so that column 0 is sign-consistent and q[0, 0] has w >= 0."""
+    na = q.shape[0]
+    nb = q.shape[1]
+    flip = np.zeros(na, dtype=np.bool_)
+    f = q[0, 0, 0] < 0.0
+    flip[0] = f
+    for i in range(1, na):
+        d = (q[i, 0, 0] * q[i - 1, 0, 0] + q[i, 0, 1] * q[i - 1, 0, 1]
+             + q[i, 0, 2] * q[i - 1, 0, 2] + q[i, 0, 3] * q[i - 1, 0, 3])
+        if d < 0.0:
+            f = not f
+        flip[i] = f
+    for i in prange(na):
+        if flip[i]:
+            for j in range(nb):
+                for k in range(4):
+                    q[i, j, k] = -q[i, j, k]
+
+
+@pjit
+def _normals_kernel(P, oi, oj, curve, e, out, ok):
+    for i in prange(out.shape[0]):
+        for j in range(out.shape[1]):
+            x, y, z, good = _normal(P, i + oi, j + oj, curve, e)
+            out[i, j, 0] = x
+            out[i, j, 1] = y
+            out[i, j, 2] = z
+            ok[i, j] = good
+
+
+# ------------------------------------------------------------------ drivers
+def _points(a, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GridValueError(f"{name}: expected an array of real numbers ({exc})") from None
+    if arr.ndim not in (2, 3) or arr.shape[-1] != 3 or 0 in arr.shape:
+        raise GridValueError(f"{name}: expected wall points of shape (na, nb, 3) (a surface) or "
+                             f"(n, 3) (a curve), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr).all(axis=-1))[0]
+        raise GridValueError(f"{name}: NaN or infinite coordinates, first at index {tuple(int(b) for b in bad)}")
+    return arr
+
+
+def _vector3(a, name: str, unit: bool = False) -> np.ndarray:
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GridValueError(f"{name}: expected 3 real numbers ({exc})") from None
+    if arr.shape != (3,):
+        raise GridValueError(f"{name}: expected shape (3,), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise GridValueError(f"{name}: NaN or infinite values {arr.tolist()}")
+    if unit:
+        n = float(np.sqrt(arr @ arr))
+        if not n > 0.0:
+            raise GridValueError(f"{name}: zero vector, expected a direction")
+        arr = arr / n
+    return arr
+
+
+def _padded(r, halo, name: str, interior, other_missing=None):
+    """Validate a halo array against the patch ``r``; returns the halo (C order) and its missing mask."""
+    curve = r.ndim == 2
+    want = (r.shape[0] + 2, 3) if curve else (r.shape[0] + 2, r.shape[1] + 2, 3)
+    try:
+        h = np.asarray(halo, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GridValueError(f"{name}: expected an array of real numbers ({exc})") from None
+    if h.shape != want:
+        raise DeformationError(f"{name}: expected the patch padded by one row on every side, "
+                               f"shape {want}, got shape {h.shape}")
+    inner = h[1:-1] if curve else h[1:-1, 1:-1]
+    if not np.array_equal(inner, r):
+        raise DeformationError(f"{name}: its interior differs from {interior}; the halo must be "
+                               f"{interior} padded by one row of neighbour points")
+    missing = np.isnan(h).any(axis=-1)
+    if np.any(~np.isfinite(h[~missing])):
+        raise GridValueError(f"{name}: infinite coordinates (use NaN where there is no neighbour)")
+    if other_missing is not None and not np.array_equal(missing, other_missing):
+        raise DeformationError(f"{name}: NaN (no neighbour) at other places than in halo_u")
+    h = h.copy()
+    h[missing] = np.nan
+    return h, missing
+
+
+def _prepare(ru, rd, plane_normal, halo_u, halo_d, names=("ru", "rd")):
+    """Shared validation; returns (Pu, Pd, oi, oj, curve, e, shape)."""
+    ru = _points(ru, names[0])
+    curve = ru.ndim == 2
+    if rd is not None:
+        rd = _points(rd, names[1])
+        if rd.shape != ru.shape:
+            raise DeformationError(f"{names[1]}: shape {rd.shape} differs from {names[0]} {ru.shape}: "
+                                   f"deformed and undeformed points must match one to one")
+    if curve:
+        if plane_normal is None:
+            raise GridValueError(f"plane_normal: required for a wall curve ({names[0]} has shape "
+                                 f"{ru.shape}), e.g. (0, 0, 1) for a grid in the x-y plane")
+        e = _vector3(plane_normal, "plane_normal", unit=True)
+    else:
+        if plane_normal is not None:
+            raise GridValueError(f"plane_normal: only for wall curves of shape (n, 3); "
+                                 f"{names[0]} is a surface of shape {ru.shape}")
+        e = np.zeros(3)
+    if (halo_u is None) != (halo_d is None) and rd is not None:
+        given, lack = ("halo_u", "halo_d") if halo_d is None else ("halo_d", "halo_u")
+        raise DeformationError(f"{lack}: missing while {given} is given; pass both or neither")
+    if halo_u is not None:
+        Pu, miss = _padded(ru, halo_u, names[2] if len(names) > 2 else "halo_u", names[0])
+        Pd = None
+        if rd is not None:
+            Pd, _ = _padded(rd, halo_d, "halo_d", names[1], miss)
+        oi, oj = 1, (0 if curve else 1)
+    else:
+        Pu, Pd = np.ascontiguousarray(ru), (None if rd is None else np.ascontiguousarray(rd))
+        oi, oj = 0, 0
+    if curve:
+        Pu = Pu[:, None, :]
+        Pd = None if Pd is None else Pd[:, None, :]
+    return Pu, Pd, oi, oj, curve, e, ru.shape[:-1]
+
+
+def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo_d=None):
+    """Boundary quaternions and translations of one structured wall patch (DESIGN 3.1).
+
+    Parameters
+    ----------
+    ru, rd : array_like, shape (na, nb, 3) or (n, 3), float64
+        Undeformed and deformed points of a surface patch, or of the wall
+        curve of a 2-D grid (then ``plane_normal`` is required).  Any memory
+        order (copied to C order when needed); must be finite.
+    centre : array_like, shape (3,), optional
+        Rotation centre ``c``.  Default: the centroid of ``ru``.  Pass one
+        centre for all walls of a grid (e.g. the centroid of all walls), so
+        that the field moves with the problem (DESIGN 3.6).
+    plane_normal : array_like, shape (3,), optional
+        For a curve: the normal of the grid plane, e.g. ``(0, 0, 1)``; the
+        curve normal is ``t x plane_normal`` with ``t`` along increasing index.
+    halo_u, halo_d : array_like, shape (na+2, nb+2, 3) or (n+2, 3), optional
+        ``ru`` / ``rd`` padded by one row of neighbour points on every side
+        (where the wall continues into another block or across a periodic
+        seam), NaN where there is no neighbour; corners are not used.  The
+        interior must equal ``ru`` / ``rd`` and the NaN pattern must agree.
+
+    Returns
+    -------
+    q : ndarray, shape (na, nb, 4) or (n, 4), float64
+        Unit quaternions ``(w, x, y, z)``, signs consistent between
+        neighbours (``q[0, 0]`` has ``w >= 0``).
+    delta : ndarray, shape (na, nb, 3) or (n, 3), float64
+        ``rd - c - rot(q, ru - c)``: ``c + delta + rot(q, ru - c)`` gives
+        ``rd`` to round-off.
+
+    Raises
+    ------
+    GridValueError
+        An argument of the wrong shape, non-finite points, a missing or zero
+        ``plane_normal``.
+    DeformationError
+        ``rd`` or a halo that does not match ``ru`` (shape, interior, NaN
+        pattern), or only one halo.
+
+    Notes
+    -----
+    A rigid motion of the patch gives the same ``q`` (up to sign) and the
+    same ``delta`` at every point to round-off.  Points without a normal
+    (collapsed edges, coincident neighbours) take the blend of their
+    neighbours' ``q``; never NaN.
+    """
+    Pu, Pd, oi, oj, curve, e, shape = _prepare(ru, rd, plane_normal, halo_u, halo_d)
+    if centre is None:
+        c = np.asarray(ru, dtype=np.float64).reshape(-1, 3).mean(axis=0)
+    else:
+        c = _vector3(centre, "centre")
+    na = shape[0]
+    nb = 1 if curve else shape[1]
+    q = np.empty((na, nb, 4))
+    delta = np.empty((na, nb, 3))
+    ok = np.empty((na, nb), dtype=np.uint8)
+    _motion_kernel(Pu, Pd, oi, oj, curve, e, c, q, delta, ok)
+    if not ok.all():
+        _fill_degenerate(Pu, Pd, oi, oj, c, q, delta, ok)
+        _align_rows_serial(q)
+    _align_columns(q)
+    return q.reshape(shape + (4,)), delta.reshape(shape + (3,))
+
+
+def surface_normals(r, halo=None, plane_normal=None):
+    """Unit normals of a wall patch from in-surface tangents (as used by :func:`boundary_motion`).
+
+    Parameters
+    ----------
+    r : array_like, shape (na, nb, 3) or (n, 3), float64
+        Surface patch, or wall curve (then ``plane_normal`` is required).
+    halo : array_like, shape (na+2, nb+2, 3) or (n+2, 3), optional
+        ``r`` padded by one row of neighbour points, NaN where none.
+    plane_normal : array_like, shape (3,), optional
+        Grid-plane normal for a curve; the normal is ``t x plane_normal``.
+
+    Returns
+    -------
+    n : ndarray, shape (na, nb, 3) or (n, 3), float64
+        Unit normals ``t_a x t_b / |t_a x t_b|`` (``a`` the first index);
+        the zero vector where undefined.
+    defined : ndarray of bool, shape (na, nb) or (n,)
+        False where the normal is undefined (zero-length or collapsed edges,
+        parallel tangents).
+    """
+    P, _, oi, oj, curve, e, shape = _prepare(r, None, plane_normal, halo, None,
+                                             names=("r", "rd", "halo"))
+    na = shape[0]
+    nb = 1 if curve else shape[1]
+    out = np.empty((na, nb, 3))
+    ok = np.empty((na, nb), dtype=np.bool_)
+    _normals_kernel(P, oi, oj, curve, e, out, ok)
+    return out.reshape(shape + (3,)), ok.reshape(shape)
