@@ -33,7 +33,7 @@ import numpy as np
 
 from ._jit import jit, pjit, prange
 from .errors import DeformationError, GridValueError
-from .quaternion import _from_two_vectors_s, _mul_s, kblend
+from .quaternion import _from_two_units_s, _mul_s, kblend
 
 __all__ = ["boundary_motion", "surface_normals"]
 
@@ -52,51 +52,66 @@ def _valid(P, ii, jj):
 
 
 @jit(inline="always")
-def _tangent(P, ii, jj, di, dj):
-    """Difference along (di, dj) at padded index (ii, jj): central, one-sided, or zero."""
-    p = _valid(P, ii + di, jj + dj)
-    m = _valid(P, ii - di, jj - dj)
-    if p and m:
-        a = ii + di
-        b = jj + dj
-        c = ii - di
-        d = jj - dj
-    elif p:
-        a = ii + di
-        b = jj + dj
-        c = ii
-        d = jj
-    elif m:
-        a = ii
-        b = jj
-        c = ii - di
-        d = jj - dj
-    else:
-        return 0.0, 0.0, 0.0
-    return P[a, b, 0] - P[c, d, 0], P[a, b, 1] - P[c, d, 1], P[a, b, 2] - P[c, d, 2]
+def _edge(P, ii, jj, di, dj):
+    """Edge vector ``P[ii+di, jj+dj] - P[ii, jj]``; returns (x, y, z, exists)."""
+    a = ii + di
+    b = jj + dj
+    if not _valid(P, a, b):
+        return 0.0, 0.0, 0.0, False
+    return P[a, b, 0] - P[ii, jj, 0], P[a, b, 1] - P[ii, jj, 1], P[a, b, 2] - P[ii, jj, 2], True
+
+
+@jit(inline="always")
+def _diff(px, py, pz, pok, mx, my, mz, mok):
+    """Tangent from the edges to the + and - neighbours: central, one-sided, or zero."""
+    if pok and mok:
+        return px - mx, py - my, pz - mz
+    if pok:
+        return px, py, pz
+    if mok:
+        return -mx, -my, -mz
+    return 0.0, 0.0, 0.0
+
+
+@jit(inline="always")
+def _unit_normal(ax, ay, az, bx, by, bz, curve):
+    """``a x b / |a x b|``; returns (nx, ny, nz, defined).
+
+    Undefined when a tangent is zero, when ``|a x b| <= DEGENERATE |a| |b|``
+    (parallel tangents) or, for a surface, when one tangent is shorter than
+    ``DEGENERATE`` times the other (a collapsed edge whose round-off would
+    otherwise give a random normal).
+    """
+    la2 = ax * ax + ay * ay + az * az
+    lb2 = bx * bx + by * by + bz * bz
+    nx = ay * bz - az * by
+    ny = az * bx - ax * bz
+    nz = ax * by - ay * bx
+    ln2 = nx * nx + ny * ny + nz * nz
+    d2 = DEGENERATE * DEGENERATE
+    if (not (la2 > 0.0 and lb2 > 0.0)) or ln2 <= d2 * la2 * lb2:
+        return 0.0, 0.0, 0.0, False
+    if (not curve) and (la2 <= d2 * lb2 or lb2 <= d2 * la2):
+        return 0.0, 0.0, 0.0, False
+    inv = 1.0 / math.sqrt(ln2)
+    return nx * inv, ny * inv, nz * inv, True
 
 
 @jit(inline="always")
 def _normal(P, ii, jj, curve, e):
     """Unit normal at padded index (ii, jj); returns (nx, ny, nz, defined)."""
-    ax, ay, az = _tangent(P, ii, jj, 1, 0)
+    px, py, pz, pok = _edge(P, ii, jj, 1, 0)
+    mx, my, mz, mok = _edge(P, ii, jj, -1, 0)
+    ax, ay, az = _diff(px, py, pz, pok, mx, my, mz, mok)
     if curve:
         bx = e[0]
         by = e[1]
         bz = e[2]
     else:
-        bx, by, bz = _tangent(P, ii, jj, 0, 1)
-    la = math.sqrt(ax * ax + ay * ay + az * az)
-    lb = math.sqrt(bx * bx + by * by + bz * bz)
-    nx = ay * bz - az * by
-    ny = az * bx - ax * bz
-    nz = ax * by - ay * bx
-    ln = math.sqrt(nx * nx + ny * ny + nz * nz)
-    if (not (la > 0.0 and lb > 0.0)) or ln <= DEGENERATE * la * lb:
-        return 0.0, 0.0, 0.0, False
-    if not curve and (la <= DEGENERATE * lb or lb <= DEGENERATE * la):
-        return 0.0, 0.0, 0.0, False
-    return nx / ln, ny / ln, nz / ln, True
+        px, py, pz, pok = _edge(P, ii, jj, 0, 1)
+        mx, my, mz, mok = _edge(P, ii, jj, 0, -1)
+        bx, by, bz = _diff(px, py, pz, pok, mx, my, mz, mok)
+    return _unit_normal(ax, ay, az, bx, by, bz, curve)
 
 
 @jit(inline="always")
@@ -121,10 +136,63 @@ def _delta(Pu, Pd, ii, jj, c, q, out):
 
 
 @jit(inline="always")
+def _angle_terms(ok, ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
+                 T1x, T1y, T1z, T2x, T2y, T2z):
+    """Sine and cosine of the angle about ``n_d`` from ``rot(Q1, e)`` to ``f``, projected.
+
+    ``(t1, t2)`` is an orthonormal basis of the plane normal to ``n_u`` and
+    ``(T1, T2) = (rot(Q1, t1), rot(Q1, t2))`` the same basis carried to the
+    plane normal to ``n_d``, with ``T1 x T2 = n_d``.  Because ``Q1``
+    preserves dot products, ``rot(Q1, e)`` projected onto that plane has
+    coordinates ``(e . t1, e . t2)``: one rotation per point instead of one
+    per edge.  Returns (0, 0) for a missing or zero-length edge, or an edge
+    along the normal (no in-plane direction).
+    """
+    if not ok:
+        return 0.0, 0.0
+    a1 = ex * t1x + ey * t1y + ez * t1z
+    a2 = ex * t2x + ey * t2y + ez * t2z
+    b1 = fx * T1x + fy * T1y + fz * T1z
+    b2 = fx * T2x + fy * T2y + fz * T2z
+    la2 = a1 * a1 + a2 * a2
+    lb2 = b1 * b1 + b2 * b2
+    d2 = DEGENERATE * DEGENERATE
+    if not (la2 > d2 * (ex * ex + ey * ey + ez * ez) and lb2 > d2 * (fx * fx + fy * fy + fz * fz)):
+        return 0.0, 0.0
+    inv = 1.0 / math.sqrt(la2 * lb2)
+    return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv
+
+
+@jit(inline="always")
 def _point_quaternion(Pu, Pd, ii, jj, curve, e):
-    """Q = Q2 ⊗ Q1 at padded index (ii, jj); returns (w, x, y, z, defined)."""
-    ux, uy, uz, oku = _normal(Pu, ii, jj, curve, e)
-    dx, dy, dz, okd = _normal(Pd, ii, jj, curve, e)
+    """Q = Q2 ⊗ Q1 at padded index (ii, jj); returns (w, x, y, z, defined).
+
+    Pu and Pd have the same NaN pattern (checked by the driver), so an edge
+    exists in both or in neither.
+    """
+    # edges to the four neighbours, undeformed (e*) and deformed (f*)
+    e1x, e1y, e1z, ok1 = _edge(Pu, ii, jj, 1, 0)
+    e2x, e2y, e2z, ok2 = _edge(Pu, ii, jj, -1, 0)
+    f1x, f1y, f1z, _ = _edge(Pd, ii, jj, 1, 0)
+    f2x, f2y, f2z, _ = _edge(Pd, ii, jj, -1, 0)
+    if curve:
+        e3x, e3y, e3z, ok3 = 0.0, 0.0, 0.0, False
+        e4x, e4y, e4z, ok4 = 0.0, 0.0, 0.0, False
+        f3x, f3y, f3z = 0.0, 0.0, 0.0
+        f4x, f4y, f4z = 0.0, 0.0, 0.0
+        bux, buy, buz = e[0], e[1], e[2]
+        bdx, bdy, bdz = e[0], e[1], e[2]
+    else:
+        e3x, e3y, e3z, ok3 = _edge(Pu, ii, jj, 0, 1)
+        e4x, e4y, e4z, ok4 = _edge(Pu, ii, jj, 0, -1)
+        f3x, f3y, f3z, _ = _edge(Pd, ii, jj, 0, 1)
+        f4x, f4y, f4z, _ = _edge(Pd, ii, jj, 0, -1)
+        bux, buy, buz = _diff(e3x, e3y, e3z, ok3, e4x, e4y, e4z, ok4)
+        bdx, bdy, bdz = _diff(f3x, f3y, f3z, ok3, f4x, f4y, f4z, ok4)
+    aux, auy, auz = _diff(e1x, e1y, e1z, ok1, e2x, e2y, e2z, ok2)
+    adx, ady, adz = _diff(f1x, f1y, f1z, ok1, f2x, f2y, f2z, ok2)
+    ux, uy, uz, oku = _unit_normal(aux, auy, auz, bux, buy, buz, curve)
+    dx, dy, dz, okd = _unit_normal(adx, ady, adz, bdx, bdy, bdz, curve)
     if not (oku and okd):
         return 1.0, 0.0, 0.0, 0.0, False
     if curve:
@@ -136,54 +204,51 @@ def _point_quaternion(Pu, Pd, ii, jj, curve, e):
         sh = math.sin(h)
         a0, a1, a2, a3 = math.cos(h), e[0] * sh, e[1] * sh, e[2] * sh
     else:
-        a0, a1, a2, a3 = _from_two_vectors_s(ux, uy, uz, dx, dy, dz)
-    # in-plane angle about n_d from the edges to the (up to 4) neighbours
-    ss = 0.0
-    cc = 0.0
-    for k in range(4):
-        di = 0
-        dj = 0
-        if k == 0:
-            di = 1
-        elif k == 1:
-            di = -1
-        elif k == 2:
-            dj = 1
-        else:
-            dj = -1
-        if not (_valid(Pu, ii + di, jj + dj) and _valid(Pd, ii + di, jj + dj)):
-            continue
-        ex = Pu[ii + di, jj + dj, 0] - Pu[ii, jj, 0]
-        ey = Pu[ii + di, jj + dj, 1] - Pu[ii, jj, 1]
-        ez = Pu[ii + di, jj + dj, 2] - Pu[ii, jj, 2]
-        fx = Pd[ii + di, jj + dj, 0] - Pd[ii, jj, 0]
-        fy = Pd[ii + di, jj + dj, 1] - Pd[ii, jj, 1]
-        fz = Pd[ii + di, jj + dj, 2] - Pd[ii, jj, 2]
-        le = math.sqrt(ex * ex + ey * ey + ez * ez)
-        lf = math.sqrt(fx * fx + fy * fy + fz * fz)
-        if not (le > 0.0 and lf > 0.0):
-            continue
-        ax, ay, az = _rot_s(a0, a1, a2, a3, ex, ey, ez)
-        p = ax * dx + ay * dy + az * dz
-        ax -= p * dx
-        ay -= p * dy
-        az -= p * dz
-        p = fx * dx + fy * dy + fz * dz
-        bx = fx - p * dx
-        by = fy - p * dy
-        bz = fz - p * dz
-        la = math.sqrt(ax * ax + ay * ay + az * az)
-        lb = math.sqrt(bx * bx + by * by + bz * bz)
-        if la <= DEGENERATE * le or lb <= DEGENERATE * lf:
-            continue                       # edge along the normal: no in-plane direction
-        inv = 1.0 / (la * lb)
-        ss += (dx * (ay * bz - az * by) + dy * (az * bx - ax * bz) + dz * (ax * by - ay * bx)) * inv
-        cc += (ax * bx + ay * by + az * bz) * inv
-    h = 0.5 * math.atan2(ss, cc)
-    sh = math.sin(h)
-    w, x, y, z = _mul_s(math.cos(h), dx * sh, dy * sh, dz * sh, a0, a1, a2, a3)
-    inv = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-    return w * inv, x * inv, y * inv, z * inv, True
+        a0, a1, a2, a3 = _from_two_units_s(ux, uy, uz, dx, dy, dz)
+    # tangent-plane bases: t1 along the first tangent (normal to n_u by construction)
+    inv = 1.0 / math.sqrt(aux * aux + auy * auy + auz * auz)
+    t1x = aux * inv
+    t1y = auy * inv
+    t1z = auz * inv
+    t2x = uy * t1z - uz * t1y              # n_u x t1
+    t2y = uz * t1x - ux * t1z
+    t2z = ux * t1y - uy * t1x
+    T1x, T1y, T1z = _rot_s(a0, a1, a2, a3, t1x, t1y, t1z)
+    T2x = dy * T1z - dz * T1y              # n_d x T1
+    T2y = dz * T1x - dx * T1z
+    T2z = dx * T1y - dy * T1x
+    s1, c1 = _angle_terms(ok1, e1x, e1y, e1z, f1x, f1y, f1z, t1x, t1y, t1z, t2x, t2y, t2z,
+                          T1x, T1y, T1z, T2x, T2y, T2z)
+    s2, c2 = _angle_terms(ok2, e2x, e2y, e2z, f2x, f2y, f2z, t1x, t1y, t1z, t2x, t2y, t2z,
+                          T1x, T1y, T1z, T2x, T2y, T2z)
+    s3, c3 = _angle_terms(ok3, e3x, e3y, e3z, f3x, f3y, f3z, t1x, t1y, t1z, t2x, t2y, t2z,
+                          T1x, T1y, T1z, T2x, T2y, T2z)
+    s4, c4 = _angle_terms(ok4, e4x, e4y, e4z, f4x, f4y, f4z, t1x, t1y, t1z, t2x, t2y, t2z,
+                          T1x, T1y, T1z, T2x, T2y, T2z)
+    ss = s1 + s2 + s3 + s4
+    cc = c1 + c2 + c3 + c4
+    # Q2 = [cos(theta/2), n_d sin(theta/2)], theta = atan2(ss, cc), without trigonometry:
+    # (cos, sin)(theta/2) is parallel to (r + cc, ss) and to (ss, r - cc), r = |(ss, cc)|
+    r = math.sqrt(ss * ss + cc * cc)
+    if cc >= 0.0:
+        hw = r + cc
+        hs = ss
+    else:
+        hw = ss
+        hs = r - cc
+        if hw < 0.0:
+            hw = -hw
+            hs = -hs
+    hn = hw * hw + hs * hs
+    if hn > 0.0:
+        inv = 1.0 / math.sqrt(hn)
+        hw *= inv
+        hs *= inv
+    else:
+        hw = 1.0
+        hs = 0.0
+    w, x, y, z = _mul_s(hw, dx * hs, dy * hs, dz * hs, a0, a1, a2, a3)
+    return w, x, y, z, True
 
 
 @pjit
@@ -294,25 +359,46 @@ def _align_rows_serial(q):
                     q[i, j, k] = -q[i, j, k]
 
 
-@pjit
+@jit
 def _align_columns(q):
-    """Flip whole rows so that column 0 is sign-consistent and q[0, 0] has w >= 0."""
+    """Flip whole rows so that column 0 is sign-consistent and q[0, 0] has w >= 0.
+
+    Rows are consistent already; the decision is sequential over rows and
+    only flipped rows are touched (none for a smooth field).
+    """
     na = q.shape[0]
     nb = q.shape[1]
-    flip = np.zeros(na, dtype=np.bool_)
-    f = q[0, 0, 0] < 0.0
-    flip[0] = f
-    for i in range(1, na):
-        d = (q[i, 0, 0] * q[i - 1, 0, 0] + q[i, 0, 1] * q[i - 1, 0, 1]
-             + q[i, 0, 2] * q[i - 1, 0, 2] + q[i, 0, 3] * q[i - 1, 0, 3])
-        if d < 0.0:
-            f = not f
-        flip[i] = f
-    for i in prange(na):
-        if flip[i]:
+    p0 = 1.0
+    p1 = 0.0
+    p2 = 0.0
+    p3 = 0.0
+    for i in range(na):
+        if q[i, 0, 0] * p0 + q[i, 0, 1] * p1 + q[i, 0, 2] * p2 + q[i, 0, 3] * p3 < 0.0:
             for j in range(nb):
                 for k in range(4):
                     q[i, j, k] = -q[i, j, k]
+        p0 = q[i, 0, 0]
+        p1 = q[i, 0, 1]
+        p2 = q[i, 0, 2]
+        p3 = q[i, 0, 3]
+
+
+@jit
+def _centroid(r):
+    """Mean of the points ``r (n, 3)``."""
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    n = r.shape[0]
+    for k in range(n):
+        sx += r[k, 0]
+        sy += r[k, 1]
+        sz += r[k, 2]
+    out = np.empty(3)
+    out[0] = sx / n
+    out[1] = sy / n
+    out[2] = sz / n
+    return out
 
 
 @pjit
@@ -469,7 +555,7 @@ def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo
     """
     Pu, Pd, oi, oj, curve, e, shape = _prepare(ru, rd, plane_normal, halo_u, halo_d)
     if centre is None:
-        c = np.asarray(ru, dtype=np.float64).reshape(-1, 3).mean(axis=0)
+        c = _centroid(np.ascontiguousarray(ru, dtype=np.float64).reshape(-1, 3))
     else:
         c = _vector3(centre, "centre")
     na = shape[0]

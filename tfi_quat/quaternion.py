@@ -220,27 +220,17 @@ def _exp_s(x, y, z):
 
 
 @jit(inline="always")
-def _from_two_vectors_s(ax, ay, az, bx, by, bz):
-    """Minimal rotation taking direction ``a`` to direction ``b``; returns a 4-tuple.
+def _from_two_units_s(ax, ay, az, bx, by, bz):
+    """Minimal rotation taking unit vector ``a`` to unit vector ``b``; returns a 4-tuple.
 
-    Inputs need not be unit (they are normalised here); a zero input gives
-    the identity.  For ``a . b >= 0`` the quaternion ``[1 + c, a x b]`` is
-    normalised (no cancellation).  For ``a . b < 0`` the angle is
-    ``atan2(|a x b|, a . b)`` and the axis ``a x b``, first made exactly
-    perpendicular to ``a - b`` so that round-off in a short cross product
-    does not tilt it; exactly antiparallel inputs rotate by pi about an axis
-    perpendicular to ``a`` built from its smallest component.
+    For ``c = a . b >= 0`` the quaternion ``[1 + c, a x b]`` is normalised
+    (no cancellation, no trigonometry).  For ``c < 0`` the angle is
+    ``atan2(|a x b|, c)`` and the axis ``a x b``, first made exactly
+    perpendicular to ``m = a - b`` so that round-off in a short cross product
+    cannot tilt it out of the plane of rotation; exactly antiparallel inputs
+    rotate by pi about ``m x e_k``, ``e_k`` the axis of ``m``'s smallest
+    component.  ``w >= 0``.
     """
-    na = math.sqrt(ax * ax + ay * ay + az * az)
-    nb = math.sqrt(bx * bx + by * by + bz * bz)
-    if not (na > 0.0 and nb > 0.0):
-        return 1.0, 0.0, 0.0, 0.0
-    ax /= na
-    ay /= na
-    az /= na
-    bx /= nb
-    by /= nb
-    bz /= nb
     c = ax * bx + ay * by + az * bz
     ux = ay * bz - az * by
     uy = az * bx - ax * bz
@@ -249,7 +239,6 @@ def _from_two_vectors_s(ax, ay, az, bx, by, bz):
         w = 1.0 + c
         inv = 1.0 / math.sqrt(w * w + ux * ux + uy * uy + uz * uz)
         return w * inv, ux * inv, uy * inv, uz * inv
-    # near-antiparallel: remove from u its (round-off) component along m = a - b
     mx = ax - bx
     my = ay - by
     mz = az - bz
@@ -260,7 +249,6 @@ def _from_two_vectors_s(ax, ay, az, bx, by, bz):
     uz -= p * mz
     s = math.sqrt(ux * ux + uy * uy + uz * uz)
     if s < 1e-150:
-        # exactly antiparallel: pi about m x e_k, e_k the axis of m's smallest component
         amx = abs(mx)
         amy = abs(my)
         amz = abs(mz)
@@ -280,6 +268,16 @@ def _from_two_vectors_s(ax, ay, az, bx, by, bz):
     z = uz * f
     inv = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
     return w * inv, x * inv, y * inv, z * inv
+
+
+@jit(inline="always")
+def _from_two_vectors_s(ax, ay, az, bx, by, bz):
+    """:func:`_from_two_units_s` after normalising ``a`` and ``b``; a zero input gives the identity."""
+    na = math.sqrt(ax * ax + ay * ay + az * az)
+    nb = math.sqrt(bx * bx + by * by + bz * bz)
+    if not (na > 0.0 and nb > 0.0):
+        return 1.0, 0.0, 0.0, 0.0
+    return _from_two_units_s(ax / na, ay / na, az / na, bx / nb, by / nb, bz / nb)
 
 
 # ------------------------------------------------------- more kernels
