@@ -79,20 +79,38 @@ def kconj(a, out):
 
 @jit(inline="always")
 def knormalize(a, out):
-    """``out = a / |a|``; returns ``|a|``.  A zero quaternion gives the identity."""
-    n = math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + a[3] * a[3])
-    if n > 0.0:
+    """``out = a / |a|``; returns ``|a|``.  A zero quaternion gives the identity.
+
+    Norms so small (or large) that the squares under- or overflow are
+    handled by scaling with the largest component first, so the result is
+    unit to round-off for every finite nonzero input.
+    """
+    n2 = a[0] * a[0] + a[1] * a[1] + a[2] * a[2] + a[3] * a[3]
+    if 1e-200 < n2 < 1e200:
+        n = math.sqrt(n2)
         inv = 1.0 / n
         out[0] = a[0] * inv
         out[1] = a[1] * inv
         out[2] = a[2] * inv
         out[3] = a[3] * inv
-    else:
+        return n
+    m = max(max(abs(a[0]), abs(a[1])), max(abs(a[2]), abs(a[3])))
+    if not (m > 0.0):
         out[0] = 1.0
         out[1] = 0.0
         out[2] = 0.0
         out[3] = 0.0
-    return n
+        return 0.0
+    b0 = a[0] / m
+    b1 = a[1] / m
+    b2 = a[2] / m
+    b3 = a[3] / m
+    r = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2 + b3 * b3)
+    out[0] = b0 / r
+    out[1] = b1 / r
+    out[2] = b2 / r
+    out[3] = b3 / r
+    return m * r
 
 
 @jit(inline="always")
