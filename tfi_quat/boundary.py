@@ -43,7 +43,7 @@ DEGENERATE = 1e-10
 
 
 # ------------------------------------------------------------------ kernels
-@jit(inline="always")
+@jit
 def _valid(P, ii, jj):
     """Is ``P[ii, jj]`` (padded index) inside the array and not NaN?"""
     if ii < 0 or jj < 0 or ii >= P.shape[0] or jj >= P.shape[1]:
@@ -51,7 +51,7 @@ def _valid(P, ii, jj):
     return P[ii, jj, 0] == P[ii, jj, 0]
 
 
-@jit(inline="always")
+@jit
 def _edge(P, ii, jj, di, dj):
     """Edge vector ``P[ii+di, jj+dj] - P[ii, jj]``; returns (x, y, z, exists)."""
     a = ii + di
@@ -61,7 +61,7 @@ def _edge(P, ii, jj, di, dj):
     return P[a, b, 0] - P[ii, jj, 0], P[a, b, 1] - P[ii, jj, 1], P[a, b, 2] - P[ii, jj, 2], True
 
 
-@jit(inline="always")
+@jit
 def _diff(px, py, pz, pok, mx, my, mz, mok):
     """Tangent from the edges to the + and - neighbours: central, one-sided, or zero."""
     if pok and mok:
@@ -73,7 +73,7 @@ def _diff(px, py, pz, pok, mx, my, mz, mok):
     return 0.0, 0.0, 0.0
 
 
-@jit(inline="always")
+@jit
 def _unit_normal(ax, ay, az, bx, by, bz, curve):
     """``a x b / |a x b|``; returns (nx, ny, nz, defined).
 
@@ -97,7 +97,7 @@ def _unit_normal(ax, ay, az, bx, by, bz, curve):
     return nx * inv, ny * inv, nz * inv, True
 
 
-@jit(inline="always")
+@jit
 def _normal(P, ii, jj, curve, e):
     """Unit normal at padded index (ii, jj); returns (nx, ny, nz, defined)."""
     px, py, pz, pok = _edge(P, ii, jj, 1, 0)
@@ -114,7 +114,7 @@ def _normal(P, ii, jj, curve, e):
     return _unit_normal(ax, ay, az, bx, by, bz, curve)
 
 
-@jit(inline="always")
+@jit
 def _rot_s(w, x, y, z, vx, vy, vz):
     """rot(q, v) for a unit quaternion given as scalars; returns a 3-tuple."""
     tx = 2.0 * (y * vz - z * vy)
@@ -125,7 +125,7 @@ def _rot_s(w, x, y, z, vx, vy, vz):
             vz + w * tz + (x * ty - y * tx))
 
 
-@jit(inline="always")
+@jit
 def _delta(Pu, Pd, ii, jj, c, q, out):
     """out = r_d - c - rot(q, r_u - c)."""
     rx, ry, rz = _rot_s(q[0], q[1], q[2], q[3],
@@ -135,7 +135,7 @@ def _delta(Pu, Pd, ii, jj, c, q, out):
     out[2] = Pd[ii, jj, 2] - c[2] - rz
 
 
-@jit(inline="always")
+@jit
 def _angle_terms(ok, ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
                  T1x, T1y, T1z, T2x, T2y, T2z):
     """Sine and cosine of the angle about ``n_d`` from ``rot(Q1, e)`` to ``f``, projected.
@@ -163,7 +163,7 @@ def _angle_terms(ok, ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
     return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv
 
 
-@jit(inline="always")
+@jit
 def _point_quaternion(Pu, Pd, ii, jj, curve, e):
     """Q = Q2 ⊗ Q1 at padded index (ii, jj); returns (w, x, y, z, defined).
 
