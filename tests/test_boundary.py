@@ -194,6 +194,21 @@ def test_moving_the_whole_problem_moves_q_and_delta(g, deg, shift, default_centr
     np.testing.assert_allclose(dg, G.apply(delta.reshape(-1, 3)).reshape(delta.shape), rtol=0, atol=1e-10 * 10)
 
 
+def test_block_face_slices_in_fortran_order_and_inputs_untouched():
+    """The Deformer passes face slices of Fortran-ordered blocks; results do not depend on layout."""
+    ru = wing_patch()
+    rd = bent(ru)
+    q, delta = boundary_motion(ru, rd)
+    block_u = np.asfortranarray(np.stack([ru, ru + 1.0], axis=2))      # (ni, nj, nk, 3)
+    block_d = np.asfortranarray(np.stack([rd, rd + 1.0], axis=2))
+    keep_u, keep_d = block_u.copy(), block_d.copy()
+    qf, df = boundary_motion(block_u[:, :, 0, :], block_d[:, :, 0, :])
+    np.testing.assert_array_equal(qf, q)
+    np.testing.assert_array_equal(df, delta)
+    np.testing.assert_array_equal(block_u, keep_u)
+    np.testing.assert_array_equal(block_d, keep_d)
+
+
 def test_nonrigid_motion_reproduces_the_deformed_wall():
     for name, ru in SURFACES.items():
         rd = bent(ru)
