@@ -62,6 +62,16 @@ def _edge(P, ii, jj, di, dj):
 
 
 @jit
+def _edge_if(P, ii, jj, di, dj, ok):
+    """Edge vector ``P[ii+di, jj+dj] - P[ii, jj]`` where ``ok`` is already known; else zero."""
+    if not ok:
+        return 0.0, 0.0, 0.0
+    a = ii + di
+    b = jj + dj
+    return P[a, b, 0] - P[ii, jj, 0], P[a, b, 1] - P[ii, jj, 1], P[a, b, 2] - P[ii, jj, 2]
+
+
+@jit
 def _diff(px, py, pz, pok, mx, my, mz, mok):
     """Tangent from the edges to the + and - neighbours: central, one-sided, or zero."""
     if pok and mok:
@@ -173,8 +183,8 @@ def _point_quaternion(Pu, Pd, ii, jj, curve, e):
     # edges to the four neighbours, undeformed (e*) and deformed (f*)
     e1x, e1y, e1z, ok1 = _edge(Pu, ii, jj, 1, 0)
     e2x, e2y, e2z, ok2 = _edge(Pu, ii, jj, -1, 0)
-    f1x, f1y, f1z, _ = _edge(Pd, ii, jj, 1, 0)
-    f2x, f2y, f2z, _ = _edge(Pd, ii, jj, -1, 0)
+    f1x, f1y, f1z = _edge_if(Pd, ii, jj, 1, 0, ok1)
+    f2x, f2y, f2z = _edge_if(Pd, ii, jj, -1, 0, ok2)
     if curve:
         e3x, e3y, e3z, ok3 = 0.0, 0.0, 0.0, False
         e4x, e4y, e4z, ok4 = 0.0, 0.0, 0.0, False
@@ -185,8 +195,8 @@ def _point_quaternion(Pu, Pd, ii, jj, curve, e):
     else:
         e3x, e3y, e3z, ok3 = _edge(Pu, ii, jj, 0, 1)
         e4x, e4y, e4z, ok4 = _edge(Pu, ii, jj, 0, -1)
-        f3x, f3y, f3z, _ = _edge(Pd, ii, jj, 0, 1)
-        f4x, f4y, f4z, _ = _edge(Pd, ii, jj, 0, -1)
+        f3x, f3y, f3z = _edge_if(Pd, ii, jj, 0, 1, ok3)
+        f4x, f4y, f4z = _edge_if(Pd, ii, jj, 0, -1, ok4)
         bux, buy, buz = _diff(e3x, e3y, e3z, ok3, e4x, e4y, e4z, ok4)
         bdx, bdy, bdz = _diff(f3x, f3y, f3z, ok3, f4x, f4y, f4z, ok4)
     aux, auy, auz = _diff(e1x, e1y, e1z, ok1, e2x, e2y, e2z, ok2)

@@ -8,7 +8,7 @@ Kernel contract
   allocate, never raise.  Output may alias an input unless stated.
 * Rotations are unit quaternions; ``q`` and ``-q`` are the same rotation.
   The rotation of a vector ``v`` is ``q [0, v] q*``.
-* The composition "first ``a``, then ``b``" is ``b ⊗ a`` (:func:`qmul` (b, a)).
+* The composition "first ``a``, then ``b``" is ``b ⊗ a`` (:func:`kmul` (b, a, out)).
 
 * Scalar helpers (``_s`` suffix) take and return tuples of floats; the
   array kernels are thin wrappers over them, and composite kernels
@@ -462,6 +462,7 @@ def kexp(v3, out):
 
 
 #: relative norm below which :func:`kblend` falls back to the log-map blend
+#: (read when a kernel is compiled: changing it later has no effect)
 BLEND_FALLBACK = 1e-6
 
 
