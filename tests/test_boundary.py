@@ -427,3 +427,21 @@ def test_surface_normals_bad_input():
         surface_normals(airfoil_curve(5))
     with pytest.raises(DeformationError, match="halo"):
         surface_normals(sphere_patch(), halo=sphere_patch())
+
+
+def test_interior_fast_path_equals_the_general_kernel():
+    """Interior points take a straight-line path; it must be the same algorithm."""
+    from tfi_quat import boundary as B
+    for ru in (wing_patch(), SURFACES["duplicated_row"], cap_patch(collapsed_rows=2)):
+        rd = apply(Rotation.from_rotvec([0.5, 2.0, -1.0]), [1.0, 2.0, 3.0], bent(ru, 1.5))
+        q, _ = boundary_motion(ru, rd)
+        e = np.zeros(3)
+        for i in range(ru.shape[0]):
+            for j in range(ru.shape[1]):
+                w, x, y, z, good = B._point_quaternion(ru, rd, i, j, False, e)
+                if good:
+                    assert qerr(q[i, j], np.array([w, x, y, z])) <= 1e-14
+                fw, fx, fy, fz, fgood = B._interior_quaternion(ru, rd, i, j) \
+                    if 0 < i < ru.shape[0] - 1 and 0 < j < ru.shape[1] - 1 else (0, 0, 0, 0, False)
+                if fgood:
+                    assert good and qerr(np.array([fw, fx, fy, fz]), np.array([w, x, y, z])) <= 1e-14

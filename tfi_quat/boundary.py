@@ -261,41 +261,197 @@ def _point_quaternion(Pu, Pd, ii, jj, curve, e):
     return w, x, y, z, True
 
 
+@jit(inline="always")
+def _edge_angle_fast(ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
+                     T1x, T1y, T1z, T2x, T2y, T2z):
+    """:func:`_angle_terms` without branches; returns (sin, cos, usable)."""
+    a1 = ex * t1x + ey * t1y + ez * t1z
+    a2 = ex * t2x + ey * t2y + ez * t2z
+    b1 = fx * T1x + fy * T1y + fz * T1z
+    b2 = fx * T2x + fy * T2y + fz * T2z
+    la2 = a1 * a1 + a2 * a2
+    lb2 = b1 * b1 + b2 * b2
+    d2 = DEGENERATE * DEGENERATE
+    good = (la2 > d2 * (ex * ex + ey * ey + ez * ez)) & (lb2 > d2 * (fx * fx + fy * fy + fz * fz))
+    inv = 1.0 / math.sqrt(la2 * lb2)
+    return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv, good
+
+
+@jit(inline="always")
+def _interior_quaternion(Pu, Pd, ii, jj):
+    """:func:`_point_quaternion` for a surface point with all four neighbours present.
+
+    The common case (defined normals, ``n_u . n_d >= 0``, every edge usable,
+    summed cosine ``>= 0``) as straight-line code: the same operations, so
+    the same result, without the validity tests and branches that make the
+    general kernel latency-bound.  Returns (w, x, y, z, ok); where ``ok`` is
+    False (a rare case, or NaN from a degenerate point) the caller uses
+    :func:`_point_quaternion`.
+    """
+    e1x = Pu[ii + 1, jj, 0] - Pu[ii, jj, 0]
+    e1y = Pu[ii + 1, jj, 1] - Pu[ii, jj, 1]
+    e1z = Pu[ii + 1, jj, 2] - Pu[ii, jj, 2]
+    e2x = Pu[ii - 1, jj, 0] - Pu[ii, jj, 0]
+    e2y = Pu[ii - 1, jj, 1] - Pu[ii, jj, 1]
+    e2z = Pu[ii - 1, jj, 2] - Pu[ii, jj, 2]
+    e3x = Pu[ii, jj + 1, 0] - Pu[ii, jj, 0]
+    e3y = Pu[ii, jj + 1, 1] - Pu[ii, jj, 1]
+    e3z = Pu[ii, jj + 1, 2] - Pu[ii, jj, 2]
+    e4x = Pu[ii, jj - 1, 0] - Pu[ii, jj, 0]
+    e4y = Pu[ii, jj - 1, 1] - Pu[ii, jj, 1]
+    e4z = Pu[ii, jj - 1, 2] - Pu[ii, jj, 2]
+    f1x = Pd[ii + 1, jj, 0] - Pd[ii, jj, 0]
+    f1y = Pd[ii + 1, jj, 1] - Pd[ii, jj, 1]
+    f1z = Pd[ii + 1, jj, 2] - Pd[ii, jj, 2]
+    f2x = Pd[ii - 1, jj, 0] - Pd[ii, jj, 0]
+    f2y = Pd[ii - 1, jj, 1] - Pd[ii, jj, 1]
+    f2z = Pd[ii - 1, jj, 2] - Pd[ii, jj, 2]
+    f3x = Pd[ii, jj + 1, 0] - Pd[ii, jj, 0]
+    f3y = Pd[ii, jj + 1, 1] - Pd[ii, jj, 1]
+    f3z = Pd[ii, jj + 1, 2] - Pd[ii, jj, 2]
+    f4x = Pd[ii, jj - 1, 0] - Pd[ii, jj, 0]
+    f4y = Pd[ii, jj - 1, 1] - Pd[ii, jj, 1]
+    f4z = Pd[ii, jj - 1, 2] - Pd[ii, jj, 2]
+    d2 = DEGENERATE * DEGENERATE
+    # undeformed normal
+    aux = e1x - e2x
+    auy = e1y - e2y
+    auz = e1z - e2z
+    bux = e3x - e4x
+    buy = e3y - e4y
+    buz = e3z - e4z
+    la2 = aux * aux + auy * auy + auz * auz
+    lb2 = bux * bux + buy * buy + buz * buz
+    ux = auy * buz - auz * buy
+    uy = auz * bux - aux * buz
+    uz = aux * buy - auy * bux
+    ln2 = ux * ux + uy * uy + uz * uz
+    good = (ln2 > d2 * la2 * lb2) & (la2 > d2 * lb2) & (lb2 > d2 * la2)
+    inv = 1.0 / math.sqrt(ln2)
+    ux *= inv
+    uy *= inv
+    uz *= inv
+    # deformed normal
+    adx = f1x - f2x
+    ady = f1y - f2y
+    adz = f1z - f2z
+    bdx = f3x - f4x
+    bdy = f3y - f4y
+    bdz = f3z - f4z
+    ma2 = adx * adx + ady * ady + adz * adz
+    mb2 = bdx * bdx + bdy * bdy + bdz * bdz
+    dx = ady * bdz - adz * bdy
+    dy = adz * bdx - adx * bdz
+    dz = adx * bdy - ady * bdx
+    mn2 = dx * dx + dy * dy + dz * dz
+    good &= (mn2 > d2 * ma2 * mb2) & (ma2 > d2 * mb2) & (mb2 > d2 * ma2)
+    inv = 1.0 / math.sqrt(mn2)
+    dx *= inv
+    dy *= inv
+    dz *= inv
+    # Q1 for n_u . n_d >= 0: [1 + c, n_u x n_d] normalised (as _from_two_units_s)
+    c = ux * dx + uy * dy + uz * dz
+    good &= c >= 0.0
+    vx = uy * dz - uz * dy
+    vy = uz * dx - ux * dz
+    vz = ux * dy - uy * dx
+    w = 1.0 + c
+    inv = 1.0 / math.sqrt(w * w + vx * vx + vy * vy + vz * vz)
+    a0 = w * inv
+    a1 = vx * inv
+    a2 = vy * inv
+    a3 = vz * inv
+    # tangent-plane bases
+    inv = 1.0 / math.sqrt(la2)
+    t1x = aux * inv
+    t1y = auy * inv
+    t1z = auz * inv
+    t2x = uy * t1z - uz * t1y
+    t2y = uz * t1x - ux * t1z
+    t2z = ux * t1y - uy * t1x
+    T1x, T1y, T1z = _rot_s(a0, a1, a2, a3, t1x, t1y, t1z)
+    T2x = dy * T1z - dz * T1y
+    T2y = dz * T1x - dx * T1z
+    T2z = dx * T1y - dy * T1x
+    s1, c1, g1 = _edge_angle_fast(e1x, e1y, e1z, f1x, f1y, f1z, t1x, t1y, t1z, t2x, t2y, t2z,
+                                  T1x, T1y, T1z, T2x, T2y, T2z)
+    s2, c2, g2 = _edge_angle_fast(e2x, e2y, e2z, f2x, f2y, f2z, t1x, t1y, t1z, t2x, t2y, t2z,
+                                  T1x, T1y, T1z, T2x, T2y, T2z)
+    s3, c3, g3 = _edge_angle_fast(e3x, e3y, e3z, f3x, f3y, f3z, t1x, t1y, t1z, t2x, t2y, t2z,
+                                  T1x, T1y, T1z, T2x, T2y, T2z)
+    s4, c4, g4 = _edge_angle_fast(e4x, e4y, e4z, f4x, f4y, f4z, t1x, t1y, t1z, t2x, t2y, t2z,
+                                  T1x, T1y, T1z, T2x, T2y, T2z)
+    ss = s1 + s2 + s3 + s4
+    cc = c1 + c2 + c3 + c4
+    good &= g1 & g2 & g3 & g4 & (cc >= 0.0)
+    # Q2 for cc >= 0: (r + cc, ss) normalised
+    r = math.sqrt(ss * ss + cc * cc)
+    hw = r + cc
+    hs = ss
+    inv = 1.0 / math.sqrt(hw * hw + hs * hs)
+    hw *= inv
+    hs *= inv
+    w, x, y, z = _mul_s(hw, dx * hs, dy * hs, dz * hs, a0, a1, a2, a3)
+    return w, x, y, z, good
+
+
+@jit
+def _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i):
+    """Row ``i`` of :func:`_motion_kernel` (one function call per row keeps the
+    parallel kernel small, which keeps compilation short)."""
+    na = q.shape[0]
+    nb = q.shape[1]
+    have = False
+    p0 = 1.0
+    p1 = 0.0
+    p2 = 0.0
+    p3 = 0.0
+    inner_row = (not curve) and 0 < i < na - 1
+    for j in range(nb):
+        good = False
+        w = 1.0
+        x = 0.0
+        y = 0.0
+        z = 0.0
+        if inner_row and 0 < j < nb - 1:
+            w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
+        if not good:
+            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, curve, e)
+        if good:
+            if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
+                w = -w
+                x = -x
+                y = -y
+                z = -z
+            have = True
+            p0 = w
+            p1 = x
+            p2 = y
+            p3 = z
+            ok[i, j] = 1
+        else:
+            ok[i, j] = 0
+        q[i, j, 0] = w
+        q[i, j, 1] = x
+        q[i, j, 2] = y
+        q[i, j, 3] = z
+        # delta = r_d - c - rot(q, r_u - c)
+        rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0], Pu[i + oi, j + oj, 1] - c[1],
+                            Pu[i + oi, j + oj, 2] - c[2])
+        delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
+        delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
+        delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
+
+
 @pjit
 def _motion_kernel(Pu, Pd, oi, oj, curve, e, c, q, delta, ok):
     """Q, delta and the defined flag at every patch point; rows in parallel.
 
-    Within a row the sign of q follows the previous defined point.
+    Interior surface points try the straight-line :func:`_interior_quaternion`
+    first; within a row the sign of q follows the previous defined point.
     """
-    na = q.shape[0]
-    nb = q.shape[1]
-    for i in prange(na):
-        have = False
-        p0 = 1.0
-        p1 = 0.0
-        p2 = 0.0
-        p3 = 0.0
-        for j in range(nb):
-            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, curve, e)
-            if good:
-                if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
-                    w = -w
-                    x = -x
-                    y = -y
-                    z = -z
-                have = True
-                p0 = w
-                p1 = x
-                p2 = y
-                p3 = z
-                ok[i, j] = 1
-            else:
-                ok[i, j] = 0
-            q[i, j, 0] = w
-            q[i, j, 1] = x
-            q[i, j, 2] = y
-            q[i, j, 3] = z
-            _delta(Pu, Pd, i + oi, j + oj, c, q[i, j], delta[i, j])
+    for i in prange(q.shape[0]):
+        _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i)
 
 
 @jit
