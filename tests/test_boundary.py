@@ -345,13 +345,19 @@ def test_degenerate_points_never_give_nan():
     q, delta = boundary_motion(ru, rd)
     np.testing.assert_array_equal(q, np.broadcast_to([1.0, 0, 0, 0], q.shape))
     np.testing.assert_allclose(delta, rd - ru, atol=1e-15)
-    # a line of points (all tangents parallel), a single row, a single point, a curve of one point
-    line = np.stack(np.broadcast_arrays(np.linspace(0, 1, 6)[:, None], np.zeros((1, 3)), 0.0), -1)
-    for r in (line, sphere_patch()[:1], np.zeros((1, 1, 3))):
-        q, delta = boundary_motion(r, r + rng.normal(size=r.shape) * 0.1)
-        assert np.all(np.isfinite(q)) and np.all(np.isfinite(delta))
-    q, delta = boundary_motion(np.zeros((1, 3)), np.ones((1, 3)), plane_normal=(0, 0, 1))
-    np.testing.assert_array_equal(q, [[1.0, 0, 0, 0]])
+    # a patch collapsed to a line (all tangents parallel)
+    line = np.zeros((6, 3, 3))
+    line[..., 0] = np.linspace(0, 1, 6)[:, None]
+    q, delta = boundary_motion(line, line + rng.normal(size=line.shape) * 0.1)
+    assert np.all(np.isfinite(q)) and np.all(np.isfinite(delta))
+    # a single row with its neighbour rows in the halo is fine
+    sp = sphere_patch()
+    hu = nan_halo(sp)[:3]
+    hd = nan_halo(bent(sp))[:3]
+    hu[2, 1:-1], hd[2, 1:-1] = sp[1], bent(sp)[1]
+    q, delta = boundary_motion(sp[:1], bent(sp)[:1], halo_u=hu, halo_d=hd)
+    # same neighbours as row 0 of the whole patch (the row above is NaN): the same q
+    assert qerr(q, boundary_motion(sp, bent(sp))[0][:1]) <= 1e-15
     # a curve with repeated points at both ends
     ru = np.concatenate([airfoil_curve()[:1], airfoil_curve(), airfoil_curve()[-1:]])
     rot = Rotation.from_rotvec([0, 0, 1.0])
@@ -401,6 +407,8 @@ def _bad_cases():
         ((ru, rd[:4]), {}, DeformationError, "rd"),
         ((nan_ru, rd), {}, GridValueError, r"ru: NaN.*\(1, 2\)"),
         ((ru, "x"), {}, GridValueError, "rd"),
+        ((ru[:1], rd[:1]), {}, GridValueError, r"ru: shape \(1, 4, 3\).*curve"),
+        ((cu[:1], cu[:1]), {"plane_normal": (0, 0, 1)}, GridValueError, "ru.*n >= 2"),
         ((ru, rd, [0, 0]), {}, GridValueError, "centre"),
         ((ru, rd, [0, np.nan, 0]), {}, GridValueError, "centre"),
         ((cu, cu + 1.0), {}, GridValueError, "plane_normal"),

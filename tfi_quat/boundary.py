@@ -654,6 +654,11 @@ def _prepare(ru, rd, plane_normal, halo_u, halo_d, names=("ru", "rd")):
             raise GridValueError(f"plane_normal: only for wall curves of shape (n, 3); "
                                  f"{names[0]} is a surface of shape {ru.shape}")
         e = np.zeros(3)
+    if halo_u is None and min(ru.shape[:-1]) < 2:
+        what = "curve (n, 3) needs n >= 2" if curve else "surface (na, nb, 3) needs na, nb >= 2"
+        hint = "" if curve else "; the wall of a 2-D grid is a curve (n, 3) with plane_normal"
+        raise GridValueError(f"{names[0]}: shape {ru.shape}: a wall {what} to have tangents, "
+                             f"unless a halo supplies the neighbours{hint}")
     if (halo_u is None) != (halo_d is None) and rd is not None:
         given, lack = ("halo_u", "halo_d") if halo_d is None else ("halo_d", "halo_u")
         raise DeformationError(f"{lack}: missing while {given} is given; pass both or neither")
