@@ -712,7 +712,7 @@ def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo
     ------
     GridValueError
         An argument of the wrong shape, non-finite points, a missing or zero
-        ``plane_normal``.
+        ``plane_normal``, a patch one point wide without a halo.
     DeformationError
         ``rd`` or a halo that does not match ``ru`` (shape, interior, NaN
         pattern), or only one halo.
