@@ -1,0 +1,302 @@
+"""``tfi-quat info`` and ``tfi-quat convert``, run in-process through ``main``."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+import tfi_quat
+from tfi_quat import Block, Grid, GridFormatError
+from tfi_quat.cli import _info, main
+from tfi_quat.io import hdf5
+from tfi_quat.io.hdf5 import HDF5Format
+
+from conftest import annulus, sheared_box
+
+
+def run_cli(capsys, *argv):
+    """Run ``tfi-quat argv``; return (exit status, stdout, stderr)."""
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def edge_oracle(grid):
+    """Shortest/longest cell edge, computed plainly over whole blocks."""
+    lengths = [np.linalg.norm(np.diff(b.xyz, axis=a), axis=-1).ravel()
+               for b in grid for a in range(3) if b.dims[a] > 1]
+    allv = np.concatenate(lengths)
+    return allv.min(), allv.max()
+
+
+def two_block_grid():
+    b1 = Block(sheared_box(5, 4, 3), name="wing")
+    ib = np.ones((6, 2, 7), dtype=np.int32)
+    ib[0, 0, 0] = 0
+    b2 = Block(sheared_box(6, 2, 7) + [3.0, -1.0, 0.5], iblank=ib, name="wake")
+    return Grid([b1, b2])
+
+
+@pytest.fixture
+def h5grid(tmp_path):
+    p = tmp_path / "two.h5"
+    grid = two_block_grid()
+    hdf5.write(p, grid)
+    return p, grid
+
+
+def assert_one_line_error(rc, out, err, *fragments):
+    assert rc == 2
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    for f in fragments:
+        assert str(f) in lines[0], (f, lines[0])
+
+
+# ----------------------------------------------------------------------------- info
+
+def test_info_text(capsys, h5grid):
+    p, grid = h5grid
+    rc, out, err = run_cli(capsys, "info", p)
+    assert rc == 0 and err == ""
+    lines = out.splitlines()
+    assert lines[0] == str(p)
+    assert "format      hdf5: layout v1, uncompressed" in out
+    assert "ndim        3" in out and "blocks      2" in out
+    assert any(l.split()[:6] == ["1", "wing", "5", "x", "4", "x"] and "60 points" in l for l in lines)
+    wake = [l for l in lines if "wake" in l][0]
+    assert "6 x 2 x 7" in wake and "84 points" in wake and wake.endswith("iblank")
+    assert "points      144" in out
+    lo, hi = grid.bbox()
+    assert f"x [{lo[0]:.6g}, {hi[0]:.6g}]" in out and f"z [{lo[2]:.6g}, {hi[2]:.6g}]" in out
+    emin, emax = edge_oracle(grid)
+    assert f"cell edge   min {emin:.6g}  max {emax:.6g}" in out
+    assert lines[-1] == "  iblank      yes"
+
+
+def test_info_json(capsys, h5grid):
+    p, grid = h5grid
+    rc, out, _ = run_cli(capsys, "info", p, "--json")
+    assert rc == 0
+    s = json.loads(out)
+    assert s["format"] == "hdf5" and s["variant"] == {"compression": None, "compression_level": None,
+                                                      "shuffle": False, "version": 1}
+    assert s["ndim"] == 3 and s["nblocks"] == 2 and s["points"] == 144 and s["iblank"] is True
+    assert s["blocks"] == [{"block": 1, "name": "wing", "dims": [5, 4, 3], "points": 60, "iblank": False},
+                           {"block": 2, "name": "wake", "dims": [6, 2, 7], "points": 84, "iblank": True}]
+    lo, hi = grid.bbox()
+    assert s["bbox"] == {"min": lo.tolist(), "max": hi.tolist()}
+    emin, emax = edge_oracle(grid)
+    assert s["edge_length"]["min"] == pytest.approx(emin, rel=1e-14)
+    assert s["edge_length"]["max"] == pytest.approx(emax, rel=1e-14)
+
+
+def test_info_2d_grid_without_iblank(capsys, tmp_path):
+    p = tmp_path / "ann.hdf5"
+    grid = Grid([annulus()])
+    hdf5.write(p, grid, compression="gzip", compression_level=2)
+    rc, out, _ = run_cli(capsys, "info", p, "--json")
+    s = json.loads(out)
+    assert rc == 0 and s["ndim"] == 2 and s["iblank"] is False
+    assert s["description"] == "hdf5: layout v1, gzip level 2 + shuffle"
+    assert s["blocks"][0]["dims"] == [9, 5, 1]
+    # annulus: shortest edge is the inner radial spacing or the inner arc chord
+    r = np.geomspace(1.0, 3.0, 5)
+    chord = 2 * np.sin(np.pi / 2 / 8 / 2)
+    assert s["edge_length"]["min"] == pytest.approx(min(r[1] - r[0], chord * r[0]), rel=1e-12)
+    assert s["edge_length"]["max"] == pytest.approx(max(r[-1] - r[-2], chord * r[-1]), rel=1e-12)
+
+
+def test_edge_lengths_of_a_uniform_box():
+    x, y, z = np.meshgrid(np.arange(4) * 0.1, np.arange(3) * 0.2, np.arange(5) * 0.5, indexing="ij")
+    grid = Grid([np.stack([x, y, z], axis=-1)])
+    lo, hi = _info.edge_length_range(grid)
+    assert lo == pytest.approx(0.1, rel=1e-15) and hi == pytest.approx(0.5, rel=1e-15)
+    assert _info.edge_length_range(Grid([np.zeros((1, 1, 1, 3))], 3)) is None
+
+
+@given(dims=st.lists(st.tuples(st.integers(1, 7), st.integers(1, 6), st.integers(1, 6)),
+                     min_size=1, max_size=3),
+       slab=st.integers(1, 50), seed=st.integers(0, 1000))
+def test_edge_lengths_match_the_oracle_for_any_slab_size(dims, slab, seed):
+    rng = np.random.default_rng(seed)
+    grid = Grid([rng.normal(size=d + (3,)) for d in dims], 3)
+    saved = _info._SLAB_POINTS
+    _info._SLAB_POINTS = slab
+    try:
+        got = _info.edge_length_range(grid)
+    finally:
+        _info._SLAB_POINTS = saved
+    if all(d == (1, 1, 1) for d in dims):
+        assert got is None
+    else:
+        assert got == pytest.approx(edge_oracle(grid), rel=1e-14)
+
+
+def test_info_hdf5_with_unknown_extension_is_sniffed(capsys, h5grid, tmp_path):
+    p, _ = h5grid
+    q = tmp_path / "grid.dat"
+    q.write_bytes(p.read_bytes())
+    rc, out, _ = run_cli(capsys, "info", q, "--json")
+    assert rc == 0 and json.loads(out)["format"] == "hdf5"
+
+
+def test_info_allow_nonfinite(capsys, tmp_path):
+    p = tmp_path / "nan.h5"
+    xyz = sheared_box(3, 3, 3)
+    xyz[1, 1, 1, 0] = np.nan
+    hdf5.write(p, Grid([Block(xyz, allow_nonfinite=True)]))
+    rc, out, err = run_cli(capsys, "info", p)
+    assert_one_line_error(rc, out, err, "tfi-quat info: error:", p, "block 1", "non-finite")
+    rc, out, _ = run_cli(capsys, "info", p, "--allow-nonfinite", "--json")
+    s = json.loads(out)
+    assert rc == 0 and s["bbox"]["min"][0] is None and s["bbox"]["min"][1] == 0.0
+
+
+# ----------------------------------------------------------------------------- info: errors
+
+def test_info_missing_file(capsys, tmp_path):
+    rc, out, err = run_cli(capsys, "info", tmp_path / "nope.h5")
+    assert_one_line_error(rc, out, err, "tfi-quat info: error:", "nope.h5", "no such file")
+
+
+def test_info_not_an_hdf5_file(capsys, tmp_path):
+    p = tmp_path / "bad.h5"
+    p.write_text("not a grid\n")
+    rc, out, err = run_cli(capsys, "info", p)
+    assert_one_line_error(rc, out, err, str(p), "not an HDF5 file")
+
+
+def test_info_hdf5_without_the_layout(capsys, tmp_path):
+    p = tmp_path / "other.h5"
+    with h5py.File(p, "w") as f:
+        f["data"] = np.zeros(3)
+    rc, out, err = run_cli(capsys, "info", p)
+    assert_one_line_error(rc, out, err, str(p), "no attribute 'format'")
+
+
+def test_info_plot3d_options_do_not_apply_to_hdf5(capsys, h5grid):
+    p, _ = h5grid
+    rc, out, err = run_cli(capsys, "info", p, "--endian", "big", "--single-block")
+    assert_one_line_error(rc, out, err, str(p), "HDF5", "--endian", "--single-block")
+
+
+def test_debug_shows_the_exception(tmp_path):
+    p = tmp_path / "bad.h5"
+    p.write_text("x")
+    with pytest.raises(GridFormatError, match="not an HDF5 file"):
+        main(["info", str(p), "--debug"])
+
+
+def test_usage_errors_exit_2(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["info", "g.h5", "--endian", "middle"])
+    assert exc.value.code == 2
+    assert "invalid choice" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- convert
+
+def test_convert_hdf5_compress_and_back(capsys, h5grid, tmp_path):
+    p, grid = h5grid
+    q = tmp_path / "packed.h5"
+    rc, out, err = run_cli(capsys, "convert", p, q, "--compress", "--compression-level", "7")
+    assert rc == 0 and err == ""
+    assert out == f"wrote {q}: hdf5: layout v1, gzip level 7 + shuffle, 2 block(s), 144 points\n"
+    back = tfi_quat.read(q)
+    assert back == grid and [b.name for b in back] == ["wing", "wake"]
+    assert back.source_format == HDF5Format("gzip", 7, True)
+    # HDF5 -> HDF5 keeps the input's compression unless told otherwise
+    r = tmp_path / "same.h5"
+    assert run_cli(capsys, "convert", q, r)[0] == 0
+    assert hdf5.info(r).format == HDF5Format("gzip", 7, True)
+    s = tmp_path / "plain.hdf"
+    assert run_cli(capsys, "convert", q, s, "--no-compress")[0] == 0
+    assert hdf5.info(s).format == HDF5Format()
+    assert tfi_quat.read(s) == grid
+
+
+def test_convert_keeps_extra_json(capsys, tmp_path):
+    p, q = tmp_path / "a.h5", tmp_path / "b.h5"
+    extra = {"connectivity": [{"blocks": [1, 2]}]}
+    hdf5.write(p, two_block_grid(), extra_json=extra)
+    assert run_cli(capsys, "convert", p, q, "--compress")[0] == 0
+    assert hdf5.read_extra(q) == extra
+
+
+def test_convert_refuses_to_overwrite(capsys, h5grid, tmp_path):
+    p, grid = h5grid
+    q = tmp_path / "out.h5"
+    q.write_bytes(b"precious")
+    rc, out, err = run_cli(capsys, "convert", p, q)
+    assert_one_line_error(rc, out, err, "tfi-quat convert: error:", q, "exists", "--force")
+    assert q.read_bytes() == b"precious"
+    rc, out, _ = run_cli(capsys, "convert", p, q, "--force")
+    assert rc == 0 and out.startswith(f"wrote {q}")
+    assert tfi_quat.read(q) == grid
+
+
+def test_convert_never_replaces_its_input_without_force(capsys, h5grid):
+    p, grid = h5grid
+    before = p.read_bytes()
+    rc, out, err = run_cli(capsys, "convert", p, p, "--compress")
+    assert_one_line_error(rc, out, err, p, "refusing to overwrite the input file")
+    assert p.read_bytes() == before
+    rc, _, _ = run_cli(capsys, "convert", p, p, "--compress", "--force")
+    assert rc == 0
+    assert hdf5.info(p).format.compression == "gzip"
+    assert tfi_quat.read(p) == grid
+
+
+@pytest.mark.parametrize("flags, fragment", [
+    (["--ascii"], "--ascii/--binary/--fortran apply to Plot3D output only"),
+    (["--big-endian", "--single"], "--big-endian/--little-endian, --single/--double apply to Plot3D"),
+    (["--records", "coordinate"], "--records apply to Plot3D output only"),
+])
+def test_convert_plot3d_flags_need_plot3d_output(capsys, h5grid, tmp_path, flags, fragment):
+    p, _ = h5grid
+    q = tmp_path / "out.h5"
+    rc, out, err = run_cli(capsys, "convert", p, q, *flags)
+    assert_one_line_error(rc, out, err, q, fragment)
+    assert not q.exists()
+
+
+def test_convert_compress_needs_hdf5_output(capsys, h5grid, tmp_path):
+    p, _ = h5grid
+    q = tmp_path / "out.xyz"
+    rc, out, err = run_cli(capsys, "convert", p, q, "--format", "plot3d", "--compress")
+    assert_one_line_error(rc, out, err, q, "--compress/--compression-level apply to HDF5 output only")
+    assert not q.exists()
+
+
+def test_convert_single_block_needs_one_block(capsys, h5grid, tmp_path):
+    p, _ = h5grid
+    q = tmp_path / "out.xyz"
+    rc, out, err = run_cli(capsys, "convert", p, q, "--format", "plot3d", "--single-block")
+    assert_one_line_error(rc, out, err, "--single-block needs a one-block grid", "2 blocks")
+    assert not q.exists()
+
+
+def test_convert_bad_input_names_the_file(capsys, tmp_path):
+    p = tmp_path / "broken.h5"
+    hdf5.write(p, two_block_grid())
+    with h5py.File(p, "r+") as f:
+        f.attrs["version"] = 9
+    q = tmp_path / "out.h5"
+    rc, out, err = run_cli(capsys, "convert", p, q)
+    assert_one_line_error(rc, out, err, "tfi-quat convert: error:", p, "layout version 9")
+    assert not q.exists()
+    rc, out, err = run_cli(capsys, "convert", tmp_path / "missing.h5", q)
+    assert_one_line_error(rc, out, err, "missing.h5", "no such file")
+
+
+def test_convert_input_options_are_prefixed(capsys, h5grid, tmp_path):
+    p, _ = h5grid
+    rc, out, err = run_cli(capsys, "convert", p, tmp_path / "o.h5", "--in-precision", "single")
+    assert_one_line_error(rc, out, err, p, "--in-precision")

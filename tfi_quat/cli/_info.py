@@ -1,0 +1,285 @@
+"""``tfi-quat info GRID``: what a grid file holds.
+
+Prints the detected file variant, ndim, the blocks with their dimensions and
+point counts, the total number of points, the bounding box, the shortest and
+longest cell edge, and whether the grid has IBLANK; ``--json`` prints the same
+as one JSON object.
+
+Also home of the input options shared with ``convert`` (:func:`add_input_args`,
+:func:`read_input`) and of the variant description (:func:`describe_variant`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .. import read
+from ..errors import GridFormatError
+from ..grid import Grid
+
+HELP = "describe a grid file: variant, blocks, points, bounding box, cell edge lengths"
+DESCRIPTION = """\
+Describe a grid file: the detected variant (Plot3D: encoding, byte order,
+precision, ndim, single/multi-block, IBLANK, record layout, integer size;
+HDF5: layout version and compression), ndim, each block's dimensions and
+points, the total points, the bounding box, the shortest and longest cell
+edge, and IBLANK yes/no.  Plot3D files whose variant cannot be detected
+unambiguously can be described with the variant options below."""
+
+#: points per slab when scanning cell edges (bounds the temporaries to ~ 50 MB)
+_SLAB_POINTS = 1 << 21
+
+
+# ----------------------------------------------------------------------------- input options
+
+def add_input_args(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    """Add the input options: format, Plot3D variant overrides, ``--allow-nonfinite``.
+
+    ``prefix`` ("" for ``info``, ``"in-"`` for ``convert``) is put in front
+    of every option name; the destinations are the same either way.
+    """
+    p = f"--{prefix}"
+    g = parser.add_argument_group(
+        "input", "the format is taken from the file contents (HDF5 signature) or extension; "
+        "Plot3D variant options override automatic detection")
+    g.add_argument(f"{p}format", dest="in_format", choices=("plot3d", "hdf5"),
+                   help="input file format")
+    g.add_argument(f"{p}encoding", dest="in_encoding", choices=("ascii", "binary", "fortran"),
+                   help="Plot3D: ASCII, C-stream binary or Fortran unformatted")
+    g.add_argument(f"{p}endian", dest="in_endian", choices=("big", "little"),
+                   help="Plot3D: byte order")
+    g.add_argument(f"{p}precision", dest="in_precision", choices=("single", "double"),
+                   help="Plot3D: float32 or float64 coordinates")
+    g.add_argument(f"{p}ndim", dest="in_ndim", type=int, choices=(2, 3),
+                   help="Plot3D: 2-D (x, y) or 3-D (x, y, z) file")
+    ib = g.add_mutually_exclusive_group()
+    ib.add_argument(f"{p}iblank", dest="in_iblank", action="store_const", const=True,
+                    help="Plot3D: the file has IBLANK arrays")
+    ib.add_argument(f"{p}no-iblank", dest="in_iblank", action="store_const", const=False,
+                    help="Plot3D: the file has no IBLANK arrays")
+    mb = g.add_mutually_exclusive_group()
+    mb.add_argument(f"{p}single-block", dest="in_multiblock", action="store_const", const=False,
+                    help="Plot3D: single-block file (no block-count line)")
+    mb.add_argument(f"{p}multi-block", dest="in_multiblock", action="store_const", const=True,
+                    help="Plot3D: multi-block file (starts with the block count)")
+    g.add_argument(f"{p}records", dest="in_records", choices=("block", "coordinate"),
+                   help="Plot3D Fortran: one record per block or per coordinate array")
+    g.add_argument(f"{p}int-size", dest="in_int_size", type=int, choices=(4, 8),
+                   help="Plot3D: bytes per header integer and IBLANK value")
+    g.add_argument(f"{p}marker-size", dest="in_marker_size", type=int, choices=(4, 8),
+                   help="Plot3D Fortran: bytes per record marker")
+    g.add_argument("--allow-nonfinite", action="store_true",
+                   help="accept NaN or infinite coordinates")
+
+
+#: (destination, option suffix, Plot3DFormat field, value map)
+_INPUT_OVERRIDES = (
+    ("in_encoding", "encoding", "encoding", None),
+    ("in_endian", "endian", "endian", {"big": ">", "little": "<"}),
+    ("in_precision", "precision", "precision", {"single": 4, "double": 8}),
+    ("in_ndim", "ndim", "ndim", None),
+    ("in_iblank", "iblank", "iblank", None),
+    ("in_multiblock", "single-block", "multiblock", None),
+    ("in_records", "records", "records", None),
+    ("in_int_size", "int-size", "int_size", None),
+    ("in_marker_size", "marker-size", "marker_size", None),
+)
+
+
+def input_overrides(args) -> dict:
+    """Plot3D reader overrides (Plot3DFormat field names) from the parsed input options."""
+    out = {}
+    for dest, _, fieldname, values in _INPUT_OVERRIDES:
+        v = getattr(args, dest, None)
+        if v is not None:
+            out[fieldname] = values[v] if values else v
+    return out
+
+
+def input_format(path, explicit: str | None) -> str | None:
+    """The input's format: explicit, else HDF5 by signature, else by extension (plot3d if unknown)."""
+    if explicit:
+        return explicit
+    from ..io import format_for
+    from ..io.hdf5 import is_hdf5
+    if is_hdf5(path):
+        return "hdf5"
+    try:
+        return format_for(path).name
+    except GridFormatError:
+        return "plot3d"  # Plot3D files come with many extensions; detection checks the contents
+
+
+def read_input(args, path, prefix: str = "") -> Grid:
+    """Read the input grid with the options of :func:`add_input_args`."""
+    if not Path(path).exists():
+        raise FileNotFoundError(2, "no such file", str(path))
+    fmt = input_format(path, args.in_format)
+    overrides = input_overrides(args)
+    if fmt != "plot3d" and overrides:
+        opts = ", ".join(f"--{prefix}{suffix}" for dest, suffix, *_ in _INPUT_OVERRIDES
+                         if getattr(args, dest, None) is not None)
+        what = {"hdf5": "an HDF5"}.get(fmt, f"a {fmt}")
+        raise GridFormatError(f"{path}: is {what} file; the Plot3D input option(s) {opts} do not apply")
+    if args.allow_nonfinite:
+        overrides["allow_nonfinite"] = True
+    return read(path, format=fmt, **overrides)
+
+
+# ----------------------------------------------------------------------------- descriptions
+
+def format_name(variant) -> str:
+    """Registry name of the format a variant object belongs to ("plot3d", "hdf5", ...)."""
+    from ..io import format_for
+    try:
+        return format_for(like=variant).name
+    except GridFormatError:
+        return "unknown"
+
+
+def describe_variant(variant) -> str:
+    """One line describing a file variant (Plot3DFormat, HDF5Format)."""
+    from ..io.hdf5 import HDF5Format
+    from ..io.plot3d import Plot3DFormat
+    if isinstance(variant, HDF5Format):
+        comp = "uncompressed" if not variant.compression else \
+            f"{variant.compression} level {variant.compression_level}" + \
+            (" + shuffle" if variant.shuffle else "")
+        return f"hdf5: layout v{variant.version}, {comp}"
+    if isinstance(variant, Plot3DFormat):
+        parts = []
+        if variant.encoding == "ascii":
+            parts.append("ASCII")
+        elif variant.encoding == "fortran":
+            rec = "one record per block" if variant.records == "block" else "one record per coordinate"
+            parts.append(f"Fortran unformatted ({rec}, {variant.marker_size}-byte markers)")
+        else:
+            parts.append("binary (C stream)")
+        if variant.encoding != "ascii":
+            parts.append("big-endian" if variant.endian == ">" else "little-endian")
+        parts.append("single precision" if variant.precision == 4 else "double precision")
+        parts.append(f"{variant.ndim}-D")
+        parts.append("multi-block" if variant.multiblock else "single-block")
+        parts.append("iblank" if variant.iblank else "no iblank")
+        if variant.encoding != "ascii":
+            parts.append(f"{variant.int_size}-byte integers")
+        return "plot3d: " + ", ".join(parts)
+    return "unknown" if variant is None else repr(variant)
+
+
+def variant_dict(variant) -> dict:
+    """JSON-ready fields of a variant dataclass (empty when unknown)."""
+    if variant is not None and dataclasses.is_dataclass(variant):
+        return dataclasses.asdict(variant)
+    return {}
+
+
+# ----------------------------------------------------------------------------- measures
+
+def edge_length_range(grid: Grid) -> tuple[float, float] | None:
+    """Shortest and longest cell edge over all blocks (None when no block has an edge).
+
+    An edge joins two neighbouring points along i, j or k.  The blocks are
+    scanned in k-slabs of about ``_SLAB_POINTS`` points, vectorised, so the
+    temporaries stay small whatever the grid size.
+    """
+    lo2, hi2, seen = math.inf, 0.0, False
+    for b in grid:
+        x = b.xyz
+        ni, nj, nk = b.dims
+        step = max(1, _SLAB_POINTS // max(1, ni * nj))
+        for axis in range(3):
+            if b.dims[axis] < 2:
+                continue
+            for k0 in range(0, nk, step):
+                k1 = min(nk, k0 + step)
+                if axis == 2:
+                    slab = x[:, :, k0:min(nk, k1 + 1)]
+                    if slab.shape[2] < 2:
+                        continue
+                else:
+                    slab = x[:, :, k0:k1]
+                d = np.diff(slab, axis=axis)
+                l2 = np.einsum("...c,...c->...", d, d)
+                lo2 = min(lo2, float(l2.min()))
+                hi2 = max(hi2, float(l2.max()))
+                seen = True
+    return (math.sqrt(lo2), math.sqrt(hi2)) if seen else None
+
+
+def _num(v) -> float | None:
+    """A float for JSON; None for NaN/inf (only with --allow-nonfinite)."""
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def summary(grid: Grid, path) -> dict:
+    """Everything ``info`` reports, as a JSON-ready dict."""
+    lo, hi = grid.bbox()
+    edges = edge_length_range(grid)
+    variant = grid.source_format
+    return {
+        "path": os.fspath(path),
+        "format": format_name(variant),
+        "variant": variant_dict(variant),
+        "description": describe_variant(variant),
+        "ndim": grid.ndim,
+        "nblocks": grid.nblocks,
+        "blocks": [{"block": n + 1, "name": b.name, "dims": list(b.dims), "points": b.npoints,
+                    "iblank": b.iblank is not None} for n, b in enumerate(grid)],
+        "points": grid.npoints,
+        "bbox": {"min": [_num(v) for v in lo], "max": [_num(v) for v in hi]},
+        "edge_length": None if edges is None else {"min": _num(edges[0]), "max": _num(edges[1])},
+        "iblank": grid.has_iblank,
+    }
+
+
+def _g(v) -> str:
+    return "nan" if v is None else f"{v:.6g}"
+
+
+def format_text(s: dict) -> str:
+    """The human-readable ``info`` report."""
+    lines = [s["path"],
+             f"  format      {s['description']}",
+             f"  ndim        {s['ndim']}",
+             f"  blocks      {s['nblocks']}"]
+    wname = max((len(b["name"] or "") for b in s["blocks"]), default=0)
+    wdims = max(len(" x ".join(map(str, b["dims"]))) for b in s["blocks"])
+    wpts = max(len(f"{b['points']:,}") for b in s["blocks"])
+    wnum = len(str(s["nblocks"]))
+    for b in s["blocks"]:
+        dims = " x ".join(map(str, b["dims"]))
+        name = (b["name"] or "").ljust(wname)
+        ib = "  iblank" if b["iblank"] else ""
+        lines.append(f"    {b['block']:>{wnum}}  {name}  {dims:<{wdims}}  {b['points']:>{wpts},} points{ib}")
+    lines.append(f"  points      {s['points']:,}")
+    lo, hi = s["bbox"]["min"], s["bbox"]["max"]
+    lines.append("  bbox        " + "  ".join(f"{c} [{_g(a)}, {_g(b)}]" for c, a, b in zip("xyz", lo, hi)))
+    e = s["edge_length"]
+    lines.append("  cell edge   " + ("n/a (single-point blocks)" if e is None else
+                                     f"min {_g(e['min'])}  max {_g(e['max'])}"))
+    lines.append(f"  iblank      {'yes' if s['iblank'] else 'no'}")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------- subcommand
+
+def add_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("grid", metavar="GRID", help="grid file (Plot3D or HDF5)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    add_input_args(parser)
+
+
+def run(args) -> int:
+    grid = read_input(args, args.grid)
+    s = summary(grid, args.grid)
+    print(json.dumps(s, indent=2) if args.json else format_text(s))
+    return 0
