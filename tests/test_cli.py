@@ -300,3 +300,10 @@ def test_convert_input_options_are_prefixed(capsys, h5grid, tmp_path):
     p, _ = h5grid
     rc, out, err = run_cli(capsys, "convert", p, tmp_path / "o.h5", "--in-precision", "single")
     assert_one_line_error(rc, out, err, p, "--in-precision")
+
+
+def test_convert_into_a_missing_folder(capsys, h5grid, tmp_path):
+    p, _ = h5grid
+    q = tmp_path / "nowhere" / "out.h5"
+    rc, out, err = run_cli(capsys, "convert", p, q)
+    assert_one_line_error(rc, out, err, "tfi-quat convert: error:", "nowhere", "does not exist")

@@ -35,6 +35,7 @@ _PLOT3D_OUTPUT = (
     ("records", "--records", "records"),
     ("multiblock", "--single-block/--multi-block", "multiblock"),
     ("int_size", "--int-size", "int_size"),
+    ("marker_size", "--marker-size", "marker_size"),
 )
 
 
@@ -76,6 +77,8 @@ def add_args(parser: argparse.ArgumentParser) -> None:
                     help="multi-block file (block-count line)")
     g.add_argument("--int-size", type=int, choices=(4, 8),
                    help="bytes per header integer and IBLANK value")
+    g.add_argument("--marker-size", type=int, choices=(4, 8),
+                   help="Fortran: bytes per record marker")
     h = parser.add_argument_group("HDF5 output")
     comp = h.add_mutually_exclusive_group()
     comp.add_argument("--compress", dest="compress", action="store_const", const=True,
@@ -145,21 +148,25 @@ def run(args) -> int:
                 kw["extra_json"] = extra
     like = grid if fmt == in_format else None
     write(args.output, grid, format=fmt, like=like, overwrite=args.force, **kw)
-    print(f"wrote {args.output}: {_written_variant(args.output, fmt, like, kw)}, "
+    print(f"wrote {args.output}: {_written_variant(args.output, fmt, grid, kw)}, "
           f"{grid.nblocks} block(s), {grid.npoints:,} points")
     return 0
 
 
-def _written_variant(path, fmt: str, like, kw: dict) -> str:
-    """Describe the variant just written (read back from the file's header where possible)."""
+def _written_variant(path, fmt: str, grid, kw: dict) -> str:
+    """Describe the variant just written.
+
+    HDF5: read back from the file's metadata.  Plot3D: the variant the writer
+    documents it writes: the grid's own Plot3D variant (else the defaults),
+    with the options given, ``ndim`` the grid's and ``iblank`` whether the
+    grid has IBLANK unless given.
+    """
     if fmt == "hdf5":
         from ..io.hdf5 import info
         return describe_variant(info(path).format)
-    from ..io import plot3d
-    detect = getattr(plot3d, "detect", None)
-    if callable(detect):
-        try:
-            return describe_variant(detect(path))
-        except (GridFormatError, TypeError):
-            pass
-    return fmt
+    from ..io.plot3d import Plot3DFormat
+    base = grid.source_format if isinstance(grid.source_format, Plot3DFormat) else Plot3DFormat()
+    opts = {k: v for k, v in kw.items() if k in {f for _, _, f in _PLOT3D_OUTPUT}}
+    opts.setdefault("ndim", grid.ndim)
+    opts.setdefault("iblank", grid.has_iblank)
+    return describe_variant(base.replace(**opts))

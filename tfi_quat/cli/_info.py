@@ -145,33 +145,12 @@ def format_name(variant) -> str:
 
 
 def describe_variant(variant) -> str:
-    """One line describing a file variant (Plot3DFormat, HDF5Format)."""
-    from ..io.hdf5 import HDF5Format
-    from ..io.plot3d import Plot3DFormat
-    if isinstance(variant, HDF5Format):
-        comp = "uncompressed" if not variant.compression else \
-            f"{variant.compression} level {variant.compression_level}" + \
-            (" + shuffle" if variant.shuffle else "")
-        return f"hdf5: layout v{variant.version}, {comp}"
-    if isinstance(variant, Plot3DFormat):
-        parts = []
-        if variant.encoding == "ascii":
-            parts.append("ASCII")
-        elif variant.encoding == "fortran":
-            rec = "one record per block" if variant.records == "block" else "one record per coordinate"
-            parts.append(f"Fortran unformatted ({rec}, {variant.marker_size}-byte markers)")
-        else:
-            parts.append("binary (C stream)")
-        if variant.encoding != "ascii":
-            parts.append("big-endian" if variant.endian == ">" else "little-endian")
-        parts.append("single precision" if variant.precision == 4 else "double precision")
-        parts.append(f"{variant.ndim}-D")
-        parts.append("multi-block" if variant.multiblock else "single-block")
-        parts.append("iblank" if variant.iblank else "no iblank")
-        if variant.encoding != "ascii":
-            parts.append(f"{variant.int_size}-byte integers")
-        return "plot3d: " + ", ".join(parts)
-    return "unknown" if variant is None else repr(variant)
+    """One line naming the format and describing the variant, e.g. ``hdf5: layout v1, uncompressed``."""
+    if variant is None:
+        return "unknown"
+    describe = getattr(variant, "describe", None)
+    text = describe() if callable(describe) else repr(variant)
+    return f"{format_name(variant)}: {text}"
 
 
 def variant_dict(variant) -> dict:

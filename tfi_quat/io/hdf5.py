@@ -102,6 +102,13 @@ class HDF5Format:
         from dataclasses import replace
         return replace(self, **changes)
 
+    def describe(self) -> str:
+        """One line for people, e.g. ``layout v1, gzip level 4 + shuffle``."""
+        if not self.compression:
+            return f"layout v{self.version}, uncompressed"
+        shuffle = " + shuffle" if self.shuffle else ""
+        return f"layout v{self.version}, {self.compression} level {self.compression_level}{shuffle}"
+
 
 @dataclass(frozen=True)
 class HDF5Info:
