@@ -201,6 +201,20 @@ def test_usage_errors_exit_2(capsys):
     assert "invalid choice" in capsys.readouterr().err
 
 
+def test_multi_line_errors_are_folded_into_one_line(capsys, h5grid, monkeypatch):
+    p, _ = h5grid
+
+    def fails(*a, **k):
+        raise GridFormatError(f"{p}: no variant fits; Closest:\n  as A: too short\n  as B: too long\n")
+
+    monkeypatch.setattr(_info, "read", fails)
+    rc, out, err = run_cli(capsys, "info", p)
+    assert_one_line_error(rc, out, err, f"{p}: no variant fits; Closest: as A: too short; as B: too long")
+    rc, out, err = run_cli(capsys, "convert", p, p.with_suffix(".x"))
+    assert_one_line_error(rc, out, err, "tfi-quat convert: error:", "Closest: as A: too short; as B")
+    assert _info.one_line("a\n\n b:\n c \n d") == "a; b: c; d"
+
+
 # ----------------------------------------------------------------------------- convert
 
 def test_convert_hdf5_compress_and_back(capsys, h5grid, tmp_path):

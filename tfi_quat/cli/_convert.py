@@ -16,7 +16,7 @@ from pathlib import Path
 from .. import write
 from ..errors import GridFormatError, OverwriteError
 from ..io import format_for
-from ._info import add_input_args, describe_variant, format_name, read_input
+from ._info import add_input_args, describe_variant, format_name, one_line_errors, read_input
 
 HELP = "convert a grid to another format or file variant (Plot3D, HDF5)"
 DESCRIPTION = """\
@@ -117,6 +117,11 @@ def _check_target(args) -> None:
 
 
 def run(args) -> int:
+    with one_line_errors():
+        return _convert(args)
+
+
+def _convert(args) -> int:
     _check_target(args)
     plot3d_opts = {key: getattr(args, dest) for dest, _, key in _PLOT3D_OUTPUT
                    if getattr(args, dest) is not None}

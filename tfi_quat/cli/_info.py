@@ -12,6 +12,7 @@ Also home of the input options shared with ``convert`` (:func:`add_input_args`,
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import read
-from ..errors import GridFormatError
+from ..errors import GridFormatError, TfiQuatError
 from ..grid import Grid
 
 HELP = "describe a grid file: variant, blocks, points, bounding box, cell edge lengths"
@@ -35,6 +36,33 @@ unambiguously can be described with the variant options below."""
 
 #: points per slab when scanning cell edges (bounds the temporaries to ~ 50 MB)
 _SLAB_POINTS = 1 << 21
+
+
+# ----------------------------------------------------------------------------- errors
+
+def one_line(message: str) -> str:
+    """Fold a multi-line message into one line ("...Closest: a; b")."""
+    out = ""
+    for line in (ln.strip() for ln in message.splitlines()):
+        if line:
+            out += (line if not out else (" " if out.endswith(":") else "; ") + line)
+    return out
+
+
+@contextlib.contextmanager
+def one_line_errors():
+    """Re-raise a multi-line TfiQuatError with its message on one line (the CLI prints one line)."""
+    try:
+        yield
+    except TfiQuatError as exc:
+        msg = str(exc)
+        if "\n" not in msg:
+            raise
+        try:
+            folded = type(exc)(one_line(msg))
+        except Exception:  # an error class with another signature: leave it as it is
+            raise exc from None
+        raise folded from exc
 
 
 # ----------------------------------------------------------------------------- input options
@@ -258,7 +286,8 @@ def add_args(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    grid = read_input(args, args.grid)
-    s = summary(grid, args.grid)
+    with one_line_errors():
+        grid = read_input(args, args.grid)
+        s = summary(grid, args.grid)
     print(json.dumps(s, indent=2) if args.json else format_text(s))
     return 0
