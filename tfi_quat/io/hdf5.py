@@ -616,7 +616,11 @@ def write(path, grid: Grid, *, like=None, overwrite: bool = False, compression=N
     from .. import __version__
     src_fmt = "" if grid.source_format is None else repr(grid.source_format)
     with atomic_output(target, mode="path") as tmp:
-        with h5py.File(tmp, "w") as f:
+        # Let HDF5 create the file rather than truncate the empty temporary
+        # one: on ext4, closing a file that was opened with O_TRUNC forces a
+        # flush of all its data (auto_da_alloc), 0.15 s per 0.5 GB.
+        os.unlink(tmp)
+        with h5py.File(tmp, "x") as f:
             f.attrs["format"] = FORMAT_NAME
             f.attrs["version"] = np.int64(LAYOUT_VERSION)
             f.attrs["ndim"] = np.int64(grid.ndim)
