@@ -281,6 +281,16 @@ def test_convert_plot3d_flags_need_plot3d_output(capsys, h5grid, tmp_path, flags
     assert not q.exists()
 
 
+def test_convert_contradicting_compression_options(capsys, h5grid, tmp_path):
+    p, _ = h5grid
+    q = tmp_path / "out.h5"
+    rc, out, err = run_cli(capsys, "convert", p, q, "--no-compress", "--compression-level", "3")
+    assert_one_line_error(rc, out, err, q, "--compression-level contradicts --no-compress")
+    assert not q.exists()
+    assert run_cli(capsys, "convert", p, q, "--compression-level", "0")[0] == 0
+    assert hdf5.info(q).format == HDF5Format("gzip", 0, True)
+
+
 def test_convert_compress_needs_hdf5_output(capsys, h5grid, tmp_path):
     p, _ = h5grid
     q = tmp_path / "out.xyz"

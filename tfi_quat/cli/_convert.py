@@ -142,8 +142,9 @@ def _convert(args) -> int:
             opts = ", ".join(text for dest, text, _ in _PLOT3D_OUTPUT if getattr(args, dest) is not None)
             raise GridFormatError(f"{args.output}: {opts} apply to Plot3D output only")
         if args.compression_level is not None:
-            kw.update(compression="gzip" if args.compress is not False else False,
-                      compression_level=args.compression_level)
+            if args.compress is False:
+                raise GridFormatError(f"{args.output}: --compression-level contradicts --no-compress")
+            kw.update(compression="gzip", compression_level=args.compression_level)
         elif args.compress is not None:
             kw["compression"] = "gzip" if args.compress else False
         if in_format == "hdf5":
