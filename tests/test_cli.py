@@ -121,22 +121,32 @@ def test_edge_lengths_of_a_uniform_box():
     assert _info.edge_length_range(Grid([np.zeros((1, 1, 1, 3))], 3)) is None
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @given(dims=st.lists(st.tuples(st.integers(1, 7), st.integers(1, 6), st.integers(1, 6)),
                      min_size=1, max_size=3),
-       slab=st.integers(1, 50), seed=st.integers(0, 1000))
-def test_edge_lengths_match_the_oracle_for_any_slab_size(dims, slab, seed):
+       seed=st.integers(0, 1000))
+def test_edge_lengths_match_the_oracle(compiled, dims, seed):
     rng = np.random.default_rng(seed)
     grid = Grid([rng.normal(size=d + (3,)) for d in dims], 3)
-    saved = _info._SLAB_POINTS
-    _info._SLAB_POINTS = slab
-    try:
-        got = _info.edge_length_range(grid)
-    finally:
-        _info._SLAB_POINTS = saved
+    kernel = None if compiled else _info._edge_range_kernel.py_func
+    got = _info.edge_length_range(grid, kernel=kernel)
     if all(d == (1, 1, 1) for d in dims):
         assert got is None
     else:
         assert got == pytest.approx(edge_oracle(grid), rel=1e-14)
+
+
+def test_edge_lengths_skip_nan_and_see_collapsed_edges():
+    xyz = sheared_box(4, 3, 3)
+    xyz[1, 1, 1] = xyz[2, 1, 1]  # one collapsed edge
+    xyz[0, 0, 0, 0] = np.nan
+    grid = Grid([Block(xyz, allow_nonfinite=True)])
+    lo, hi = _info.edge_length_range(grid)
+    assert lo == 0.0
+    ok = Grid([sheared_box(4, 3, 3)])
+    assert hi <= 2 * edge_oracle(ok)[1] and np.isfinite(hi)
+    nan = Grid([Block(np.full((2, 1, 1, 3), np.nan), allow_nonfinite=True)], 3)
+    assert _info.edge_length_range(nan) is None
 
 
 def test_info_hdf5_with_unknown_extension_is_sniffed(capsys, h5grid, tmp_path):

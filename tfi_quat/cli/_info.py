@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import read
+from .._jit import jit
 from ..errors import GridFormatError, TfiQuatError
 from ..grid import Grid
 
@@ -34,8 +35,6 @@ points, the total points, the bounding box, the shortest and longest cell
 edge, and IBLANK yes/no.  Plot3D files whose variant cannot be detected
 unambiguously can be described with the variant options below."""
 
-#: points per slab when scanning cell edges (bounds the temporaries to ~ 50 MB)
-_SLAB_POINTS = 1 << 21
 
 
 # ----------------------------------------------------------------------------- errors
@@ -190,35 +189,71 @@ def variant_dict(variant) -> dict:
 
 # ----------------------------------------------------------------------------- measures
 
-def edge_length_range(grid: Grid) -> tuple[float, float] | None:
-    """Shortest and longest cell edge over all blocks (None when no block has an edge).
+@jit
+def _edge_range_kernel(xyz, out):
+    """Smallest and largest squared cell-edge length of one block.
 
-    An edge joins two neighbouring points along i, j or k.  The blocks are
-    scanned in k-slabs of about ``_SLAB_POINTS`` points, vectorised, so the
-    temporaries stay small whatever the grid size.
+    ``xyz`` float64 ``(ni, nj, nk, 3)`` (Fortran order: i innermost);
+    ``out`` float64 (2,) holds ``(min, max)`` on entry and is updated.  An
+    edge joins two neighbouring points along i, j or k; NaN edges are skipped.
     """
-    lo2, hi2, seen = math.inf, 0.0, False
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    lo = out[0]
+    hi = out[1]
+    for k in range(nk):
+        for j in range(nj):
+            for i in range(ni):
+                x = xyz[i, j, k, 0]
+                y = xyz[i, j, k, 1]
+                z = xyz[i, j, k, 2]
+                if i + 1 < ni:
+                    dx = xyz[i + 1, j, k, 0] - x
+                    dy = xyz[i + 1, j, k, 1] - y
+                    dz = xyz[i + 1, j, k, 2] - z
+                    d = dx * dx + dy * dy + dz * dz
+                    if d < lo:
+                        lo = d
+                    if d > hi:
+                        hi = d
+                if j + 1 < nj:
+                    dx = xyz[i, j + 1, k, 0] - x
+                    dy = xyz[i, j + 1, k, 1] - y
+                    dz = xyz[i, j + 1, k, 2] - z
+                    d = dx * dx + dy * dy + dz * dz
+                    if d < lo:
+                        lo = d
+                    if d > hi:
+                        hi = d
+                if k + 1 < nk:
+                    dx = xyz[i, j, k + 1, 0] - x
+                    dy = xyz[i, j, k + 1, 1] - y
+                    dz = xyz[i, j, k + 1, 2] - z
+                    d = dx * dx + dy * dy + dz * dz
+                    if d < lo:
+                        lo = d
+                    if d > hi:
+                        hi = d
+    out[0] = lo
+    out[1] = hi
+
+
+def edge_length_range(grid: Grid, kernel=None) -> tuple[float, float] | None:
+    """Shortest and longest cell edge over all blocks.
+
+    An edge joins two neighbouring points along i, j or k.  One compiled pass
+    over each block (no temporaries).  Returns None when no block has an edge
+    (every block a single point) or every edge is NaN.
+
+    ``kernel`` replaces the compiled kernel (tests pass its ``py_func``).
+    """
+    kernel = _edge_range_kernel if kernel is None else kernel
+    out = np.array([np.inf, -np.inf])
     for b in grid:
-        x = b.xyz
-        ni, nj, nk = b.dims
-        step = max(1, _SLAB_POINTS // max(1, ni * nj))
-        for axis in range(3):
-            if b.dims[axis] < 2:
-                continue
-            for k0 in range(0, nk, step):
-                k1 = min(nk, k0 + step)
-                if axis == 2:
-                    slab = x[:, :, k0:min(nk, k1 + 1)]
-                    if slab.shape[2] < 2:
-                        continue
-                else:
-                    slab = x[:, :, k0:k1]
-                d = np.diff(slab, axis=axis)
-                l2 = np.einsum("...c,...c->...", d, d)
-                lo2 = min(lo2, float(l2.min()))
-                hi2 = max(hi2, float(l2.max()))
-                seen = True
-    return (math.sqrt(lo2), math.sqrt(hi2)) if seen else None
+        if max(b.dims) > 1:
+            kernel(b.xyz, out)
+    if not out[0] <= out[1]:
+        return None
+    return math.sqrt(out[0]), math.sqrt(out[1])
 
 
 def _num(v) -> float | None:
