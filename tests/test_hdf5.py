@@ -476,6 +476,19 @@ def test_bad_layout_is_named(tmp_path, edit, message):
         hdf5.read(p)
 
 
+def test_damaged_file_errors_are_grid_format_errors(tmp_path):
+    """h5py raises KeyError/RuntimeError on damaged metadata; the reader names the file."""
+    p = tmp_path / "bad.h5"
+    hdf5.write(p, two_block_grid())
+    with h5py.File(p, "r+") as f:
+        del f["blocks/000002"]
+        f["blocks/000002"] = h5py.ExternalLink("nowhere.h5", "/blocks/000002")
+    for fn in (hdf5.read, hdf5.info, lambda q: hdf5.read_block(q, 1), lambda q: hdf5.read_face(q, 1, "imin")):
+        with pytest.raises(GridFormatError, match=r"bad\.h5: damaged or unreadable HDF5 grid file \(KeyError"):
+            fn(p)
+    assert hdf5.read_block(p, 0) == two_block_grid()[0]
+
+
 def test_2d_grid_with_z_is_an_error(tmp_path):
     p = tmp_path / "bad.h5"
     hdf5.write(p, Grid([Block(sheared_box(3, 3, 1))], 3))

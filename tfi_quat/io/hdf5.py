@@ -52,6 +52,7 @@ hyperslab selections and never loads the rest of the file.
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import json
 import os
 from dataclasses import dataclass, field
@@ -60,7 +61,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import GridFormatError, GridValueError
+from ..errors import GridFormatError, GridValueError, TfiQuatError
 from ..grid import FACES, Block, Grid, face_index
 from ._atomic import atomic_output, check_target
 
@@ -380,6 +381,21 @@ def _check_finite(arr: np.ndarray, path, where: str, dataset: str, face=None) ->
 
 # ----------------------------------------------------------------------------- reading
 
+def _damaged_file_errors(fn):
+    """Turn h5py's errors on a damaged file (KeyError, RuntimeError, ...) into GridFormatError."""
+    @functools.wraps(fn)
+    def wrapper(path, *args, **kwargs):
+        try:
+            return fn(path, *args, **kwargs)
+        except (TfiQuatError, FileNotFoundError):
+            raise
+        except (OSError, KeyError, RuntimeError, TypeError) as exc:
+            raise GridFormatError(f"{path}: damaged or unreadable HDF5 grid file "
+                                  f"({type(exc).__name__}: {exc})") from exc
+    return wrapper
+
+
+@_damaged_file_errors
 def read(path, *, allow_nonfinite: bool = False) -> Grid:
     """Read an HDF5 grid file (layout :data:`LAYOUT_VERSION` or older).
 
@@ -412,6 +428,7 @@ def read(path, *, allow_nonfinite: bool = False) -> Grid:
             raise GridFormatError(f"{path}: {exc}") from None
 
 
+@_damaged_file_errors
 def read_block(path, b, *, allow_nonfinite: bool = False) -> Block:
     """Read one block, and nothing else, from an HDF5 grid file.
 
@@ -432,6 +449,7 @@ def read_block(path, b, *, allow_nonfinite: bool = False) -> Block:
         return r.block(r.index(b), allow_nonfinite)
 
 
+@_damaged_file_errors
 def read_face(path, b, face, *, allow_nonfinite: bool = False) -> np.ndarray:
     """Read the points of one face of one block (a hyperslab), and nothing else.
 
@@ -471,6 +489,7 @@ def read_face(path, b, face, *, allow_nonfinite: bool = False) -> np.ndarray:
         return out
 
 
+@_damaged_file_errors
 def info(path) -> HDF5Info:
     """Describe an HDF5 grid file from its metadata only (no coordinates are read).
 
@@ -499,6 +518,7 @@ def info(path) -> HDF5Info:
         )
 
 
+@_damaged_file_errors
 def read_extra(path) -> dict | None:
     """Return the JSON object stored in ``/extra``, or None when the file has none.
 
