@@ -13,8 +13,9 @@ from hypothesis import strategies as st
 import tfi_quat
 from tfi_quat import Block, Grid, GridFormatError
 from tfi_quat.cli import _info, main
-from tfi_quat.io import hdf5
+from tfi_quat.io import hdf5, plot3d
 from tfi_quat.io.hdf5 import HDF5Format
+from tfi_quat.io.plot3d import Plot3DFormat
 
 from conftest import annulus, sheared_box
 
@@ -341,3 +342,193 @@ def test_convert_into_a_missing_folder(capsys, h5grid, tmp_path):
     q = tmp_path / "nowhere" / "out.h5"
     rc, out, err = run_cli(capsys, "convert", p, q)
     assert_one_line_error(rc, out, err, "tfi-quat convert: error:", "nowhere", "does not exist")
+
+
+# ----------------------------------------------------------------------------- Plot3D files
+
+P3D_VARIANTS = [
+    Plot3DFormat(),
+    Plot3DFormat(encoding="binary", endian=">", precision=4, iblank=True),
+    Plot3DFormat(encoding="fortran", endian="<", precision=8),
+    Plot3DFormat(encoding="fortran", endian=">", precision=4, iblank=True, int_size=8),
+    Plot3DFormat(encoding="fortran", records="coordinate", endian=">", iblank=True),
+    Plot3DFormat(encoding="fortran", marker_size=8),
+    Plot3DFormat(encoding="ascii", iblank=True),
+    Plot3DFormat(encoding="ascii", precision=4),
+]
+
+
+def p3d_grid(variant: Plot3DFormat) -> Grid:
+    """A grid the variant can hold (one block if single-block, 2-D if ndim 2)."""
+    if variant.ndim == 2:
+        blocks = [Block(annulus(), name=None), Block(annulus(5, 3))]
+    else:
+        g = two_block_grid()
+        blocks = [Block(b.xyz, b.iblank) for b in g]
+    if not variant.multiblock:
+        blocks = blocks[:1]
+    if variant.precision == 4:  # values a float32 file holds exactly
+        blocks = [Block(b.xyz.astype(np.float32).astype(np.float64), b.iblank) for b in blocks]
+    return Grid(blocks, variant.ndim)
+
+
+VARIANTS_ALL = P3D_VARIANTS + [Plot3DFormat(ndim=2, multiblock=False),
+                               Plot3DFormat(encoding="ascii", ndim=2, multiblock=False)]
+
+
+@pytest.mark.parametrize("variant", VARIANTS_ALL, ids=lambda v: v.describe())
+def test_info_reports_each_plot3d_variant(capsys, tmp_path, variant):
+    grid = p3d_grid(variant)
+    p = tmp_path / "g.xyz"
+    plot3d.write(p, grid, like=variant)
+    rc, out, err = run_cli(capsys, "info", p, "--json")
+    assert rc == 0 and err == ""
+    s = json.loads(out)
+    assert s["format"] == "plot3d"
+    want = variant.replace(iblank=grid.has_iblank).canonical()
+    if variant.encoding == "ascii":  # text does not tell float32 from float64
+        want = want.replace(precision=s["variant"]["precision"])
+    assert Plot3DFormat(**s["variant"]) == want
+    assert s["description"] == "plot3d: " + Plot3DFormat(**s["variant"]).describe()
+    assert s["ndim"] == variant.ndim and s["nblocks"] == len(grid) and s["points"] == grid.npoints
+    assert [b["dims"] for b in s["blocks"]] == [list(b.dims) for b in grid]
+    grid = tfi_quat.read(p)  # ASCII float32 text reads back as its decimal values
+    lo, hi = grid.bbox()
+    assert s["bbox"] == {"min": lo.tolist(), "max": hi.tolist()}
+    emin, emax = edge_oracle(grid)
+    assert s["edge_length"]["min"] == pytest.approx(emin, rel=1e-12)
+    assert s["edge_length"]["max"] == pytest.approx(emax, rel=1e-12)
+    rc, out, _ = run_cli(capsys, "info", p)
+    assert rc == 0 and f"format      plot3d: {variant.describe()}"[:30] in out
+
+
+@pytest.mark.parametrize("variant", VARIANTS_ALL, ids=lambda v: v.describe())
+def test_convert_plot3d_hdf5_plot3d_is_bit_exact(capsys, tmp_path, variant):
+    grid = p3d_grid(variant)
+    a, h, b = tmp_path / "a.x", tmp_path / "a.h5", tmp_path / "b.x"
+    plot3d.write(a, grid, like=variant)
+    original = tfi_quat.read(a)
+    rc, out, _ = run_cli(capsys, "convert", a, h)
+    assert rc == 0 and out.startswith(f"wrote {h}: hdf5: layout v1, uncompressed")
+    assert_grids_bit_equal(tfi_quat.read(h), original)
+    # back to Plot3D in the original variant, chosen by flags: the same bytes
+    v = plot3d.detect(a)
+    flags = ["--" + v.encoding, "--big-endian" if v.endian == ">" else "--little-endian",
+             "--single" if variant.precision == 4 else "--double",  # ASCII: not detectable
+             "--iblank" if v.iblank else "--no-iblank", "--records", v.records,
+             "--multi-block" if v.multiblock else "--single-block",
+             "--int-size", str(v.int_size), "--marker-size", str(v.marker_size)]
+    rc, out, _ = run_cli(capsys, "convert", h, b, *flags)
+    v = v.replace(precision=variant.precision)
+    assert rc == 0 and out == f"wrote {b}: plot3d: {v.describe()}, {len(grid)} block(s), {grid.npoints:,} points\n"
+    assert b.read_bytes() == a.read_bytes()
+
+
+def assert_grids_bit_equal(x: Grid, y: Grid):
+    assert x.ndim == y.ndim and len(x) == len(y)
+    for p, q in zip(x, y):
+        assert p.xyz.tobytes(order="F") == q.xyz.tobytes(order="F")
+        assert (p.iblank is None) == (q.iblank is None)
+        if p.iblank is not None:
+            np.testing.assert_array_equal(p.iblank, q.iblank)
+
+
+def test_convert_plot3d_keeps_the_variant_by_default(capsys, tmp_path):
+    variant = Plot3DFormat(encoding="fortran", endian=">", precision=4, iblank=True, records="coordinate")
+    a, b = tmp_path / "a.grd", tmp_path / "b.x"
+    plot3d.write(a, p3d_grid(variant), like=variant)
+    rc, out, _ = run_cli(capsys, "convert", a, b)
+    assert rc == 0 and f"plot3d: {plot3d.detect(a).describe()}" in out
+    assert plot3d.detect(b) == plot3d.detect(a)
+    assert b.read_bytes() == a.read_bytes()
+
+
+@pytest.mark.parametrize("flags, changes", [
+    (["--ascii"], {"encoding": "ascii"}),
+    (["--fortran", "--big-endian"], {"encoding": "fortran", "endian": ">"}),
+    (["--single"], {"precision": 4}),
+    (["--iblank"], {"iblank": True}),
+    (["--fortran", "--records", "coordinate", "--int-size", "8"],
+     {"encoding": "fortran", "records": "coordinate", "int_size": 8}),
+    (["--fortran", "--marker-size", "8"], {"encoding": "fortran", "marker_size": 8}),
+])
+def test_convert_flags_are_honoured(capsys, tmp_path, flags, changes):
+    a, b = tmp_path / "a.x", tmp_path / "b.x"
+    grid = p3d_grid(Plot3DFormat(precision=4))
+    plot3d.write(a, grid)
+    rc, out, _ = run_cli(capsys, "convert", a, b, *flags)
+    want = plot3d.detect(a).replace(**changes).canonical()
+    assert rc == 0 and out.startswith(f"wrote {b}: plot3d: {want.describe()}")
+    assert plot3d.detect(b) == want
+    back = tfi_quat.read(b)
+    for x, y in zip(back, grid):
+        np.testing.assert_array_equal(x.xyz, y.xyz)
+
+
+def test_convert_hdf5_to_plot3d_defaults_and_single_block(capsys, tmp_path):
+    h, a, s = tmp_path / "g.h5", tmp_path / "g.x", tmp_path / "one.p3d"
+    grid = two_block_grid()
+    hdf5.write(h, grid)
+    assert run_cli(capsys, "convert", h, a)[0] == 0
+    assert plot3d.detect(a) == Plot3DFormat(iblank=True)
+    back = tfi_quat.read(a)
+    assert [b.xyz.tobytes() for b in back] == [b.xyz.tobytes() for b in grid]
+    assert np.all(back[0].iblank == 1)  # a block without IBLANK is written as all 1
+    np.testing.assert_array_equal(back[1].iblank, grid[1].iblank)
+    one = tmp_path / "one.h5"
+    hdf5.write(one, Grid([grid[0]]))
+    rc, out, _ = run_cli(capsys, "convert", one, s, "--single-block", "--fortran")
+    assert rc == 0
+    assert plot3d.detect(s) == Plot3DFormat(encoding="fortran", multiblock=False)
+
+
+def test_convert_to_an_unknown_extension(capsys, tmp_path):
+    a = tmp_path / "a.x"
+    plot3d.write(a, two_block_grid())
+    q = tmp_path / "out.dat"
+    assert run_cli(capsys, "convert", a, q, "--fortran")[0] == 0
+    assert plot3d.detect(q).encoding == "fortran"
+    r = tmp_path / "out2.dat"
+    assert run_cli(capsys, "convert", a, r, "--compress")[0] == 0
+    assert hdf5.info(r).format.compression == "gzip"
+    # an unknown extension on input is read as Plot3D
+    rc, out, _ = run_cli(capsys, "info", q, "--json")
+    assert rc == 0 and json.loads(out)["variant"]["encoding"] == "fortran"
+
+
+def test_info_input_overrides(capsys, tmp_path):
+    a = tmp_path / "a.x"
+    plot3d.write(a, two_block_grid(), encoding="fortran", endian=">")
+    rc, out, _ = run_cli(capsys, "info", a, "--endian", "big", "--encoding", "fortran", "--json")
+    assert rc == 0 and json.loads(out)["variant"]["endian"] == ">"
+    rc, out, err = run_cli(capsys, "info", a, "--endian", "little")
+    assert_one_line_error(rc, out, err, "tfi-quat info: error:", a)
+    rc, out, err = run_cli(capsys, "convert", a, tmp_path / "b.h5", "--in-encoding", "binary")
+    assert_one_line_error(rc, out, err, "tfi-quat convert: error:", a)
+    assert not (tmp_path / "b.h5").exists()
+
+
+def test_plot3d_bad_input_is_one_line(capsys, tmp_path):
+    a = tmp_path / "a.x"
+    plot3d.write(a, two_block_grid())
+    data = a.read_bytes()
+    t = tmp_path / "trunc.x"
+    t.write_bytes(data[:-100])
+    rc, out, err = run_cli(capsys, "info", t)
+    assert_one_line_error(rc, out, err, "tfi-quat info: error:", t)
+    e = tmp_path / "empty.x"
+    e.write_bytes(b"")
+    rc, out, err = run_cli(capsys, "convert", e, tmp_path / "e.h5")
+    assert_one_line_error(rc, out, err, "tfi-quat convert: error:", e)
+
+
+def test_convert_plot3d_never_replaces_its_input_without_force(capsys, tmp_path):
+    a = tmp_path / "a.x"
+    plot3d.write(a, two_block_grid())
+    before = a.read_bytes()
+    rc, out, err = run_cli(capsys, "convert", a, a, "--big-endian")
+    assert_one_line_error(rc, out, err, a, "refusing to overwrite the input file")
+    assert a.read_bytes() == before
+    assert run_cli(capsys, "convert", a, a, "--big-endian", "--force")[0] == 0
+    assert plot3d.detect(a).endian == ">"
+    assert [b.xyz.tobytes() for b in tfi_quat.read(a)] == [b.xyz.tobytes() for b in two_block_grid()]
