@@ -96,14 +96,14 @@ _S10 = 1.0 / 51090942171709440000.0
 
 
 # =================================================================== scalar helpers
-@jit
+@jit(inline="always")
 def _sinc2(x2):
     """``sin(x)/x`` as a function of ``x2 = x**2``, for ``0 <= x <= pi/2``."""
     return 1.0 + x2 * (_S1 + x2 * (_S2 + x2 * (_S3 + x2 * (_S4 + x2 * (
         _S5 + x2 * (_S6 + x2 * (_S7 + x2 * (_S8 + x2 * (_S9 + x2 * _S10)))))))))
 
 
-@jit
+@jit(inline="always")
 def _slerp_angle(a0, a1, a2, a3, b0, b1, b2, b3):
     """Angle between two unit quaternions (as 4-vectors, ``b`` already aligned): ``(ω², sinc(ω))``."""
     d0 = a0 - b0
@@ -120,14 +120,14 @@ def _slerp_angle(a0, a1, a2, a3, b0, b1, b2, b3):
     return w2, _sinc2(w2)
 
 
-@jit
+@jit(inline="always")
 def _slerp_weights(t, w2, sw):
     """Slerp weights ``sin((1-t)ω)/sin ω`` and ``sin(tω)/sin ω``; exactly (1, 0) at t=0, (0, 1) at t=1."""
     u = 1.0 - t
     return u * _sinc2(u * u * w2) / sw, t * _sinc2(t * t * w2) / sw
 
 
-@jit
+@jit(inline="always")
 def _rel_log(bw, bx, by, bz, qw, qx, qy, qz):
     """Rotation half-vector ``log(conj(b) ⊗ q)`` (q taken in b's hemisphere)."""
     w = bw * qw + bx * qx + by * qy + bz * qz
@@ -149,7 +149,7 @@ def _rel_log(bw, bx, by, bz, qw, qx, qy, qz):
     return x * f, y * f, z * f
 
 
-@jit
+@jit(inline="always")
 def _exp_times(bw, bx, by, bz, rx, ry, rz):
     """``b ⊗ exp(r)`` for a rotation half-vector ``r``."""
     th = math.sqrt(rx * rx + ry * ry + rz * rz)
@@ -170,7 +170,7 @@ def _exp_times(bw, bx, by, bz, rx, ry, rz):
     return w / n, x / n, y / n, z / n
 
 
-@jit
+@jit(inline="always")
 def _fc(i, j, k, d):
     """Face coordinates of block point (i, j, k) on a face normal to direction ``d``."""
     if d == 0:
@@ -180,7 +180,7 @@ def _fc(i, j, k, d):
     return i, j
 
 
-@jit
+@jit(inline="always")
 def _bidx(d, idx, a, b):
     """Block point of face coordinates (a, b) on the face ``index_d = idx``."""
     if d == 0:
@@ -191,7 +191,7 @@ def _bidx(d, idx, a, b):
 
 
 # ------------------------------------------------------------- per-point formulas
-@jit
+@jit(inline="always")
 def _u_d(lineD, la, lb, t):
     u = 1.0 - t
     return (u * lineD[la, lb, 0] + t * lineD[la, lb, 3],
@@ -199,7 +199,7 @@ def _u_d(lineD, la, lb, t):
             u * lineD[la, lb, 2] + t * lineD[la, lb, 5])
 
 
-@jit
+@jit(inline="always")
 def _v_d(lineD, la, lb, t, gD, ma, mb, sm):
     x, y, z = _u_d(lineD, la, lb, t)
     um = 1.0 - sm
@@ -208,7 +208,7 @@ def _v_d(lineD, la, lb, t, gD, ma, mb, sm):
             z + um * gD[ma, mb, 2] + sm * gD[ma, mb, 5])
 
 
-@jit
+@jit(inline="always")
 def _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn):
     x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
     un = 1.0 - sn
@@ -217,7 +217,7 @@ def _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn):
             z + un * hD[na, nb, 2] + sn * hD[na, nb, 5])
 
 
-@jit
+@jit(inline="always")
 def _u_q(lineQ, la, lb, t):
     wa, wb = _slerp_weights(t, lineQ[la, lb, 8], lineQ[la, lb, 9])
     return (wa * lineQ[la, lb, 0] + wb * lineQ[la, lb, 4],
@@ -226,7 +226,7 @@ def _u_q(lineQ, la, lb, t):
             wa * lineQ[la, lb, 3] + wb * lineQ[la, lb, 7])
 
 
-@jit
+@jit(inline="always")
 def _v_q(lineQ, la, lb, t, gQ, ma, mb, sm):
     w, x, y, z = _u_q(lineQ, la, lb, t)
     um = 1.0 - sm
@@ -236,7 +236,7 @@ def _v_q(lineQ, la, lb, t, gQ, ma, mb, sm):
             z + um * gQ[ma, mb, 3] + sm * gQ[ma, mb, 7])
 
 
-@jit
+@jit(inline="always")
 def _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn):
     w, x, y, z = _v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
     un = 1.0 - sn
@@ -284,7 +284,7 @@ def _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn):
     return _exp_times(w, x, y, z, rx, ry, rz)
 
 
-@jit
+@jit(inline="always")
 def _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
     """``out = R_u + Δ + (rot(q, R_u - c) - (R_u - c))`` (exact identity when q = 1, Δ = 0)."""
     x0 = xyz[i, j, k, 0]
@@ -301,7 +301,7 @@ def _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
     out[i, j, k, 2] = z0 + dz + (qw * tz + (qx * ty - qy * tx))
 
 
-@jit
+@jit(inline="always")
 def _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
              lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb):
     """Fused update of one point; returns 1 when the blended Q needs the fallback."""
@@ -316,7 +316,7 @@ def _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
     return 1 if n < QNORM_MIN else 0
 
 
-@jit
+@jit(inline="always")
 def _point_d(xyz, s, out, i, j, k, L, M, N, lineD, la, lb, gD, ma, mb, hD, na, nb):
     """Fused baseline update of one point (Q ≡ 1): ``out = R_u + Δ``."""
     t = np.float64(s[i, j, k, L])
@@ -471,97 +471,125 @@ def _prep(s, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, 
 
 
 # =================================================================== volume kernels
+@jit(forceinline=True)
+def _row3_q(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """Fused quaternion update of the row (j, k) of a 3-D block, i innermost.
+
+    The role whose direction is 0 (i) reads its table at a fixed (j, k); the
+    two others read a contiguous run along i.
+    """
+    ni = xyz.shape[0]
+    nbad = 0
+    if L == 0:
+        cm = k if M == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                             lineD, lineQ, j, k, gD, gQ, i, cm, hD, hQ, i, cn)
+    elif M == 0:
+        cl = k if L == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                             lineD, lineQ, i, cl, gD, gQ, j, k, hD, hQ, i, cn)
+    else:
+        cl = k if L == 1 else j
+        cm = k if M == 1 else j
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                             lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k)
+    if nbad > 0:
+        _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+                 fbM, fbN, True)
+
+
+@jit(forceinline=True)
+def _row3_d(xyz, s, out, j, k, L, M, N, lineD, gD, hD):
+    """Fused baseline update of the row (j, k) of a 3-D block."""
+    ni = xyz.shape[0]
+    if L == 0:
+        cm = k if M == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, j, k, gD, i, cm, hD, i, cn)
+    elif M == 0:
+        cl = k if L == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, j, k, hD, i, cn)
+    else:
+        cl = k if L == 1 else j
+        cm = k if M == 1 else j
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, i, cm, hD, j, k)
+
+
+@jit(forceinline=True)
+def _row2_q(xyz, s, out, j, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """Fused quaternion update of the row j of a 2-D block (``hD``/``hQ``: zero dummies)."""
+    ni = xyz.shape[0]
+    nbad = 0
+    if L == 0:
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
+                             lineD, lineQ, j, 0, gD, gQ, i, 0, hD, hQ, 0, 0)
+    else:
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
+                             lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0)
+    if nbad > 0:
+        _fix_row(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
+                 fbM, fbN, False)
+
+
+@jit(forceinline=True)
+def _row2_d(xyz, s, out, j, L, M, lineD, gD, hD):
+    """Fused baseline update of the row j of a 2-D block."""
+    ni = xyz.shape[0]
+    if L == 0:
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, j, 0, gD, i, 0, hD, 0, 0)
+    else:
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, i, 0, gD, j, 0, hD, 0, 0)
+
+
 @pjit
 def _deform3_q(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
-    """Fused 3-D quaternion update, parallel over k-planes, i innermost."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    """Fused 3-D quaternion update, parallel over k-planes (the row kernel does the work)."""
+    nj, nk = xyz.shape[1], xyz.shape[2]
     for kp in prange(nk):
         k = np.int64(kp)
         for j in range(nj):
-            nbad = 0
-            if L == 0:
-                cm = k if M == 1 else j
-                cn = k if N == 1 else j
-                for i in range(ni):
-                    nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                                     lineD, lineQ, j, k, gD, gQ, i, cm, hD, hQ, i, cn)
-            elif M == 0:
-                cl = k if L == 1 else j
-                cn = k if N == 1 else j
-                for i in range(ni):
-                    nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                                     lineD, lineQ, i, cl, gD, gQ, j, k, hD, hQ, i, cn)
-            else:
-                cl = k if L == 1 else j
-                cm = k if M == 1 else j
-                for i in range(ni):
-                    nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                                     lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k)
-            if nbad > 0:
-                _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                         fbM, fbN, True)
+            _row3_q(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
 
 
 @pjit
 def _deform3_d(xyz, s, out, L, M, N, lineD, gD, hD):
-    """Fused 3-D baseline update (Q ≡ 1), parallel over k-planes, i innermost."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    """Fused 3-D baseline update (Q ≡ 1), parallel over k-planes."""
+    nj, nk = xyz.shape[1], xyz.shape[2]
     for kp in prange(nk):
         k = np.int64(kp)
         for j in range(nj):
-            if L == 0:
-                cm = k if M == 1 else j
-                cn = k if N == 1 else j
-                for i in range(ni):
-                    _point_d(xyz, s, out, i, j, k, L, M, N, lineD, j, k, gD, i, cm, hD, i, cn)
-            elif M == 0:
-                cl = k if L == 1 else j
-                cn = k if N == 1 else j
-                for i in range(ni):
-                    _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, j, k, hD, i, cn)
-            else:
-                cl = k if L == 1 else j
-                cm = k if M == 1 else j
-                for i in range(ni):
-                    _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, i, cm, hD, j, k)
+            _row3_d(xyz, s, out, j, k, L, M, N, lineD, gD, hD)
 
 
 @pjit
 def _deform2_q(xyz, s, out, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
-    """Fused 2-D quaternion update (nk = 1; ``hD``/``hQ`` are zero (1, 1, ·) tables)."""
-    ni, nj = xyz.shape[0], xyz.shape[1]
-    for jp in prange(nj):
-        j = np.int64(jp)
-        nbad = 0
-        if L == 0:
-            for i in range(ni):
-                nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
-                                 lineD, lineQ, j, 0, gD, gQ, i, 0, hD, hQ, 0, 0)
-        else:
-            for i in range(ni):
-                nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
-                                 lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0)
-        if nbad > 0:
-            _fix_row(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
-                     fbM, fbN, False)
+    """Fused 2-D quaternion update (nk = 1), parallel over rows."""
+    for jp in prange(xyz.shape[1]):
+        _row2_q(xyz, s, out, np.int64(jp), cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
 
 
 @pjit
 def _deform2_d(xyz, s, out, L, M, lineD, gD, hD):
-    """Fused 2-D baseline update (nk = 1)."""
-    ni, nj = xyz.shape[0], xyz.shape[1]
-    for jp in prange(nj):
-        j = np.int64(jp)
-        if L == 0:
-            for i in range(ni):
-                _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, j, 0, gD, i, 0, hD, 0, 0)
-        else:
-            for i in range(ni):
-                _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, i, 0, gD, j, 0, hD, 0, 0)
+    """Fused 2-D baseline update (nk = 1), parallel over rows."""
+    for jp in prange(xyz.shape[1]):
+        _row2_d(xyz, s, out, np.int64(jp), L, M, lineD, gD, hD)
 
 
 # =================================================================== arclength kernels
-@jit
+@jit(inline="always")
 def _dist(xyz, i0, j0, k0, i1, j1, k1):
     dx = xyz[i1, j1, k1, 0] - xyz[i0, j0, k0, 0]
     dy = xyz[i1, j1, k1, 1] - xyz[i0, j0, k0, 1]
@@ -569,7 +597,7 @@ def _dist(xyz, i0, j0, k0, i1, j1, k1):
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@jit
+@jit(inline="always")
 def _mag(xyz, i0, j0, k0, i1, j1, k1):
     return max(abs(xyz[i0, j0, k0, 0]), abs(xyz[i0, j0, k0, 1]), abs(xyz[i0, j0, k0, 2]),
                abs(xyz[i1, j1, k1, 0]), abs(xyz[i1, j1, k1, 1]), abs(xyz[i1, j1, k1, 2]))
@@ -1154,7 +1182,9 @@ def _tables(dims, o, fd, fq, s, hasn):
     """
     L, M, N = o
     hasq = fq is not None
-    sh = lambda d: _face_dims(dims, d)  # noqa: E731
+    # first axis padded to >= 2: a (1, 1, c) table would be typed C-contiguous and
+    # compile another specialisation of every kernel
+    sh = lambda d: (max(2, _face_dims(dims, d)[0]), _face_dims(dims, d)[1])  # noqa: E731
     dummy = lambda c: np.zeros((2, 2, c), order="F")  # noqa: E731
     lineD = np.empty(sh(L) + (6,), order="F")
     gD = np.empty(sh(M) + (6,), order="F")
