@@ -737,8 +737,12 @@ def _check_s(s, dims, name: str = "s") -> np.ndarray:
     return s
 
 
-def _check_field(a, shape, ncomp: int, name: str) -> np.ndarray:
-    """A face/side/patch field: float64 copy in F order of the expected shape, finite."""
+def _check_field(a, shape, ncomp: int, name: str, copy: bool = True) -> np.ndarray:
+    """A face/side/patch field of the expected shape, float64, finite (unit if ncomp == 4).
+
+    Returns an F-ordered copy, or with ``copy=False`` the input itself when it
+    already is float64 (the fused drivers copy once, into their tables).
+    """
     try:
         arr = np.asarray(a, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -746,13 +750,17 @@ def _check_field(a, shape, ncomp: int, name: str) -> np.ndarray:
     want = tuple(shape) + (ncomp,)
     if arr.shape != want:
         _fail(f"{name}: expected shape {want}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        _fail(f"{name}: holds non-finite values")
     if ncomp == 4:
-        n = np.sqrt(np.einsum("...c,...c->...", arr, arr))
-        if arr.size and np.max(np.abs(n - 1.0)) > 1e-6:
-            _fail(f"{name}: quaternions must be unit (max | |q| - 1 | = {np.max(np.abs(n - 1.0)):.3g})")
-    return np.array(arr, order="F", copy=True)
+        n2 = arr[..., 0] * arr[..., 0] + arr[..., 1] * arr[..., 1] + \
+            arr[..., 2] * arr[..., 2] + arr[..., 3] * arr[..., 3]
+        bad = float(np.max(np.abs(n2 - 1.0), initial=0.0))
+        if not bad <= 2e-6:       # also catches NaN and inf
+            if not np.all(np.isfinite(arr)):
+                _fail(f"{name}: holds non-finite values")
+            _fail(f"{name}: quaternions must be unit (max | |q|^2 - 1 | = {bad:.3g})")
+    elif not np.isfinite(np.sum(arr)) and not np.all(np.isfinite(arr)):
+        _fail(f"{name}: holds non-finite values")
+    return np.array(arr, order="F", copy=True) if copy else arr
 
 
 def _check_order(order, ndim: int, name: str = "order") -> tuple:
@@ -793,7 +801,7 @@ def _faces(face_fields, dims, ncomp: int, name: str, nfaces: int = 6) -> tuple:
         _fail(f"{name}: expected a sequence of {nfaces} face arrays (imin, imax, jmin, jmax"
               f"{', kmin, kmax' if nfaces == 6 else ''})")
     return tuple(_check_field(face_fields[f], _face_dims(dims, f // 2), ncomp,
-                              f"{name}[{f}] ({FACES[f]})") for f in range(nfaces))
+                              f"{name}[{f}] ({FACES[f]})", copy=False) for f in range(nfaces))
 
 
 def _check_edges(fd, fq, dims, name_d: str, name_q: str):
@@ -812,8 +820,8 @@ def _check_edges(fd, fq, dims, name_d: str, name_q: str):
                     for arrs, nm, isq in ((fd, name_d, False), (fq, name_q, True)):
                         if arrs is None:
                             continue
-                        e1 = np.take(arrs[f1], i1, axis=ax1)
-                        e2 = np.take(arrs[f2], i2, axis=ax2)
+                        e1 = arrs[f1][(slice(None),) * ax1 + (i1,)]
+                        e2 = arrs[f2][(slice(None),) * ax2 + (i2,)]
                         if isq:
                             dot = np.einsum("...c,...c->...", e1, e2)
                             e2 = e2 * np.where(dot < 0.0, -1.0, 1.0)[..., None]
@@ -1171,7 +1179,11 @@ def tfi_patch(delta, q, s, lead: int = 0) -> None:
 # ------------------------------------------------------------------ fused drivers
 def _pair(faces, d, ncomp: int) -> np.ndarray:
     """Stack the low and high faces normal to ``d``: (na, nb, ncomp, 2), F order."""
-    return np.asfortranarray(np.stack([faces[2 * d], faces[2 * d + 1]], axis=-1))
+    f0 = faces[2 * d]
+    out = np.empty(f0.shape + (2,), order="F")
+    out[..., 0] = f0
+    out[..., 1] = faces[2 * d + 1]
+    return out
 
 
 def _tables(dims, o, fd, fq, s, hasn):
