@@ -369,7 +369,98 @@ def _coherent(q):
                     q[a, b, c] = -q[a, b, c]
 
 
-@jit
+@jit(forceinline=True)
+def _prep_line(b, hasq, FL, QL, lineD, lineQ):
+    """Line table of the leading direction, column ``b`` of face L."""
+    for a in range(FL.shape[0]):
+        for c in range(3):
+            lineD[a, b, c] = FL[a, b, c, 0]
+            lineD[a, b, 3 + c] = FL[a, b, c, 1]
+    if hasq:
+        for a in range(QL.shape[0]):
+            d = QL[a, b, 0, 0] * QL[a, b, 0, 1] + QL[a, b, 1, 0] * QL[a, b, 1, 1] + \
+                QL[a, b, 2, 0] * QL[a, b, 2, 1] + QL[a, b, 3, 0] * QL[a, b, 3, 1]
+            sg = -1.0 if d < 0.0 else 1.0
+            for c in range(4):
+                lineQ[a, b, c] = QL[a, b, c, 0]
+                lineQ[a, b, 4 + c] = sg * QL[a, b, c, 1]
+            w2, sw = _slerp_angle(lineQ[a, b, 0], lineQ[a, b, 1], lineQ[a, b, 2], lineQ[a, b, 3],
+                                  lineQ[a, b, 4], lineQ[a, b, 5], lineQ[a, b, 6], lineQ[a, b, 7])
+            lineQ[a, b, 8] = w2
+            lineQ[a, b, 9] = sw
+
+
+@jit(forceinline=True)
+def _prep_m(b, side, im, s, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
+    """Residuals ``F - U`` on column ``b`` of the M face ``side`` (index ``im``)."""
+    for a in range(FM.shape[0]):
+        i, j, k = _bidx(M, im, a, b)
+        la, lb = _fc(i, j, k, L)
+        t = np.float64(s[i, j, k, L])
+        x, y, z = _u_d(lineD, la, lb, t)
+        gD[a, b, 3 * side] = FM[a, b, 0, side] - x
+        gD[a, b, 3 * side + 1] = FM[a, b, 1, side] - y
+        gD[a, b, 3 * side + 2] = FM[a, b, 2, side] - z
+        if hasq:
+            qw, qx, qy, qz = _u_q(lineQ, la, lb, t)
+            d = qw * QM[a, b, 0, side] + qx * QM[a, b, 1, side] + qy * QM[a, b, 2, side] + qz * QM[a, b, 3, side]
+            sg = -1.0 if d < 0.0 else 1.0
+            o = 4 * side
+            gQ[a, b, o] = sg * QM[a, b, 0, side] - qw
+            gQ[a, b, o + 1] = sg * QM[a, b, 1, side] - qx
+            gQ[a, b, o + 2] = sg * QM[a, b, 2, side] - qy
+            gQ[a, b, o + 3] = sg * QM[a, b, 3, side] - qz
+            n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            o = 8 * side
+            fbM[a, b, o] = qw / n
+            fbM[a, b, o + 1] = qx / n
+            fbM[a, b, o + 2] = qy / n
+            fbM[a, b, o + 3] = qz / n
+            for c in range(4):
+                fbM[a, b, o + 4 + c] = sg * QM[a, b, c, side]
+
+
+@jit(forceinline=True)
+def _prep_n(b, side, im, s, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, hD, hQ, fbN):
+    """Residuals ``F - V`` on column ``b`` of the N face ``side`` (index ``im``)."""
+    for a in range(FN.shape[0]):
+        i, j, k = _bidx(N, im, a, b)
+        la, lb = _fc(i, j, k, L)
+        ma, mb = _fc(i, j, k, M)
+        t = np.float64(s[i, j, k, L])
+        sm = np.float64(s[i, j, k, M])
+        x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
+        hD[a, b, 3 * side] = FN[a, b, 0, side] - x
+        hD[a, b, 3 * side + 1] = FN[a, b, 1, side] - y
+        hD[a, b, 3 * side + 2] = FN[a, b, 2, side] - z
+        if hasq:
+            qw, qx, qy, qz = _v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
+            d = qw * QN[a, b, 0, side] + qx * QN[a, b, 1, side] + qy * QN[a, b, 2, side] + qz * QN[a, b, 3, side]
+            sg = -1.0 if d < 0.0 else 1.0
+            o = 4 * side
+            hQ[a, b, o] = sg * QN[a, b, 0, side] - qw
+            hQ[a, b, o + 1] = sg * QN[a, b, 1, side] - qx
+            hQ[a, b, o + 2] = sg * QN[a, b, 2, side] - qy
+            hQ[a, b, o + 3] = sg * QN[a, b, 3, side] - qz
+            n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            if n >= QNORM_MIN:
+                qw /= n
+                qx /= n
+                qy /= n
+                qz /= n
+            else:
+                qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm,
+                                             fbN, 0, 0, 0.0, False)
+            o = 8 * side
+            fbN[a, b, o] = qw
+            fbN[a, b, o + 1] = qx
+            fbN[a, b, o + 2] = qy
+            fbN[a, b, o + 3] = qz
+            for c in range(4):
+                fbN[a, b, o + 4 + c] = sg * QN[a, b, c, side]
+
+
+@pjit
 def _prep(s, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ,
           fbM, fbN):
     """Fill the surface tables of the fused kernels (see the module docstring).
@@ -377,97 +468,21 @@ def _prep(s, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, 
     ``FL``/``QL``: Δ (na, nb, 3, 2) and Q (na, nb, 4, 2) on the two faces
     normal to ``L`` (last index: low, high face), F order, ``QL[..., 0]``
     already sign-coherent; likewise ``FM``, ``QM``, ``FN``, ``QN``.
-    ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.
+    ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.  Parallel
+    over face columns; the phases run in order (M needs the lines, N needs M).
     """
-    # --- lines of the leading direction
-    for b in range(lineD.shape[1]):
-        for a in range(lineD.shape[0]):
-            for c in range(3):
-                lineD[a, b, c] = FL[a, b, c, 0]
-                lineD[a, b, 3 + c] = FL[a, b, c, 1]
-    if hasq:
-        for b in range(lineQ.shape[1]):
-            for a in range(lineQ.shape[0]):
-                d = QL[a, b, 0, 0] * QL[a, b, 0, 1] + QL[a, b, 1, 0] * QL[a, b, 1, 1] + \
-                    QL[a, b, 2, 0] * QL[a, b, 2, 1] + QL[a, b, 3, 0] * QL[a, b, 3, 1]
-                sg = -1.0 if d < 0.0 else 1.0
-                for c in range(4):
-                    lineQ[a, b, c] = QL[a, b, c, 0]
-                    lineQ[a, b, 4 + c] = sg * QL[a, b, c, 1]
-                w2, sw = _slerp_angle(lineQ[a, b, 0], lineQ[a, b, 1], lineQ[a, b, 2], lineQ[a, b, 3],
-                                      lineQ[a, b, 4], lineQ[a, b, 5], lineQ[a, b, 6], lineQ[a, b, 7])
-                lineQ[a, b, 8] = w2
-                lineQ[a, b, 9] = sw
-    # --- residuals on the M faces: F - U|M
+    for bp in prange(lineD.shape[1]):
+        _prep_line(np.int64(bp), hasq, FL, QL, lineD, lineQ)
     for side in range(2):
         im = 0 if side == 0 else s.shape[M] - 1
-        for b in range(gD.shape[1]):
-            for a in range(gD.shape[0]):
-                i, j, k = _bidx(M, im, a, b)
-                la, lb = _fc(i, j, k, L)
-                t = np.float64(s[i, j, k, L])
-                x, y, z = _u_d(lineD, la, lb, t)
-                gD[a, b, 3 * side] = FM[a, b, 0, side] - x
-                gD[a, b, 3 * side + 1] = FM[a, b, 1, side] - y
-                gD[a, b, 3 * side + 2] = FM[a, b, 2, side] - z
-                if hasq:
-                    qw, qx, qy, qz = _u_q(lineQ, la, lb, t)
-                    d = qw * QM[a, b, 0, side] + qx * QM[a, b, 1, side] + qy * QM[a, b, 2, side] + qz * QM[a, b, 3, side]
-                    sg = -1.0 if d < 0.0 else 1.0
-                    o = 4 * side
-                    gQ[a, b, o] = sg * QM[a, b, 0, side] - qw
-                    gQ[a, b, o + 1] = sg * QM[a, b, 1, side] - qx
-                    gQ[a, b, o + 2] = sg * QM[a, b, 2, side] - qy
-                    gQ[a, b, o + 3] = sg * QM[a, b, 3, side] - qz
-                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                    o = 8 * side
-                    fbM[a, b, o] = qw / n
-                    fbM[a, b, o + 1] = qx / n
-                    fbM[a, b, o + 2] = qy / n
-                    fbM[a, b, o + 3] = qz / n
-                    for c in range(4):
-                        fbM[a, b, o + 4 + c] = sg * QM[a, b, c, side]
-    if not hasn:
-        return
-    # --- residuals on the N faces: F - V|N
-    for side in range(2):
-        im = 0 if side == 0 else s.shape[N] - 1
-        for b in range(hD.shape[1]):
-            for a in range(hD.shape[0]):
-                i, j, k = _bidx(N, im, a, b)
-                la, lb = _fc(i, j, k, L)
-                ma, mb = _fc(i, j, k, M)
-                t = np.float64(s[i, j, k, L])
-                sm = np.float64(s[i, j, k, M])
-                x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
-                hD[a, b, 3 * side] = FN[a, b, 0, side] - x
-                hD[a, b, 3 * side + 1] = FN[a, b, 1, side] - y
-                hD[a, b, 3 * side + 2] = FN[a, b, 2, side] - z
-                if hasq:
-                    qw, qx, qy, qz = _v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
-                    d = qw * QN[a, b, 0, side] + qx * QN[a, b, 1, side] + qy * QN[a, b, 2, side] + qz * QN[a, b, 3, side]
-                    sg = -1.0 if d < 0.0 else 1.0
-                    o = 4 * side
-                    hQ[a, b, o] = sg * QN[a, b, 0, side] - qw
-                    hQ[a, b, o + 1] = sg * QN[a, b, 1, side] - qx
-                    hQ[a, b, o + 2] = sg * QN[a, b, 2, side] - qy
-                    hQ[a, b, o + 3] = sg * QN[a, b, 3, side] - qz
-                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                    if n >= QNORM_MIN:
-                        qw /= n
-                        qx /= n
-                        qy /= n
-                        qz /= n
-                    else:
-                        qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm,
-                                                     fbN, 0, 0, 0.0, False)
-                    o = 8 * side
-                    fbN[a, b, o] = qw
-                    fbN[a, b, o + 1] = qx
-                    fbN[a, b, o + 2] = qy
-                    fbN[a, b, o + 3] = qz
-                    for c in range(4):
-                        fbN[a, b, o + 4 + c] = sg * QN[a, b, c, side]
+        for bp in prange(gD.shape[1]):
+            _prep_m(np.int64(bp), side, im, s, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM)
+    if hasn:
+        for side in range(2):
+            im = 0 if side == 0 else s.shape[N] - 1
+            for bp in prange(hD.shape[1]):
+                _prep_n(np.int64(bp), side, im, s, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM,
+                        hD, hQ, fbN)
 
 
 # =================================================================== volume kernels
