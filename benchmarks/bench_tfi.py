@@ -10,7 +10,6 @@ Usage::
 
     python3 benchmarks/bench_tfi.py                 # 10.1 M points (216^3)
     python3 benchmarks/bench_tfi.py --points 2e5    # quick
-    python3 benchmarks/bench_tfi.py --s-dtype float32
 """
 
 from __future__ import annotations
@@ -64,14 +63,13 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=float, default=216 ** 3, help="block size in points (cube)")
     ap.add_argument("--repeat", type=int, default=5)
-    ap.add_argument("--s-dtype", default="float64", choices=["float64", "float32"])
     ap.add_argument("--order", default="2,0,1", help="direction order L,M,N")
     args = ap.parse_args(argv)
     n = max(4, int(round(args.points ** (1.0 / 3.0))))
     npts = n ** 3
     order = tuple(int(v) for v in args.order.split(","))
     print(f"block {n}^3 = {npts / 1e6:.2f} M points; threads {numba.get_num_threads()}; "
-          f"s {args.s_dtype}; order {order}; best of {args.repeat}")
+          f"order {order}; best of {args.repeat}")
 
     xyz = make_block(n)
     b = Block(xyz)
@@ -89,8 +87,8 @@ def main(argv=None):
     c = np.array([0.5, 0.5, 0.0])
 
     # arclength set-up
-    s = tfi.arclength(xyz, dtype=args.s_dtype)
-    t_arc = best(lambda: tfi.arclength(xyz, dtype=args.s_dtype), args.repeat)
+    s = tfi.arclength(xyz)
+    t_arc = best(lambda: tfi.arclength(xyz), args.repeat)
 
     out = np.empty_like(xyz, order="F")
     tfi.deform_block(xyz, s, fd, fq, c, order, out=out)

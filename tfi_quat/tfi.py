@@ -67,11 +67,12 @@ __all__ = [
 ]
 
 #: storage type of the arclength parameters returned by :func:`arclength`.
-#: float64: the volume stage is compute-bound for the quaternion method, so
-#: float32 would save 12 of ~72 bytes per point for little speed, and it
-#: would perturb interior points by ~1e-7 of a line length (an affine field
-#: or a TFI-built grid would no longer be reproduced to round-off).  See
-#: docs/performance.md, "TFI kernels", for the measurement.
+#: float64, chosen by measurement (docs/performance.md, "TFI kernels"):
+#: float32 saves 12 of 72 bytes per point of the volume stage but gave no
+#: measurable speed-up (the quaternion loop is compute-bound), while it moved
+#: interior points by up to ~1e-7 of a line length, so affine fields and
+#: TFI-built grids were no longer reproduced to round-off.  The kernels
+#: therefore take float64 only (one compiled specialisation each).
 S_DTYPE = np.float64
 
 #: a blended quaternion with a smaller norm falls back to the rotation-vector blend
@@ -745,8 +746,8 @@ def _check_s(s, dims, name: str = "s") -> np.ndarray:
     if s.shape != tuple(dims) + (3,):
         _fail(f"{name}: expected shape {tuple(dims) + (3,)} (the block's arclength parameters), "
               f"got {s.shape}")
-    if s.dtype not in (np.float64, np.float32):
-        _fail(f"{name}: expected dtype float64 or float32, got {s.dtype}")
+    if s.dtype != S_DTYPE:
+        _fail(f"{name}: expected dtype float64 (as arclength() returns), got {s.dtype}")
     if not s.flags.f_contiguous:
         _fail(f"{name}: expected a Fortran-ordered array, as arclength() returns")
     return s
@@ -848,26 +849,20 @@ def _check_edges(fd, fq, dims, name_d: str, name_q: str):
 
 
 # =================================================================== public API
-def arclength(xyz, *, dtype=S_DTYPE, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
+def arclength(xyz, *, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
     """Normalised cumulative arclength along every grid line of a block.
 
     Parameters
     ----------
     xyz : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
         Block coordinates (``Block.xyz``), the **undeformed** grid.
-    dtype : {numpy.float64, numpy.float32}
-        Storage type.  Default float64 (:data:`S_DTYPE`): the fused
-        quaternion kernel is compute-bound, so float32 saves little time
-        (measured in docs/performance.md), while it perturbs interior
-        blending by ~1e-7 relative.  Both are accepted by every kernel, and
-        faces are reproduced exactly with either (0 and 1 are exact).
     rtol : float
         A line shorter than ``rtol`` times its end points' largest coordinate
         magnitude counts as zero-length.
 
     Returns
     -------
-    s : ndarray, shape (ni, nj, nk, 3), ``dtype``, Fortran order
+    s : ndarray, shape (ni, nj, nk, 3), float64 (:data:`S_DTYPE`), Fortran order
         ``s[..., d]`` is the arclength from the low face along the line in
         index direction ``d``, divided by the line's length: exactly 0 on the
         low face and exactly 1 on the high face, non-decreasing; ``index /
@@ -877,13 +872,10 @@ def arclength(xyz, *, dtype=S_DTYPE, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarr
     Raises
     ------
     GridValueError
-        Wrong shape, dtype or memory order of ``xyz``, or a bad ``dtype``.
+        Wrong shape, dtype or memory order of ``xyz``.
     """
     _check_xyz(xyz, "xyz")
-    dt = np.dtype(dtype)
-    if dt not in (np.float64, np.float32):
-        _fail(f"dtype: expected float64 or float32, got {dt}")
-    s = np.empty(xyz.shape, dtype=dt, order="F")
+    s = np.empty(xyz.shape, dtype=S_DTYPE, order="F")
     _arclength_kernel(xyz, s, float(rtol))
     return s
 
@@ -1108,7 +1100,7 @@ def tfi_block_fields(face_delta, face_q, s, order):
         jmax ``(ni, 3)``.
     face_q : sequence of 6 (or 4) arrays (..., 4) of unit quaternions, or None
         Q on the same faces; None for the baseline (Q ≡ 1).
-    s : ndarray, shape (ni, nj, nk, 3), float64 or float32
+    s : ndarray, shape (ni, nj, nk, 3), float64
         The block's arclength parameters (:func:`arclength`).
     order : sequence of int
         ``(L, M, N)`` (``(L, M)`` in 2-D), e.g. from :func:`lead_order`.
@@ -1249,7 +1241,7 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None) -> np.nd
     ----------
     xyz_u : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
         Undeformed block coordinates.
-    s : ndarray, shape (ni, nj, nk, 3), float64 or float32, Fortran order
+    s : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
         Its arclength parameters (:func:`arclength`).
     face_delta : sequence of 6 array_like
         Δ on faces imin, imax, jmin, jmax, kmin, kmax, face ``f`` of shape
@@ -1301,7 +1293,7 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None) -> np
     ----------
     xyz_u : ndarray, shape (ni, nj, 1, 3), float64, Fortran order
         Undeformed block coordinates.
-    s : ndarray, shape (ni, nj, 1, 3), float64 or float32, Fortran order
+    s : ndarray, shape (ni, nj, 1, 3), float64, Fortran order
         Its arclength parameters (:func:`arclength`).
     side_delta : sequence of 4 array_like
         Δ on the sides imin, imax ``(nj, 3)`` and jmin, jmax ``(ni, 3)``;
