@@ -91,16 +91,18 @@ def main(argv=None):
     t_arc = best(lambda: tfi.arclength(xyz), args.repeat)
 
     out = np.empty_like(xyz, order="F")
-    tfi.deform_block(xyz, s, fd, fq, c, order, out=out)
-    tfi.deform_block(xyz, s, fd, None, c, order, out=out)
-    t_q = best(lambda: tfi.deform_block(xyz, s, fd, fq, c, order, out=out), args.repeat)
-    t_d = best(lambda: tfi.deform_block(xyz, s, fd, None, c, order, out=out), args.repeat)
+    fs = tfi.face_params(s)                  # once per grid, as the Deformer does
+    tfi.deform_block(xyz, s, fd, fq, c, order, out=out, face_s=fs)
+    tfi.deform_block(xyz, s, fd, None, c, order, out=out, face_s=fs)
+    t_q = best(lambda: tfi.deform_block(xyz, s, fd, fq, c, order, out=out, face_s=fs), args.repeat)
+    t_d = best(lambda: tfi.deform_block(xyz, s, fd, None, c, order, out=out, face_s=fs), args.repeat)
+    t_q0 = best(lambda: tfi.deform_block(xyz, s, fd, fq, c, order, out=out), args.repeat)
 
     # the volume loops alone, with the O(surface) tables built once (what the set-up costs)
     dims = xyz.shape[:3]
     fdd, fqq = tfi._faces(fd, dims, 3, "fd"), tfi._faces(fq, dims, 4, "fq")
-    tq = tfi._tables(dims, order, fdd, fqq, s, True)
-    td = tfi._tables(dims, order, fdd, None, s, True)
+    tq = tfi._tables(dims, order, fdd, fqq, fs, True)
+    td = tfi._tables(dims, order, fdd, None, fs, True)
     t_kq = best(lambda: tfi._deform3_q(xyz, s, out, *c, *order, *tq), args.repeat)
     t_kd = best(lambda: tfi._deform3_d(xyz, s, out, *order, td[0], td[2], td[4]), args.repeat)
 
@@ -121,6 +123,7 @@ def main(argv=None):
     print(f"{'stream copy (numba)':<28s} {t_copy * 1e3:9.2f} ms  {bw / 1e9:6.2f} GB/s "
           f"(read + write of {src.nbytes / 1e6:.0f} MB)")
     line("deform_block quaternion", t_q, nbytes)
+    line("  same without face_s", t_q0, nbytes)
     line("deform_block baseline", t_d, nbytes)
     line("  quaternion loop only", t_kq, nbytes)
     line("  baseline loop only", t_kd, nbytes)

@@ -315,6 +315,25 @@ def test_rigid_motion_of_all_faces_moves_block_rigidly(shape, order, seed):
     np.testing.assert_allclose(out, xyz + d0, rtol=0, atol=1e-14 * scale(xyz))
 
 
+def test_precomputed_face_parameters_give_the_same_result():
+    xyz = warped_block((6, 5, 4), 8)
+    s = tfi.arclength(xyz)
+    fs = tfi.face_params(s)
+    for f in range(6):
+        np.testing.assert_array_equal(fs[f], Block(s).face(f))
+        assert fs[f].flags.f_contiguous
+    fd, fq = faces_of(xyz, dfun), faces_of(xyz, qfun)
+    for order in [(0, 1, 2), (2, 0, 1)]:
+        np.testing.assert_array_equal(tfi.deform_block(xyz, s, fd, fq, np.ones(3), order, face_s=fs),
+                                      tfi.deform_block(xyz, s, fd, fq, np.ones(3), order))
+    x2 = block2d(6, 5)
+    s2 = tfi.arclength(x2)
+    sides = sides_of(faces_of(x2, dfun)[:4])
+    np.testing.assert_array_equal(
+        tfi.deform_block_2d(x2, s2, sides, None, np.zeros(3), (1, 0), face_s=tfi.face_params(s2)[:4]),
+        tfi.deform_block_2d(x2, s2, sides, None, np.zeros(3), (1, 0)))
+
+
 def test_zero_motion_is_bit_exact_and_in_place_works():
     xyz = warped_block((6, 5, 4), 3)
     s = tfi.arclength(xyz)
@@ -370,7 +389,7 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
     fd, fq = faces_of(xyz, dfun), flip_signs(faces_of(xyz, qfun), 1)
     dims = xyz.shape[:3]
     fdd, fqq = tfi._faces(fd, dims, 3, "fd"), tfi._faces(fq, dims, 4, "fq")
-    tables = tfi._tables(dims, order, fdd, fqq, s, True)
+    tables = tfi._tables(dims, order, fdd, fqq, tfi.face_params(s), True)
     lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = tables
     a, b = np.empty_like(xyz), np.empty_like(xyz)
     tfi._deform3_q(xyz, s, a, 0.1, 0.2, 0.3, *order, *tables)
@@ -386,7 +405,8 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
     q0 = np.array(QL[..., 0], order="F")
     tfi._coherent.py_func(q0)
     QL[..., 0] = q0
-    tfi._prep.py_func(s, L, M, N, True, tfi._pair(fdd, L, 3), tfi._pair(fdd, M, 3), tfi._pair(fdd, N, 3),
+    fs = tfi.face_params(s)
+    tfi._prep.py_func(tfi._pair(fs, M, 3), tfi._pair(fs, N, 3), dims[M], dims[N], L, M, N, True, tfi._pair(fdd, L, 3), tfi._pair(fdd, M, 3), tfi._pair(fdd, N, 3),
                       QL, tfi._pair(fqq, M, 4), tfi._pair(fqq, N, 4), True, *again)
     for x, y in zip(tables, again):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-15)
@@ -538,7 +558,7 @@ def test_deform_block_2d_rigid_and_uncompiled():
     fd, fq = sides_of(faces_of(xyz, dfun)[:4]), sides_of(faces_of(xyz, qfun)[:4])
     dims = xyz.shape[:3]
     tables = tfi._tables(dims, (1, 0, 2), tfi._sides_as_faces(fd, dims, 3, "d"),
-                         tfi._sides_as_faces(fq, dims, 4, "q"), s, False)
+                         tfi._sides_as_faces(fq, dims, 4, "q"), tfi.face_params(s), False)
     a, b = np.empty_like(xyz), np.empty_like(xyz)
     tfi._deform2_q(xyz, s, a, 0.5, 0.5, 0.0, 1, 0, *tables)
     tfi._deform2_q.py_func(xyz, s, b, 0.5, 0.5, 0.0, 1, 0, *tables)
@@ -659,6 +679,8 @@ def test_deform_block_validates_arguments():
     bad[0][0, 0] += 0.5                      # imin disagrees with jmin on their edge
     with pytest.raises(GridValueError, match="faces imin and jmin disagree"):
         tfi.deform_block(xyz, s, bad, fq, c, (0, 1, 2))
+    with pytest.raises(GridValueError, match=r"face_s\[2\] \(jmin\): expected a float64"):
+        tfi.deform_block(xyz, s, fd, fq, c, (0, 1, 2), face_s=list(tfi.face_params(s)[:2]) + [s[0]] + list(tfi.face_params(s)[3:]))
     with pytest.raises(GridValueError, match="nk == 1"):
         tfi.deform_block_2d(xyz, s, fd[:4], None, c, (0, 1))
     with pytest.raises(GridValueError, match="order"):

@@ -62,7 +62,7 @@ from .quaternion import slerp as _qslerp_np
 __all__ = [
     "S_DTYPE", "QNORM_MIN",
     "arclength", "arclength_curve", "arclength_surface",
-    "lead_order", "interp_segment", "tfi_patch", "tfi_block_fields",
+    "face_params", "lead_order", "interp_segment", "tfi_patch", "tfi_block_fields",
     "deform_block", "deform_block_2d",
 ]
 
@@ -392,12 +392,12 @@ def _prep_line(b, hasq, FL, QL, lineD, lineQ):
 
 
 @jit(forceinline=True)
-def _prep_m(b, side, im, s, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
+def _prep_m(b, side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
     """Residuals ``F - U`` on column ``b`` of the M face ``side`` (index ``im``)."""
     for a in range(FM.shape[0]):
         i, j, k = _bidx(M, im, a, b)
         la, lb = _fc(i, j, k, L)
-        t = np.float64(s[i, j, k, L])
+        t = SM[a, b, L, side]
         x, y, z = _u_d(lineD, la, lb, t)
         gD[a, b, 3 * side] = FM[a, b, 0, side] - x
         gD[a, b, 3 * side + 1] = FM[a, b, 1, side] - y
@@ -422,14 +422,14 @@ def _prep_m(b, side, im, s, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
 
 
 @jit(forceinline=True)
-def _prep_n(b, side, im, s, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, hD, hQ, fbN):
+def _prep_n(b, side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, hD, hQ, fbN):
     """Residuals ``F - V`` on column ``b`` of the N face ``side`` (index ``im``)."""
     for a in range(FN.shape[0]):
         i, j, k = _bidx(N, im, a, b)
         la, lb = _fc(i, j, k, L)
         ma, mb = _fc(i, j, k, M)
-        t = np.float64(s[i, j, k, L])
-        sm = np.float64(s[i, j, k, M])
+        t = SN[a, b, L, side]
+        sm = SN[a, b, M, side]
         x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
         hD[a, b, 3 * side] = FN[a, b, 0, side] - x
         hD[a, b, 3 * side + 1] = FN[a, b, 1, side] - y
@@ -462,27 +462,29 @@ def _prep_n(b, side, im, s, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, hD
 
 
 @pjit
-def _prep(s, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ,
+def _prep(SM, SN, nm, nn, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ,
           fbM, fbN):
     """Fill the surface tables of the fused kernels (see the module docstring).
 
     ``FL``/``QL``: Δ (na, nb, 3, 2) and Q (na, nb, 4, 2) on the two faces
     normal to ``L`` (last index: low, high face), F order, ``QL[..., 0]``
-    already sign-coherent; likewise ``FM``, ``QM``, ``FN``, ``QN``.
+    already sign-coherent; likewise ``FM``, ``QM``, ``FN``, ``QN``, and the
+    arclength parameters ``SM``, ``SN`` (na, nb, 3, 2) on the M and N faces;
+    ``nm``, ``nn``: the block's point counts along M and N.
     ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.  Parallel
     over face columns; the phases run in order (M needs the lines, N needs M).
     """
     for bp in prange(lineD.shape[1]):
         _prep_line(np.int64(bp), hasq, FL, QL, lineD, lineQ)
     for side in range(2):
-        im = 0 if side == 0 else s.shape[M] - 1
+        im = 0 if side == 0 else nm - 1
         for bp in prange(gD.shape[1]):
-            _prep_m(np.int64(bp), side, im, s, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM)
+            _prep_m(np.int64(bp), side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM)
     if hasn:
         for side in range(2):
-            im = 0 if side == 0 else s.shape[N] - 1
+            im = 0 if side == 0 else nn - 1
             for bp in prange(hD.shape[1]):
-                _prep_n(np.int64(bp), side, im, s, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM,
+                _prep_n(np.int64(bp), side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM,
                         hD, hQ, fbN)
 
 
@@ -920,6 +922,51 @@ def arclength_surface(r) -> np.ndarray:
     return np.asfortranarray(arclength(np.asfortranarray(arr[:, :, None, :]))[:, :, 0, :2])
 
 
+def face_params(s) -> tuple:
+    """The block's arclength parameters on its six faces, for ``deform_block(..., face_s=...)``.
+
+    Reading them out of ``s`` touches one cache line per point on the faces
+    normal to i; a caller that deforms the same block many times (the
+    Deformer) computes them once here and passes them on every step.
+
+    Parameters
+    ----------
+    s : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Arclength parameters (:func:`arclength`).
+
+    Returns
+    -------
+    face_s : tuple of 6 ndarray
+        Face ``f`` (imin, imax, jmin, jmax, kmin, kmax) of shape
+        ``Block.face(f).shape[:2] + (3,)``, float64, Fortran order (copies).
+    """
+    if not isinstance(s, np.ndarray) or s.ndim != 4:
+        _fail(f"s: expected an array of shape (ni, nj, nk, 3), got {getattr(s, 'shape', type(s))}")
+    _check_s(s, s.shape[:3])
+    out = []
+    for f in range(6):
+        idx = [slice(None)] * 3
+        idx[f // 2] = s.shape[f // 2] - 1 if f % 2 else 0
+        out.append(np.array(s[tuple(idx)], order="F"))
+    return tuple(out)
+
+
+def _check_face_s(face_s, s, dims, nfaces: int) -> tuple:
+    if face_s is None:
+        return face_params(s)
+    if isinstance(face_s, np.ndarray) or len(face_s) not in (nfaces, 6):
+        _fail(f"face_s: expected the {nfaces} face arrays of face_params(s)")
+    out = []
+    for f in range(nfaces):
+        want = _face_dims(dims, f // 2) + (3,)
+        a = face_s[f]
+        if not isinstance(a, np.ndarray) or a.dtype != np.float64 or a.shape != want:
+            _fail(f"face_s[{f}] ({FACES[f]}): expected a float64 array of shape {want} "
+                  f"(from face_params(s)), got {getattr(a, 'shape', type(a).__name__)}")
+        out.append(a)
+    return tuple(out)
+
+
 def lead_order(prescribed_counts: Sequence[int]) -> tuple:
     """Direction order for TFI: lead with the direction whose end faces carry most prescribed points.
 
@@ -1193,7 +1240,7 @@ def _pair(faces, d, ncomp: int) -> np.ndarray:
     return out
 
 
-def _tables(dims, o, fd, fq, s, hasn):
+def _tables(dims, o, fd, fq, fs, hasn):
     """Allocate and fill the O(surface) tables of the fused kernels.
 
     Dummy tables are (2, 2, ·) so that their numba type (F layout) never
@@ -1226,11 +1273,15 @@ def _tables(dims, o, fd, fq, s, hasn):
         QL[..., 0] = q0
     else:
         QL = QM = QN = np.zeros((2, 2, 4, 2), order="F")
-    _prep(s, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    SM = _pair(fs, M, 3)
+    SN = _pair(fs, N, 3) if hasn else np.zeros((2, 2, 3, 2), order="F")
+    _prep(SM, SN, dims[M], dims[N], L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq,
+          lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
     return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
 
 
-def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None) -> np.ndarray:
+def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
+                 face_s=None) -> np.ndarray:
     """Fused volume stage of one 3-D block: ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``.
 
     (Δ, Q) is the Soni TFI of the six faces' values (DESIGN 3.4), evaluated
@@ -1255,6 +1306,10 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None) -> np.nd
         ``(L, M, N)``, a permutation of (0, 1, 2) (:func:`lead_order`).
     out : ndarray, shape (ni, nj, nk, 3), float64, Fortran order, optional
         Receives the result; may be ``xyz_u`` itself (in place).
+    face_s : tuple of 6 ndarray, optional
+        ``face_params(s)``, computed once by a caller that deforms the block
+        repeatedly (saves ~20 ms per call on a 10 M-point block when a face
+        normal to i is an M or N face).  Must be the faces of ``s``.
 
     Returns
     -------
@@ -1277,7 +1332,8 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None) -> np.nd
     _check_edges(fd, fq, dims, "face_delta", "face_q")
     c = _check_centre(centre)
     out = _check_out(out, dims)
-    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, o, fd, fq, s, True)
+    fs = _check_face_s(face_s, s, dims, 6)
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, o, fd, fq, fs, True)
     L, M, N = o
     if fq is None:
         _deform3_d(xyz_u, s, out, L, M, N, lineD, gD, hD)
@@ -1286,7 +1342,8 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None) -> np.nd
     return out
 
 
-def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None) -> np.ndarray:
+def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
+                    face_s=None) -> np.ndarray:
     """Fused volume stage of one 2-D block (``nk == 1``).
 
     Parameters
@@ -1306,6 +1363,8 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None) -> np
         ``(L, M)``, a permutation of (0, 1).
     out : ndarray, shape (ni, nj, 1, 3), float64, Fortran order, optional
         Receives the result; may be ``xyz_u``.
+    face_s : tuple of 4 (or 6) ndarray, optional
+        ``face_params(s)`` (its first four faces are the sides), computed once.
 
     Returns
     -------
@@ -1323,7 +1382,8 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None) -> np
     c = _check_centre(centre)
     out = _check_out(out, dims)
     L, M = o
-    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, (L, M, 2), fd, fq, s, False)
+    fs = _check_face_s(face_s, s, dims, 4)
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, (L, M, 2), fd, fq, fs, False)
     if fq is None:
         _deform2_d(xyz_u, s, out, L, M, lineD, gD, hD)
     else:
