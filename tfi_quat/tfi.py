@@ -22,7 +22,8 @@ quaternion residual ``F - U`` is formed, ``F`` is flipped to the hemisphere of
 Public functions
 ----------------
 :func:`arclength`, :func:`arclength_curve`, :func:`arclength_surface`
-    blending parameters (set up once per grid).
+    blending parameters (set up once per grid); :func:`face_params` their
+    values on the six faces, also set up once, for the fused kernels.
 :func:`lead_order`
     direction order from the prescribed point counts of the faces.
 :func:`interp_segment`, :func:`tfi_patch`, :func:`tfi_block_fields`
