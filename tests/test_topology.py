@@ -402,3 +402,46 @@ def test_table_lists_interfaces_patches_and_notes():
     g = Grid([extrude(c_grid(), nk=3)])
     text = connect(g, walls=["1:jmin"]).table()
     assert "interfaces" in text and "-1 -2 +3" in text and "wall" in text and "symmetry (auto)" in text
+
+
+# ------------------------------------------------------------------ CLI
+def _cli_args(argv):
+    import argparse
+
+    from tfi_quat.cli import _connect
+    parser = argparse.ArgumentParser()
+    _connect.add_args(parser)
+    return parser.parse_args(argv)
+
+
+def test_cli_connect_prints_table_and_writes_maps(tmp_path):
+    import io
+
+    from tfi_quat.cli._connect import connect_grid
+    from tfi_quat.errors import OverwriteError
+    g = Grid([extrude(c_grid(), nk=3)])
+    out = io.StringIO()
+    js = tmp_path / "map.json"
+    assert connect_grid(g, _cli_args(["g.x", "--wall", "1:jmin", "-o", str(js)]), out) == 0
+    text = out.getvalue()
+    assert "1        jmin  1-5,1-3" in text and "-1 -2 +3" in text
+    assert "wall      1      jmin  5-17,1-3" in text and "symmetry (auto)" in text and f"wrote {js}" in text
+    assert Connectivity.from_json(js, g) == connect(g, walls=["1:jmin"])
+    with pytest.raises(OverwriteError, match="exists"):
+        connect_grid(g, _cli_args(["g.x", "-o", str(js)]), io.StringIO())
+    connect_grid(g, _cli_args(["g.x", "-o", str(js), "--force", "--fixed", "1:kmin", "--default", "free"]),
+                 io.StringIO())
+    assert {p.kind for p in Connectivity.from_json(js).patches} == {"fixed", "free"}
+    nmf = tmp_path / "map.nmf"
+    connect_grid(g, _cli_args(["g.x", "--wall", "1:jmin", "-o", str(nmf)]), io.StringIO())
+    assert Connectivity.from_nmf(nmf, g) == connect(g, walls=["1:jmin"])
+    with pytest.raises(ConnectivityError, match="use .json or .nmf"):
+        connect_grid(g, _cli_args(["g.x", "-o", str(tmp_path / "map.txt")]), io.StringIO())
+    with pytest.raises(ConnectivityError, match="overlaps"):
+        connect_grid(g, _cli_args(["g.x", "--wall", "1:jmin", "--fixed", "1:jmin:1-9,1-3"]), io.StringIO())
+
+
+def test_cli_connect_run_reports_a_missing_grid(tmp_path):
+    from tfi_quat.cli._connect import run
+    with pytest.raises(FileNotFoundError):
+        run(_cli_args([str(tmp_path / "nothing.x")]))
