@@ -445,3 +445,17 @@ def test_cli_connect_run_reports_a_missing_grid(tmp_path):
     from tfi_quat.cli._connect import run
     with pytest.raises(FileNotFoundError):
         run(_cli_args([str(tmp_path / "nothing.x")]))
+
+
+def test_absolute_tolerance_bridges_a_small_gap():
+    big = sheared_box(9, 5, 4)
+    a = np.asfortranarray(big[:5])
+    b = np.asfortranarray(big[4:] + 1e-5)
+    assert connect(Grid([a, b])).interfaces == []
+    conn = connect(Grid([a, b]), tol=1e-4)
+    assert len(conn.interfaces) == 1
+    check_interfaces(Grid([a, b]), conn, tol=2e-5)
+    with pytest.raises(ConnectivityError, match="tol"):
+        connect(Grid([a, b]), tol=-1.0)
+    with pytest.raises(ConnectivityError, match="rtol"):
+        connect(Grid([a, b]), rtol=0.0)

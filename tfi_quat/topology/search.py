@@ -328,7 +328,7 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
             keys.append(np.column_stack([f1[good], f2[good], np.full(good.sum(), mid), off]))
     if not keys:
         return []
-    keys = np.unique(np.concatenate(keys), axis=0)
+    keys = _unique_rows(np.concatenate(keys))
 
     claimed = [np.zeros(f.cells, dtype=bool) for f in faces]
     found = []
@@ -350,6 +350,15 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
     found.sort(key=lambda i: (i.master.block, FACES.index(i.master.face), i.master.range,
                               i.slave.block, FACES.index(i.slave.face), i.slave.range))
     return found
+
+
+def _unique_rows(k: np.ndarray) -> np.ndarray:
+    """Distinct rows of an int array (n, 5), sorted; faster than ``np.unique(axis=0)``."""
+    order = np.lexsort(k.T[::-1])
+    k = k[order]
+    new = np.ones(len(k), dtype=bool)
+    new[1:] = (k[1:] != k[:-1]).any(axis=1)
+    return k[new]
 
 
 def _cells_of(fc: _Face, rng) -> tuple[slice, slice]:
