@@ -77,9 +77,17 @@ def to_dict(conn: Connectivity) -> dict:
 
 def write_json(conn: Connectivity, path, *, overwrite: bool = False) -> None:
     target = _check_target(path, overwrite)
-    text = json.dumps(to_dict(conn), indent=1)
+    doc = to_dict(conn)
+    # one interface / patch / note per line: easy to read, diff and edit
+    parts = []
+    for key, value in doc.items():
+        if isinstance(value, list) and value:
+            items = ",\n  ".join(json.dumps(v) for v in value)
+            parts.append(f' "{key}": [\n  {items}\n ]')
+        else:
+            parts.append(f" {json.dumps(key)}: {json.dumps(value)}")
     with atomic_output(target, "w") as fh:
-        fh.write(text + "\n")
+        fh.write("{\n" + ",\n".join(parts) + "\n}\n")
 
 
 def _spec_from_range(where: str, block: int, face: str, pr, dims) -> PatchSpec:
