@@ -299,7 +299,8 @@ def test_user_patch_errors_name_block_face_and_range():
     g = Grid([sheared_box(5, 4, 3)])
     with pytest.raises(ConnectivityError, match=r"wall 1:imin:1-3,1-3 overlaps wall 1:imin"):
         connect(g, walls=["1:imin", "1:imin:1-3,1-3"])
-    with pytest.raises(ConnectivityError, match=r"fixed 1:kmin:2-3,1-2 overlaps symmetry 1:kmin:1-5,1-4 on block 1 face kmin"):
+    with pytest.raises(ConnectivityError,
+                       match=r"fixed 1:kmin:2-3,1-2 overlaps symmetry 1:kmin:1-5,1-4 on block 1 face kmin"):
         connect(g, fixed=["1:kmin:2-3,1-2"], symmetry=["1:kmin"])
     with pytest.raises(ConnectivityError, match=r"wall 3:imin.*1 block"):
         connect(g, walls=["3:imin"])
@@ -333,7 +334,7 @@ def test_interface_validates_its_transform():
         Interface(m, s, (1, 3, 2), (4, 0, 0), (0, 0, 0))
     with pytest.raises(ConnectivityError, match="first corner"):
         Interface(m, s, (1, 2, 3), (4, 1, 0), (0, 1, 0))
-    r = it.reversed((5, 4, 3))
+    r = it.reversed()
     assert r.master == s and r.slave == m and r.transform == (1, 2, 3)
     with pytest.raises(ConnectivityError, match="unknown kind"):
         Patch(m, "moving")

@@ -183,12 +183,8 @@ class Interface:
             inv[abs(v) - 1] = (m + 1) * (1 if v > 0 else -1)
         return tuple(inv)
 
-    def reversed(self, slave_dims) -> "Interface":
-        """The same interface with master and slave exchanged.
-
-        ``slave_dims`` (the slave block's ``(ni, nj, nk)``) is not needed for
-        the indices but kept for symmetry with the constructor helpers.
-        """
+    def reversed(self) -> "Interface":
+        """The same interface with master and slave exchanged."""
         (c0, _), (e0, _) = self.slave.range
         ds, sa, sb = face_axes(self.slave.face)
         begin = list(self.slave_begin)
@@ -279,7 +275,8 @@ class Patch:
 
     def __post_init__(self):
         if self.kind not in KINDS:
-            raise ConnectivityError(f"patch {self.spec}: unknown kind {self.kind!r}, expected one of {', '.join(KINDS)}")
+            raise ConnectivityError(f"patch {self.spec}: unknown kind {self.kind!r}, "
+                                    f"expected one of {', '.join(KINDS)}")
         if not isinstance(self.spec, PatchSpec) or self.spec.range is None:
             raise ConnectivityError(f"patch {self.spec!r}: needs a PatchSpec with an explicit range")
 

@@ -330,7 +330,7 @@ def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
         key2 = (it.slave.block, FACES.index(it.slave.face))
         if key2 < key1 or (key1 == key2 and (it.slave.range[0][0], it.slave.range[1][0]) <
                            (it.master.range[0][0], it.master.range[1][0])):
-            it = it.reversed(dims[it.slave.block])
+            it = it.reversed()
         if ndim == 2 and it.master.face in ("kmin", "kmax"):
             notes.append(f"{p}:{ln}: ONE_TO_ONE on k faces of a 2-D grid ignored")
             continue

@@ -304,25 +304,34 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
     act1, act2 = n1 >= 2, n2 >= 2
     P = np.stack([geo.a[p], geo.b[p]], axis=1)
     Q = np.stack([geo.a[q], geo.b[q]], axis=1)
+    # conf[u, v, s]: a neighbour of p along master axis u coincides with the neighbour of q
+    # along slave axis v in direction (+1, -1)[s] (checked on both sides where they exist)
+    conf = {}
+    for u in range(2):
+        for v in range(2):
+            for s, sgn in enumerate((1, -1)):
+                c = np.zeros(len(p), dtype=bool)
+                for step in (1, -1):
+                    pa = P[:, u] + step
+                    qa = Q[:, v] + sgn * step
+                    inr = (pa >= 0) & (pa < n1[:, u]) & (qa >= 0) & (qa < n2[:, v])
+                    pp = P.copy()
+                    pp[:, u] = pa
+                    qq = Q.copy()
+                    qq[:, v] = qa
+                    ip = offs[f1] + np.where(inr, pp[:, 0] + n1[:, 0] * pp[:, 1], 0)
+                    iq = offs[f2] + np.where(inr, qq[:, 0] + n2[:, 0] * qq[:, 1], 0)
+                    c |= inr & (geo.g[ip] == geo.g[iq])
+                conf[u, v, s] = c
+    same_count = act1.sum(axis=1) == act2.sum(axis=1)
     keys = []
     for mid, M in enumerate(_MS):
-        good = act1.sum(axis=1) == act2.sum(axis=1)
+        good = same_count.copy()
         for u in range(2):
             v = int(np.abs(M[:, u]).argmax())
             sgn = int(M[v, u])
             # active axes map to active axes; inactive ones to inactive ones, unflipped
-            good &= np.where(act1[:, u], act2[:, v], ~act2[:, v] & (sgn > 0))
-            conf = ~act1[:, u]
-            for step in (1, -1):
-                pa = P.copy()
-                pa[:, u] += step
-                qa = Q.copy()
-                qa[:, v] += sgn * step
-                inr = (pa[:, u] >= 0) & (pa[:, u] < n1[:, u]) & (qa[:, v] >= 0) & (qa[:, v] < n2[:, v])
-                ip = offs[f1] + np.where(inr, pa[:, 0] + n1[:, 0] * pa[:, 1], 0)
-                iq = offs[f2] + np.where(inr, qa[:, 0] + n2[:, 0] * qa[:, 1], 0)
-                conf |= inr & (geo.g[ip] == geo.g[iq])
-            good &= conf
+            good &= np.where(act1[:, u], act2[:, v] & conf[u, v, 0 if sgn > 0 else 1], ~act2[:, v] & (sgn > 0))
         if good.any():
             off = Q[good] - P[good] @ M.T
             keys.append(np.column_stack([f1[good], f2[good], np.full(good.sum(), mid), off]))
