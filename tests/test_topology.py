@@ -276,6 +276,22 @@ def test_float_noise_of_1e15_still_matches():
     assert connect(Grid([a, b2])).interfaces == []
 
 
+def test_round_off_of_large_coordinates_with_tiny_spacing_still_matches():
+    # spacing ~3e-9 at coordinates ~1e3: rtol x spacing (3e-15) is below the round-off (~1e-12)
+    rng = np.random.default_rng(2)
+    big = np.repeat(sheared_box(9, 5, 1), 4, axis=2)
+    big[..., 2] += 3e-9 * np.arange(4)          # a 3e-9 thick layer
+    big += 1000.0
+    a = np.asfortranarray(big[:5])
+    b = orient(big[4:], (1, 0, 2), (False, True, False))
+    b = np.asfortranarray(b * (1 + 1e-15 * rng.uniform(-1, 1, b.shape)))
+    g = Grid([a, b])
+    conn = connect(g)
+    assert len(conn.interfaces) == 1 and conn.interfaces[0].master.range == ((0, 4), (0, 3))
+    check_interfaces(g, conn, tol=3e-12)
+    assert not any(p.collapsed for p in conn.patches)      # 3e-9 edges are not merged
+
+
 def test_extruded_c_grid_auto_symmetry_and_user_kinds():
     xyz = extrude(c_grid(), nk=3)
     g = Grid([xyz])

@@ -174,7 +174,16 @@ class _Geometry:
                 off += na * nb
             boff += blk.npoints
         self.xyz = np.concatenate(xyz)
-        self.tol = np.full(off, float(tol)) if tol is not None else rtol * np.concatenate(hs)
+        if tol is not None:
+            self.tol = np.full(off, float(tol))
+        else:
+            # rtol x local spacing, but never below the round-off of the coordinates
+            # (16 units in the last place of the file's precision) nor above h / 4
+            h = np.concatenate(hs)
+            single = getattr(grid.source_format, "precision", 8) == 4
+            eps = float(np.finfo(np.float32 if single else np.float64).eps)
+            floor = 16 * eps * np.abs(self.xyz).max(axis=1)
+            self.tol = np.minimum(np.maximum(rtol * h, floor), 0.25 * h)
         self.bp = np.concatenate(bps)
         self.fid = np.concatenate([np.full(fc.size, n, dtype=np.int64) for n, fc in enumerate(self.faces)])
         self.a = np.concatenate([np.tile(np.arange(fc.na), fc.nb) for fc in self.faces])
@@ -565,7 +574,9 @@ def connect(grid, *, tol=None, rtol=DEFAULT_RTOL, walls=(), symmetry=(), fixed=(
     grid : Grid
     tol : float, optional
         Absolute matching distance.  Default: ``rtol`` times the smallest
-        adjacent edge length at each point (both points of a pair must agree).
+        adjacent edge length at each point, at least 16 units in the last
+        place of the coordinates and at most a quarter of that edge (both
+        points of a pair must agree).
     rtol : float
         Relative matching tolerance used when ``tol`` is None (default 1e-6).
     walls, symmetry, fixed : sequence of PatchSpec or str
