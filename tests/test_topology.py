@@ -204,6 +204,40 @@ def test_three_blocks_around_one_edge():
     covered_once(conn, g)
 
 
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_lattice_of_blocks_meeting_at_corners(ndim):
+    """2 x 2 (x 2) blocks in random orientations: four (eight) blocks share the centre point."""
+    rng = np.random.default_rng(7)
+    n = 4
+    u = np.linspace(0, 1, n)
+    blocks = []
+    for bz in range(2 if ndim == 3 else 1):
+        for by in range(2):
+            for bx in range(2):
+                if ndim == 3:
+                    X, Y, Z = np.meshgrid(bx + u, by + u, bz + u, indexing="ij")
+                else:
+                    X, Y = np.meshgrid(bx + u, by + u, indexing="ij")
+                    X, Y, Z = X[..., None], Y[..., None], 0 * X[..., None]
+                xyz = np.stack([X + 0.1 * np.sin(Y), Y + 0.1 * X * X, Z + 0.05 * X * Y * (ndim == 3)], -1)
+                perm = rng.permutation(3) if ndim == 3 else np.array([*rng.permutation(2), 2])
+                flips = rng.random(3) < 0.5
+                flips[2] &= ndim == 3
+                blocks.append(orient(xyz, tuple(int(v) for v in perm), tuple(bool(f) for f in flips)))
+    g = Grid(blocks)
+    assert g.ndim == ndim
+    conn = connect(g)
+    assert len(conn.interfaces) == (12 if ndim == 3 else 4)
+    check_interfaces(g, conn, tol=0.0)
+    covered_once(conn, g)
+    for it in conn.interfaces:
+        assert it.master.range == ((0, n - 1), (0, n - 1 if ndim == 3 else 0))
+        key = lambda s: (s.block, ["imin", "imax", "jmin", "jmax", "kmin", "kmax"].index(s.face))  # noqa: E731
+        assert key(it.master) < key(it.slave)
+        if ndim == 2:
+            assert it.transform[2] == 3
+
+
 def test_face_with_two_interfaces_and_a_patch():
     big = sheared_box(8, 9, 3)
     a = np.asfortranarray(big[:5])
