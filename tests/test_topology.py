@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from tfi_quat import ConnectivityError, Grid
 from tfi_quat.spec import PatchSpec
-from tfi_quat.topology import Connectivity, Interface, Patch, classify, connect
+from tfi_quat.topology import Connectivity, Interface, Patch, classify, connect, node_labels
 
 from conftest import annulus, sheared_box
 
@@ -236,6 +236,23 @@ def test_lattice_of_blocks_meeting_at_corners(ndim):
         assert key(it.master) < key(it.slave)
         if ndim == 2:
             assert it.transform[2] == 3
+
+
+def test_node_labels_identify_points_shared_by_edge_only_neighbours():
+    # quadrants 0 and 2 of a 2 x 2 lattice touch at the centre point only
+    full = annulus(ni=9, nj=9, theta=np.pi / 2)
+    g = Grid([np.asfortranarray(full[:5, :5]), np.asfortranarray(full[4:, :5]),
+              np.asfortranarray(full[4:, 4:]), np.asfortranarray(full[:5, 4:])])
+    lab = node_labels(g)
+    assert lab[(0, "imax")].shape == (5, 1)
+    centre = {int(lab[(0, "imax")][4, 0]), int(lab[(2, "imin")][0, 0]), int(lab[(1, "jmax")][0, 0]),
+              int(lab[(3, "jmin")][4, 0])}
+    assert len(centre) == 1
+    assert lab[(0, "imax")][3, 0] != lab[(0, "imax")][4, 0]
+    n_distinct = len(np.unique(np.concatenate([v.ravel() for v in lab.values()])))
+    # the outer boundary of the 9 x 9 points (32) and the two inner lines (9 + 9 - 1 - 4)
+    assert n_distinct == max(int(v.max()) for v in lab.values()) + 1 == 45
+    assert len(connect(g).interfaces) == 4
 
 
 def test_face_with_two_interfaces_and_a_patch():

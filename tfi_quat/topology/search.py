@@ -33,7 +33,7 @@ from ..grid import FACES
 from ..spec import PatchSpec, parse_patch_spec
 from .model import KINDS, Connectivity, Interface, Patch, face_axes
 
-__all__ = ["connect", "classify", "DEFAULT_RTOL"]
+__all__ = ["connect", "classify", "node_labels", "DEFAULT_RTOL"]
 
 #: default matching tolerance relative to the smallest adjacent edge
 DEFAULT_RTOL = 1e-6
@@ -640,3 +640,30 @@ def classify(conn: Connectivity, grid, walls=(), symmetry=(), fixed=(), default=
     patches = _classify(geo, conn.interfaces, conn.patches, walls, symmetry, fixed, default,
                         auto_symmetry, notes)
     return Connectivity(conn.interfaces, patches, grid.ndim, grid.dims, notes)
+
+
+def node_labels(grid, *, tol=None, rtol=DEFAULT_RTOL) -> dict:
+    """Geometric node labels of every boundary point: equal labels = coincident points.
+
+    Points coincide when they are within the matching tolerance of
+    :func:`connect`, across faces, blocks and within a face (poles,
+    collapsed faces, wake cuts).  This identifies the vertices and segments
+    shared by several blocks, including those where blocks only touch along
+    an edge or at a corner.
+
+    Parameters
+    ----------
+    grid : Grid
+    tol, rtol
+        As for :func:`connect`.
+
+    Returns
+    -------
+    dict
+        ``(block, face) -> ndarray of int64, shape (na, nb)`` for every
+        boundary face (four per block in 2-D, six in 3-D); labels run from 0
+        to the number of distinct boundary points - 1.
+    """
+    geo = _Geometry(grid, tol, rtol)
+    _, dense = np.unique(geo.g, return_inverse=True)
+    return {(fc.block, fc.face): dense[fc.sl()].reshape(fc.na, fc.nb, order="F") for fc in geo.faces}
