@@ -316,6 +316,10 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
     # conf[u, v, s]: a neighbour of p along master axis u coincides with the neighbour of q
     # along slave axis v in direction (+1, -1)[s] (checked on both sides where they exist)
     conf = {}
+    base1 = offs[f1] + P[:, 0] + n1[:, 0] * P[:, 1]
+    base2 = offs[f2] + Q[:, 0] + n2[:, 0] * Q[:, 1]
+    stride1 = np.stack([np.ones_like(f1), n1[:, 0]], axis=1)
+    stride2 = np.stack([np.ones_like(f2), n2[:, 0]], axis=1)
     for u in range(2):
         for v in range(2):
             for s, sgn in enumerate((1, -1)):
@@ -324,12 +328,8 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
                     pa = P[:, u] + step
                     qa = Q[:, v] + sgn * step
                     inr = (pa >= 0) & (pa < n1[:, u]) & (qa >= 0) & (qa < n2[:, v])
-                    pp = P.copy()
-                    pp[:, u] = pa
-                    qq = Q.copy()
-                    qq[:, v] = qa
-                    ip = offs[f1] + np.where(inr, pp[:, 0] + n1[:, 0] * pp[:, 1], 0)
-                    iq = offs[f2] + np.where(inr, qq[:, 0] + n2[:, 0] * qq[:, 1], 0)
+                    ip = np.where(inr, base1 + step * stride1[:, u], 0)
+                    iq = np.where(inr, base2 + sgn * step * stride2[:, v], 0)
                     c |= inr & (geo.g[ip] == geo.g[iq])
                 conf[u, v, s] = c
     same_count = act1.sum(axis=1) == act2.sum(axis=1)
