@@ -253,7 +253,7 @@ def _close_pairs(xyz: np.ndarray, tol: np.ndarray) -> tuple[np.ndarray, np.ndarr
     n = len(xyz)
     if n < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    tree = cKDTree(xyz)
+    tree = cKDTree(xyz, balanced_tree=False)
     bound = float(tol.max()) * (1 + 1e-12) + 1e-300
     todo = np.arange(n)
     k = 4
