@@ -527,3 +527,24 @@ def test_absolute_tolerance_bridges_a_small_gap():
         connect(Grid([a, b]), tol=-1.0)
     with pytest.raises(ConnectivityError, match="rtol"):
         connect(Grid([a, b]), rtol=0.0)
+
+
+def test_json_accepts_a_2d_transform_with_two_entries(tmp_path):
+    g = Grid([c_grid()])
+    conn = connect(g, walls=["1:jmin"])
+    from tfi_quat.topology.files import to_dict
+    doc = to_dict(conn)
+    assert doc["interfaces"][0]["Transform"] == [-1, -2, 3]
+    doc["interfaces"][0]["Transform"] = [-1, -2]
+    p = tmp_path / "two.json"
+    p.write_text(json.dumps(doc))
+    assert Connectivity.from_json(p, g) == conn
+
+
+def test_face_map_priority_where_kinds_meet():
+    g = Grid([sheared_box(5, 4, 3)])
+    conn = connect(g, walls=["1:imin:1-2,1-3"], fixed=["1:imin:2-4,1-3"], auto_symmetry=False)
+    fm = conn.face_map(0, "imin")
+    kinds = np.array([conn.patches[i].kind for i in fm.patch.ravel()]).reshape(fm.patch.shape)
+    assert (kinds[:2] == "wall").all() and (kinds[2:] == "fixed").all()   # the shared line j = 2 is wall
+    assert (fm.interface == -1).all() and (fm.role == 0).all()
