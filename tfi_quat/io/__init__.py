@@ -44,8 +44,9 @@ def register(name, extensions, reader, writer, variant_type=None) -> None:
 
 
 def _ensure_loaded() -> None:
-    if not FORMATS:
-        from . import hdf5, plot3d  # noqa: F401  (they register themselves)
+    # every format module registers itself on import; importing is idempotent, and a
+    # module imported directly (e.g. tfi_quat.io.hdf5) must not hide the others
+    from . import hdf5, plot3d  # noqa: F401
 
 
 def format_for(path=None, format: str | None = None, like=None) -> _Format:
