@@ -548,3 +548,21 @@ def test_face_map_priority_where_kinds_meet():
     kinds = np.array([conn.patches[i].kind for i in fm.patch.ravel()]).reshape(fm.patch.shape)
     assert (kinds[:2] == "wall").all() and (kinds[2:] == "fixed").all()   # the shared line j = 2 is wall
     assert (fm.interface == -1).all() and (fm.role == 0).all()
+
+
+def test_single_precision_plot3d_file_matches_to_its_round_off(tmp_path):
+    from tfi_quat.io import plot3d
+    rng = np.random.default_rng(3)
+    big = sheared_box(9, 5, 4) + 100.0
+    a = np.asfortranarray(big[:5])
+    b = orient(big[4:], (2, 1, 0), (True, False, False))
+    b = np.asfortranarray(b * (1 + 1e-7 * rng.uniform(-1, 1, b.shape)))   # about one float32 ulp
+    path = tmp_path / "g.x"
+    plot3d.write(path, Grid([a, b]), encoding="fortran", precision=4)
+    g = plot3d.read(path)
+    assert g.source_format.precision == 4
+    conn = connect(g)
+    assert len(conn.interfaces) == 1 and conn.interfaces[0].master.range == ((0, 4), (0, 3))
+    check_interfaces(g, conn, tol=1e-4)
+    # the same coordinates without the file's precision are not matched to 1e-6 of the spacing
+    assert connect(Grid([blk.xyz for blk in g])).interfaces == []
