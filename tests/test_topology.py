@@ -566,3 +566,25 @@ def test_single_precision_plot3d_file_matches_to_its_round_off(tmp_path):
     check_interfaces(g, conn, tol=1e-4)
     # the same coordinates without the file's precision are not matched to 1e-6 of the spacing
     assert connect(Grid([blk.xyz for blk in g])).interfaces == []
+
+
+@pytest.mark.parametrize("ext", [".x", ".h5"])
+def test_cli_main_connect_end_to_end(tmp_path, capsys, ext):
+    import tfi_quat
+    from tfi_quat.cli import main
+    g = Grid([extrude(c_grid(), nk=3)])
+    grid_path = tmp_path / f"cgrid{ext}"
+    tfi_quat.write(grid_path, g)
+    out_map = tmp_path / "map.nmf"
+    assert main(["connect", str(grid_path), "--wall", "1:jmin", "-o", str(out_map)]) == 0
+    text = capsys.readouterr().out
+    assert "1 interface(s)" in text and "-1 -2 +3" in text and "symmetry (auto)" in text
+    assert Connectivity.from_nmf(out_map, g) == connect(g, walls=["1:jmin"])
+    # refusing to overwrite, bad patches: one line on stderr, status 2
+    assert main(["connect", str(grid_path), "-o", str(out_map)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "exists" in err
+    assert main(["connect", str(grid_path), "--wall", "1:jmin", "--fixed", "1:jmin:2-6,1-3"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tfi-quat connect: error: ") and "overlaps" in err
+    assert main(["connect", str(grid_path), "--wall", "1:jmin", "-o", str(out_map), "--force"]) == 0
