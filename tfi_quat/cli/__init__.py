@@ -20,6 +20,7 @@ __all__ = ["main", "SUBCOMMANDS"]
 SUBCOMMANDS = {
     "info": "._info",
     "convert": "._convert",
+    "connect": "._connect",
 }
 
 
