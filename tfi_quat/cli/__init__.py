@@ -20,6 +20,7 @@ __all__ = ["main", "SUBCOMMANDS"]
 SUBCOMMANDS = {
     "info": "._info",
     "convert": "._convert",
+    "connect": "._connect",
     "generate": "._generate",
 }
 
@@ -58,7 +59,7 @@ def main(argv=None) -> int:
     except (TfiQuatError, OSError) as exc:
         if getattr(args, "debug", False):
             raise
-        msg = str(exc) or type(exc).__name__
+        msg = " ".join(str(exc).split()) or type(exc).__name__   # one line, always
         if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in msg:
             msg = f"{exc.filename}: {msg}"
         print(f"tfi-quat {args.command}: error: {msg}", file=sys.stderr)

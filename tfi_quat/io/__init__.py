@@ -49,6 +49,17 @@ def _ensure_loaded() -> None:
     from . import hdf5, plot3d  # noqa: F401
 
 
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _has_hdf5_signature(path) -> bool:
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            return fh.read(8) == _HDF5_SIGNATURE
+    except OSError:
+        return False
+
+
 def format_for(path=None, format: str | None = None, like=None) -> _Format:
     """Choose the format: explicit name, then ``like``, then the file extension."""
     _ensure_loaded()
@@ -67,6 +78,8 @@ def format_for(path=None, format: str | None = None, like=None) -> _Format:
         for f in FORMATS.values():
             if any(name.endswith(ext) for ext in f.extensions):
                 return f
+        if _has_hdf5_signature(path):
+            return FORMATS["hdf5"]
         raise GridFormatError(
             f"{path}: unknown file extension; give format= ('plot3d' or 'hdf5'), "
             f"known extensions: {', '.join(e for f in FORMATS.values() for e in f.extensions)}")

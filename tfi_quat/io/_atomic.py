@@ -58,6 +58,12 @@ def atomic_output(path, mode: str = "wb"):
         if mode == "path":
             os.close(fd)
             yield tmp
+            # the library that wrote the file has closed it: make it durable too
+            sync = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(sync)
+            finally:
+                os.close(sync)
         else:
             kw = {} if "b" in mode else {"encoding": "ascii", "newline": "\n"}
             with os.fdopen(fd, mode, **kw) as fh:

@@ -1,0 +1,178 @@
+"""``tfi-quat convert IN OUT``: rewrite a grid in another format or variant.
+
+The output format is ``--format``, else the one OUT's extension names, else
+the input's.  Plot3D to Plot3D keeps the input's variant (``like=grid``) and
+the variant options change only what they name; HDF5 to HDF5 keeps the
+compression and the ``/extra`` JSON.  An existing OUT (the input included) is
+replaced only with ``--force``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from .. import write
+from ..errors import GridFormatError, OverwriteError
+from ..io import format_for
+from ._info import add_input_args, describe_variant, format_name, one_line_errors, read_input
+
+HELP = "convert a grid to another format or file variant (Plot3D, HDF5)"
+DESCRIPTION = """\
+Convert a grid file.  The output format is --format, else the one OUT's
+extension names, else the input's.  Plot3D to Plot3D writes the input's
+variant unless an option below changes it; HDF5 to HDF5 keeps the
+compression and the extra JSON data.  OUT is never replaced unless --force
+is given (the input file included)."""
+
+#: output options: (destination, option text, Plot3DFormat field)
+_PLOT3D_OUTPUT = (
+    ("encoding", "--ascii/--binary/--fortran", "encoding"),
+    ("endian", "--big-endian/--little-endian", "endian"),
+    ("precision", "--single/--double", "precision"),
+    ("iblank", "--iblank/--no-iblank", "iblank"),
+    ("records", "--records", "records"),
+    ("multiblock", "--single-block/--multi-block", "multiblock"),
+    ("int_size", "--int-size", "int_size"),
+    ("marker_size", "--marker-size", "marker_size"),
+)
+
+
+def add_args(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", metavar="IN", help="input grid file (Plot3D or HDF5)")
+    parser.add_argument("output", metavar="OUT", help="output grid file")
+    parser.add_argument("--format", choices=("plot3d", "hdf5"),
+                        help="output format (default: from OUT's extension, else the input's)")
+    parser.add_argument("-f", "--force", action="store_true",
+                        help="replace OUT if it exists (even when it is the input)")
+    g = parser.add_argument_group("Plot3D output", "default: the input's variant when it is "
+                                  "Plot3D, else the Plot3D writer's defaults")
+    enc = g.add_mutually_exclusive_group()
+    for flag, value, text in (("--ascii", "ascii", "ASCII text"),
+                              ("--binary", "binary", "C-stream binary"),
+                              ("--fortran", "fortran", "Fortran unformatted (record markers)")):
+        enc.add_argument(flag, dest="encoding", action="store_const", const=value, help=text)
+    end = g.add_mutually_exclusive_group()
+    end.add_argument("--big-endian", dest="endian", action="store_const", const=">",
+                     help="big-endian byte order")
+    end.add_argument("--little-endian", dest="endian", action="store_const", const="<",
+                     help="little-endian byte order")
+    prec = g.add_mutually_exclusive_group()
+    prec.add_argument("--single", dest="precision", action="store_const", const=4,
+                      help="float32 coordinates")
+    prec.add_argument("--double", dest="precision", action="store_const", const=8,
+                      help="float64 coordinates")
+    ib = g.add_mutually_exclusive_group()
+    ib.add_argument("--iblank", dest="iblank", action="store_const", const=True,
+                    help="write IBLANK arrays")
+    ib.add_argument("--no-iblank", dest="iblank", action="store_const", const=False,
+                    help="write no IBLANK arrays")
+    g.add_argument("--records", choices=("block", "coordinate"),
+                   help="Fortran: one record per block or per coordinate array")
+    mb = g.add_mutually_exclusive_group()
+    mb.add_argument("--single-block", dest="multiblock", action="store_const", const=False,
+                    help="single-block file (no block-count line; one-block grids only)")
+    mb.add_argument("--multi-block", dest="multiblock", action="store_const", const=True,
+                    help="multi-block file (block-count line)")
+    g.add_argument("--int-size", type=int, choices=(4, 8),
+                   help="bytes per header integer and IBLANK value")
+    g.add_argument("--marker-size", type=int, choices=(4, 8),
+                   help="Fortran: bytes per record marker")
+    h = parser.add_argument_group("HDF5 output")
+    comp = h.add_mutually_exclusive_group()
+    comp.add_argument("--compress", dest="compress", action="store_const", const=True,
+                      help="gzip-compress the datasets (with the shuffle filter)")
+    comp.add_argument("--no-compress", dest="compress", action="store_const", const=False,
+                      help="write uncompressed datasets (default, unless the input is compressed HDF5)")
+    h.add_argument("--compression-level", type=int, choices=range(10), metavar="0..9",
+                   help="gzip level (default 4; implies --compress)")
+    add_input_args(parser, prefix="in-")
+
+
+def _output_format(args, in_format: str, plot3d_opts: dict) -> str:
+    if args.format:
+        return args.format
+    try:
+        return format_for(args.output).name
+    except GridFormatError:
+        if plot3d_opts:
+            return "plot3d"
+        if args.compress or args.compression_level is not None:
+            return "hdf5"
+        return in_format
+
+
+def _check_target(args) -> None:
+    out = Path(args.output)
+    if args.force or not out.exists():
+        return
+    try:
+        same = os.path.samefile(out, args.input)
+    except OSError:
+        same = False
+    if same:
+        raise OverwriteError(f"{out}: refusing to overwrite the input file (pass --force)")
+    raise OverwriteError(f"{out}: file exists (pass --force to replace it)")
+
+
+def run(args) -> int:
+    with one_line_errors():
+        return _convert(args)
+
+
+def _convert(args) -> int:
+    _check_target(args)
+    plot3d_opts = {key: getattr(args, dest) for dest, _, key in _PLOT3D_OUTPUT
+                   if getattr(args, dest) is not None}
+    grid = read_input(args, args.input, prefix="in-")
+    in_format = format_name(grid.source_format)
+    fmt = _output_format(args, in_format, plot3d_opts)
+    kw: dict = {}
+    if fmt == "plot3d":
+        if args.compress or args.compression_level is not None:
+            raise GridFormatError(f"{args.output}: --compress/--compression-level apply to HDF5 "
+                                  "output only")
+        if plot3d_opts.get("multiblock") is False and grid.nblocks > 1:
+            raise GridFormatError(f"{args.output}: --single-block needs a one-block grid; "
+                                  f"{args.input} has {grid.nblocks} blocks")
+        kw.update(plot3d_opts)
+    elif fmt == "hdf5":
+        if plot3d_opts:
+            opts = ", ".join(text for dest, text, _ in _PLOT3D_OUTPUT if getattr(args, dest) is not None)
+            raise GridFormatError(f"{args.output}: {opts} apply to Plot3D output only")
+        if args.compression_level is not None:
+            if args.compress is False:
+                raise GridFormatError(f"{args.output}: --compression-level contradicts --no-compress")
+            kw.update(compression="gzip", compression_level=args.compression_level)
+        elif args.compress is not None:
+            kw["compression"] = "gzip" if args.compress else False
+        if in_format == "hdf5":
+            from ..io.hdf5 import read_extra
+            extra = read_extra(args.input)
+            if extra is not None:
+                kw["extra_json"] = extra
+    like = grid if fmt == in_format else None
+    write(args.output, grid, format=fmt, like=like, overwrite=args.force, **kw)
+    print(f"wrote {args.output}: {_written_variant(args.output, fmt, grid, kw)}, "
+          f"{grid.nblocks} block(s), {grid.npoints:,} points")
+    return 0
+
+
+def _written_variant(path, fmt: str, grid, kw: dict) -> str:
+    """Describe the variant just written.
+
+    HDF5: read back from the file's metadata.  Plot3D: the variant the writer
+    documents it writes: the grid's own Plot3D variant (else the defaults),
+    with the options given, ``ndim`` the grid's and ``iblank`` whether the
+    grid has IBLANK unless given.
+    """
+    if fmt == "hdf5":
+        from ..io.hdf5 import info
+        return describe_variant(info(path).format)
+    from ..io.plot3d import Plot3DFormat
+    base = grid.source_format if isinstance(grid.source_format, Plot3DFormat) else Plot3DFormat()
+    opts = {k: v for k, v in kw.items() if k in {f for _, _, f in _PLOT3D_OUTPUT}}
+    opts.setdefault("ndim", grid.ndim)
+    opts.setdefault("iblank", grid.has_iblank)
+    return describe_variant(base.replace(**opts))

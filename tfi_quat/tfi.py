@@ -1,0 +1,1392 @@
+"""Arclength parameters and Soni transfinite interpolation (TFI) kernels.
+
+DESIGN 3.2, 3.4, 3.5 and 6.  Every interpolated field is a pair (Δ, Q): a
+translation (3 components, blended linearly) and a unit quaternion
+(``(w, x, y, z)``, slerp in the leading direction, hemisphere-aligned linear
+corrections, normalised at the end).  The blending parameters are the
+normalised arclengths ``s`` of the **undeformed** grid lines.
+
+Recursive (Boolean-sum) form, directions in the order ``L, M, N``::
+
+    U = (1 - s_L) F_L0 + s_L F_L1                                (Q: slerp)
+    V = U + (1 - s_M)(F_M0 - U|M0) + s_M (F_M1 - U|M1)
+    W = V + (1 - s_N)(F_N0 - V|N0) + s_N (F_N1 - V|N1)           (Q: normalise)
+
+``U|M0`` is U at the face point (with that point's own ``s_L``); before a
+quaternion residual ``F - U`` is formed, ``F`` is flipped to the hemisphere of
+``U`` at that point.  A blended quaternion whose norm falls below
+:data:`QNORM_MIN` is replaced by the same Boolean sum of rotation vectors
+(log map in the tangent space at the slerp value ``U``), so nothing divides by
+~0.
+
+Public functions
+----------------
+:func:`arclength`, :func:`arclength_curve`, :func:`arclength_surface`
+    blending parameters (set up once per grid); :func:`face_params` their
+    values on the six faces, also set up once, for the fused kernels.
+:func:`lead_order`
+    direction order from the prescribed point counts of the faces.
+:func:`interp_segment`, :func:`tfi_patch`, :func:`tfi_block_fields`
+    1-D, 2-D and unfused 3-D interpolation of (Δ, Q) fields.
+:func:`deform_block`, :func:`deform_block_2d`
+    the fused volume stage ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``, computed
+    point by point from O(surface) precomputed data, with no full-size Δ or Q
+    arrays.
+
+Fused kernel layout
+-------------------
+Before the volume loop, O(surface) tables are built (``_prep``): per line of
+the leading direction ``L`` (indexed like face ``L``), the two end values of
+Δ and Q, with the slerp angle (squared) and its ``sin(ω)/ω``; per point of
+the two ``M`` faces, the residuals ``F - U``; per point of the two ``N``
+faces, the residuals ``F - V``.  The volume loop then reads ``R_u`` and ``s``
+once, gathers from those tables (cache-resident), and writes ``R_d``.  The
+slerp weights use a polynomial ``sin(x)/x`` (no library call in the inner
+loop, so it vectorises); they are exactly 0 and 1 at the ends.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from typing import Sequence
+
+import numpy as np
+
+from ._jit import jit, pjit, prange
+from .errors import GridValueError
+from .grid import FACES
+from .quaternion import multiply as _qmul_np
+from .quaternion import rotate as _qrot_np
+from .quaternion import slerp as _qslerp_np
+
+__all__ = [
+    "S_DTYPE", "QNORM_MIN",
+    "arclength", "arclength_curve", "arclength_surface",
+    "face_params", "lead_order", "interp_segment", "tfi_patch", "tfi_block_fields",
+    "deform_block", "deform_block_2d",
+]
+
+#: storage type of the arclength parameters returned by :func:`arclength`.
+#: float64, chosen by measurement (docs/performance.md, "TFI kernels"):
+#: float32 saves 12 of 72 bytes per point of the volume stage but gave no
+#: measurable speed-up (the quaternion loop is compute-bound), while it moved
+#: interior points by up to ~1e-7 of a line length, so affine fields and
+#: TFI-built grids were no longer reproduced to round-off.  The kernels
+#: therefore take float64 only (one compiled specialisation each).
+S_DTYPE = np.float64
+
+#: a blended quaternion with a smaller norm falls back to the rotation-vector blend
+QNORM_MIN = 1e-3
+
+#: a line shorter than this times its end points' largest coordinate
+#: magnitude counts as zero-length (parameters become index-uniform)
+ZERO_LENGTH_RTOL = 1e-12
+
+# Taylor coefficients of sin(x)/x in x**2 (terms up to x**20 / 21!): on
+# 0 <= x <= pi/2 the truncation error is below 2e-16.
+_S1 = -1.0 / 6.0
+_S2 = 1.0 / 120.0
+_S3 = -1.0 / 5040.0
+_S4 = 1.0 / 362880.0
+_S5 = -1.0 / 39916800.0
+_S6 = 1.0 / 6227020800.0
+_S7 = -1.0 / 1307674368000.0
+_S8 = 1.0 / 355687428096000.0
+_S9 = -1.0 / 121645100408832000.0
+_S10 = 1.0 / 51090942171709440000.0
+
+
+# =================================================================== scalar helpers
+@jit(inline="always")
+def _sinc2(x2):
+    """``sin(x)/x`` as a function of ``x2 = x**2``, for ``0 <= x <= pi/2``."""
+    return 1.0 + x2 * (_S1 + x2 * (_S2 + x2 * (_S3 + x2 * (_S4 + x2 * (
+        _S5 + x2 * (_S6 + x2 * (_S7 + x2 * (_S8 + x2 * (_S9 + x2 * _S10)))))))))
+
+
+@jit(inline="always")
+def _slerp_angle(a0, a1, a2, a3, b0, b1, b2, b3):
+    """Angle between two unit quaternions (as 4-vectors, ``b`` already aligned): ``(ω², sinc(ω))``."""
+    d0 = a0 - b0
+    d1 = a1 - b1
+    d2 = a2 - b2
+    d3 = a3 - b3
+    p0 = a0 + b0
+    p1 = a1 + b1
+    p2 = a2 + b2
+    p3 = a3 + b3
+    om = 2.0 * math.atan2(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3),
+                          math.sqrt(p0 * p0 + p1 * p1 + p2 * p2 + p3 * p3))
+    w2 = om * om
+    return w2, _sinc2(w2)
+
+
+@jit(inline="always")
+def _slerp_weights(t, w2, sw):
+    """Slerp weights ``sin((1-t)ω)/sin ω`` and ``sin(tω)/sin ω``; exactly (1, 0) at t=0, (0, 1) at t=1."""
+    u = 1.0 - t
+    return u * _sinc2(u * u * w2) / sw, t * _sinc2(t * t * w2) / sw
+
+
+@jit(inline="always")
+def _rel_log(bw, bx, by, bz, qw, qx, qy, qz):
+    """Rotation half-vector ``log(conj(b) ⊗ q)`` (q taken in b's hemisphere)."""
+    w = bw * qw + bx * qx + by * qy + bz * qz
+    x = bw * qx - qw * bx - (by * qz - bz * qy)
+    y = bw * qy - qw * by - (bz * qx - bx * qz)
+    z = bw * qz - qw * bz - (bx * qy - by * qx)
+    if w < 0.0:
+        w = -w
+        x = -x
+        y = -y
+        z = -z
+    n = math.sqrt(x * x + y * y + z * z)
+    if n > 1e-30:
+        f = math.atan2(n, w) / n
+    elif w > 0.0:
+        f = 1.0 / w
+    else:
+        f = 0.0
+    return x * f, y * f, z * f
+
+
+@jit(inline="always")
+def _exp_times(bw, bx, by, bz, rx, ry, rz):
+    """``b ⊗ exp(r)`` for a rotation half-vector ``r``."""
+    th = math.sqrt(rx * rx + ry * ry + rz * rz)
+    c = math.cos(th)
+    if th > 1e-8:
+        f = math.sin(th) / th
+    else:
+        f = 1.0 - th * th / 6.0
+    ew = c
+    ex = rx * f
+    ey = ry * f
+    ez = rz * f
+    w = bw * ew - bx * ex - by * ey - bz * ez
+    x = bw * ex + bx * ew + by * ez - bz * ey
+    y = bw * ey - bx * ez + by * ew + bz * ex
+    z = bw * ez + bx * ey - by * ex + bz * ew
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / n, x / n, y / n, z / n
+
+
+@jit(inline="always")
+def _fc(i, j, k, d):
+    """Face coordinates of block point (i, j, k) on a face normal to direction ``d``."""
+    if d == 0:
+        return j, k
+    if d == 1:
+        return i, k
+    return i, j
+
+
+@jit(inline="always")
+def _bidx(d, idx, a, b):
+    """Block point of face coordinates (a, b) on the face ``index_d = idx``."""
+    if d == 0:
+        return idx, a, b
+    if d == 1:
+        return a, idx, b
+    return a, b, idx
+
+
+# ------------------------------------------------------------- per-point formulas
+@jit(inline="always")
+def _u_d(lineD, la, lb, t):
+    u = 1.0 - t
+    return (u * lineD[la, lb, 0] + t * lineD[la, lb, 3],
+            u * lineD[la, lb, 1] + t * lineD[la, lb, 4],
+            u * lineD[la, lb, 2] + t * lineD[la, lb, 5])
+
+
+@jit(inline="always")
+def _v_d(lineD, la, lb, t, gD, ma, mb, sm):
+    x, y, z = _u_d(lineD, la, lb, t)
+    um = 1.0 - sm
+    return (x + um * gD[ma, mb, 0] + sm * gD[ma, mb, 3],
+            y + um * gD[ma, mb, 1] + sm * gD[ma, mb, 4],
+            z + um * gD[ma, mb, 2] + sm * gD[ma, mb, 5])
+
+
+@jit(inline="always")
+def _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn):
+    x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
+    un = 1.0 - sn
+    return (x + un * hD[na, nb, 0] + sn * hD[na, nb, 3],
+            y + un * hD[na, nb, 1] + sn * hD[na, nb, 4],
+            z + un * hD[na, nb, 2] + sn * hD[na, nb, 5])
+
+
+@jit(inline="always")
+def _u_q(lineQ, la, lb, t):
+    wa, wb = _slerp_weights(t, lineQ[la, lb, 8], lineQ[la, lb, 9])
+    return (wa * lineQ[la, lb, 0] + wb * lineQ[la, lb, 4],
+            wa * lineQ[la, lb, 1] + wb * lineQ[la, lb, 5],
+            wa * lineQ[la, lb, 2] + wb * lineQ[la, lb, 6],
+            wa * lineQ[la, lb, 3] + wb * lineQ[la, lb, 7])
+
+
+@jit(inline="always")
+def _v_q(lineQ, la, lb, t, gQ, ma, mb, sm):
+    w, x, y, z = _u_q(lineQ, la, lb, t)
+    um = 1.0 - sm
+    return (w + um * gQ[ma, mb, 0] + sm * gQ[ma, mb, 4],
+            x + um * gQ[ma, mb, 1] + sm * gQ[ma, mb, 5],
+            y + um * gQ[ma, mb, 2] + sm * gQ[ma, mb, 6],
+            z + um * gQ[ma, mb, 3] + sm * gQ[ma, mb, 7])
+
+
+@jit(inline="always")
+def _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn):
+    w, x, y, z = _v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
+    un = 1.0 - sn
+    return (w + un * hQ[na, nb, 0] + sn * hQ[na, nb, 4],
+            x + un * hQ[na, nb, 1] + sn * hQ[na, nb, 5],
+            y + un * hQ[na, nb, 2] + sn * hQ[na, nb, 6],
+            z + un * hQ[na, nb, 3] + sn * hQ[na, nb, 7])
+
+
+@jit
+def _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn):
+    """Boolean sum of rotation vectors in the tangent space at the slerp value U.
+
+    ``fbM[ma, mb]`` holds ``(U|M0, F'_M0, U|M1, F'_M1)`` and ``fbN[na, nb]``
+    ``(V̂|N0, F'_N0, V̂|N1, F'_N1)``, all unit.  Returns a unit quaternion.
+    """
+    w, x, y, z = _u_q(lineQ, la, lb, t)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    w /= n
+    x /= n
+    y /= n
+    z /= n
+    rx = 0.0
+    ry = 0.0
+    rz = 0.0
+    for side in range(2):
+        wt = (1.0 - sm) if side == 0 else sm
+        o = 8 * side
+        fx, fy, fz = _rel_log(w, x, y, z, fbM[ma, mb, o + 4], fbM[ma, mb, o + 5],
+                              fbM[ma, mb, o + 6], fbM[ma, mb, o + 7])
+        ux, uy, uz = _rel_log(w, x, y, z, fbM[ma, mb, o], fbM[ma, mb, o + 1],
+                              fbM[ma, mb, o + 2], fbM[ma, mb, o + 3])
+        rx += wt * (fx - ux)
+        ry += wt * (fy - uy)
+        rz += wt * (fz - uz)
+        if hasn:
+            wt = (1.0 - sn) if side == 0 else sn
+            fx, fy, fz = _rel_log(w, x, y, z, fbN[na, nb, o + 4], fbN[na, nb, o + 5],
+                                  fbN[na, nb, o + 6], fbN[na, nb, o + 7])
+            ux, uy, uz = _rel_log(w, x, y, z, fbN[na, nb, o], fbN[na, nb, o + 1],
+                                  fbN[na, nb, o + 2], fbN[na, nb, o + 3])
+            rx += wt * (fx - ux)
+            ry += wt * (fy - uy)
+            rz += wt * (fz - uz)
+    return _exp_times(w, x, y, z, rx, ry, rz)
+
+
+@jit(inline="always")
+def _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
+    """``out = R_u + Δ + (rot(q, R_u - c) - (R_u - c))`` (exact identity when q = 1, Δ = 0)."""
+    x0 = xyz[i, j, k, 0]
+    y0 = xyz[i, j, k, 1]
+    z0 = xyz[i, j, k, 2]
+    vx = x0 - cx
+    vy = y0 - cy
+    vz = z0 - cz
+    tx = 2.0 * (qy * vz - qz * vy)
+    ty = 2.0 * (qz * vx - qx * vz)
+    tz = 2.0 * (qx * vy - qy * vx)
+    out[i, j, k, 0] = x0 + dx + (qw * tx + (qy * tz - qz * ty))
+    out[i, j, k, 1] = y0 + dy + (qw * ty + (qz * tx - qx * tz))
+    out[i, j, k, 2] = z0 + dz + (qw * tz + (qx * ty - qy * tx))
+
+
+@jit(inline="always")
+def _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+             lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb):
+    """Fused update of one point; returns 1 when the blended Q needs the fallback."""
+    t = np.float64(s[i, j, k, L])
+    sm = np.float64(s[i, j, k, M])
+    sn = np.float64(s[i, j, k, N])
+    dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+    qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    inv = 1.0 / max(n, QNORM_MIN)
+    _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw * inv, qx * inv, qy * inv, qz * inv)
+    return 1 if n < QNORM_MIN else 0
+
+
+@jit(inline="always")
+def _point_d(xyz, s, out, i, j, k, L, M, N, lineD, la, lb, gD, ma, mb, hD, na, nb):
+    """Fused baseline update of one point (Q ≡ 1): ``out = R_u + Δ``."""
+    t = np.float64(s[i, j, k, L])
+    sm = np.float64(s[i, j, k, M])
+    sn = np.float64(s[i, j, k, N])
+    dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+    out[i, j, k, 0] = xyz[i, j, k, 0] + dx
+    out[i, j, k, 1] = xyz[i, j, k, 1] + dy
+    out[i, j, k, 2] = xyz[i, j, k, 2] + dz
+
+
+@jit
+def _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+             fbM, fbN, hasn):
+    """Redo the points of row (j, k) whose blended Q is below QNORM_MIN, with the fallback."""
+    for i in range(xyz.shape[0]):
+        la, lb = _fc(i, j, k, L)
+        ma, mb = _fc(i, j, k, M)
+        if hasn:
+            na, nb = _fc(i, j, k, N)
+        else:
+            na, nb = 0, 0
+        t = np.float64(s[i, j, k, L])
+        sm = np.float64(s[i, j, k, M])
+        sn = np.float64(s[i, j, k, N])
+        qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+        if math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) < QNORM_MIN:
+            dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+            qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn)
+            _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz)
+
+
+# =================================================================== set-up (O(surface))
+@jit
+def _coherent(q):
+    """Flip signs in place so that neighbouring quaternions of a face (na, nb, 4) share a hemisphere."""
+    na, nb = q.shape[0], q.shape[1]
+    for b in range(nb):
+        for a in range(na):
+            if a == 0 and b == 0:
+                continue
+            if b == 0:
+                pa, pb = a - 1, 0
+            else:
+                pa, pb = a, b - 1
+            d = q[a, b, 0] * q[pa, pb, 0] + q[a, b, 1] * q[pa, pb, 1] + \
+                q[a, b, 2] * q[pa, pb, 2] + q[a, b, 3] * q[pa, pb, 3]
+            if d < 0.0:
+                for c in range(4):
+                    q[a, b, c] = -q[a, b, c]
+
+
+@jit(forceinline=True)
+def _prep_line(b, hasq, FL, QL, lineD, lineQ):
+    """Line table of the leading direction, column ``b`` of face L."""
+    for a in range(FL.shape[0]):
+        for c in range(3):
+            lineD[a, b, c] = FL[a, b, c, 0]
+            lineD[a, b, 3 + c] = FL[a, b, c, 1]
+    if hasq:
+        for a in range(QL.shape[0]):
+            d = QL[a, b, 0, 0] * QL[a, b, 0, 1] + QL[a, b, 1, 0] * QL[a, b, 1, 1] + \
+                QL[a, b, 2, 0] * QL[a, b, 2, 1] + QL[a, b, 3, 0] * QL[a, b, 3, 1]
+            sg = -1.0 if d < 0.0 else 1.0
+            for c in range(4):
+                lineQ[a, b, c] = QL[a, b, c, 0]
+                lineQ[a, b, 4 + c] = sg * QL[a, b, c, 1]
+            w2, sw = _slerp_angle(lineQ[a, b, 0], lineQ[a, b, 1], lineQ[a, b, 2], lineQ[a, b, 3],
+                                  lineQ[a, b, 4], lineQ[a, b, 5], lineQ[a, b, 6], lineQ[a, b, 7])
+            lineQ[a, b, 8] = w2
+            lineQ[a, b, 9] = sw
+
+
+@jit(forceinline=True)
+def _prep_m(b, side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
+    """Residuals ``F - U`` on column ``b`` of the M face ``side`` (index ``im``)."""
+    for a in range(FM.shape[0]):
+        i, j, k = _bidx(M, im, a, b)
+        la, lb = _fc(i, j, k, L)
+        t = SM[a, b, L, side]
+        x, y, z = _u_d(lineD, la, lb, t)
+        gD[a, b, 3 * side] = FM[a, b, 0, side] - x
+        gD[a, b, 3 * side + 1] = FM[a, b, 1, side] - y
+        gD[a, b, 3 * side + 2] = FM[a, b, 2, side] - z
+        if hasq:
+            qw, qx, qy, qz = _u_q(lineQ, la, lb, t)
+            d = qw * QM[a, b, 0, side] + qx * QM[a, b, 1, side] + qy * QM[a, b, 2, side] + qz * QM[a, b, 3, side]
+            sg = -1.0 if d < 0.0 else 1.0
+            o = 4 * side
+            gQ[a, b, o] = sg * QM[a, b, 0, side] - qw
+            gQ[a, b, o + 1] = sg * QM[a, b, 1, side] - qx
+            gQ[a, b, o + 2] = sg * QM[a, b, 2, side] - qy
+            gQ[a, b, o + 3] = sg * QM[a, b, 3, side] - qz
+            n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            o = 8 * side
+            fbM[a, b, o] = qw / n
+            fbM[a, b, o + 1] = qx / n
+            fbM[a, b, o + 2] = qy / n
+            fbM[a, b, o + 3] = qz / n
+            for c in range(4):
+                fbM[a, b, o + 4 + c] = sg * QM[a, b, c, side]
+
+
+@jit(forceinline=True)
+def _prep_n(b, side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, hD, hQ, fbN):
+    """Residuals ``F - V`` on column ``b`` of the N face ``side`` (index ``im``)."""
+    for a in range(FN.shape[0]):
+        i, j, k = _bidx(N, im, a, b)
+        la, lb = _fc(i, j, k, L)
+        ma, mb = _fc(i, j, k, M)
+        t = SN[a, b, L, side]
+        sm = SN[a, b, M, side]
+        x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
+        hD[a, b, 3 * side] = FN[a, b, 0, side] - x
+        hD[a, b, 3 * side + 1] = FN[a, b, 1, side] - y
+        hD[a, b, 3 * side + 2] = FN[a, b, 2, side] - z
+        if hasq:
+            qw, qx, qy, qz = _v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
+            d = qw * QN[a, b, 0, side] + qx * QN[a, b, 1, side] + qy * QN[a, b, 2, side] + qz * QN[a, b, 3, side]
+            sg = -1.0 if d < 0.0 else 1.0
+            o = 4 * side
+            hQ[a, b, o] = sg * QN[a, b, 0, side] - qw
+            hQ[a, b, o + 1] = sg * QN[a, b, 1, side] - qx
+            hQ[a, b, o + 2] = sg * QN[a, b, 2, side] - qy
+            hQ[a, b, o + 3] = sg * QN[a, b, 3, side] - qz
+            n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            if n >= QNORM_MIN:
+                qw /= n
+                qx /= n
+                qy /= n
+                qz /= n
+            else:
+                qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm,
+                                             fbN, 0, 0, 0.0, False)
+            o = 8 * side
+            fbN[a, b, o] = qw
+            fbN[a, b, o + 1] = qx
+            fbN[a, b, o + 2] = qy
+            fbN[a, b, o + 3] = qz
+            for c in range(4):
+                fbN[a, b, o + 4 + c] = sg * QN[a, b, c, side]
+
+
+@pjit
+def _prep(SM, SN, nm, nn, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ,
+          fbM, fbN):
+    """Fill the surface tables of the fused kernels (see the module docstring).
+
+    ``FL``/``QL``: Δ (na, nb, 3, 2) and Q (na, nb, 4, 2) on the two faces
+    normal to ``L`` (last index: low, high face), F order, ``QL[..., 0]``
+    already sign-coherent; likewise ``FM``, ``QM``, ``FN``, ``QN``, and the
+    arclength parameters ``SM``, ``SN`` (na, nb, 3, 2) on the M and N faces;
+    ``nm``, ``nn``: the block's point counts along M and N.
+    ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.  Parallel
+    over face columns; the phases run in order (M needs the lines, N needs M).
+    """
+    for bp in prange(lineD.shape[1]):
+        _prep_line(np.int64(bp), hasq, FL, QL, lineD, lineQ)
+    for side in range(2):
+        im = 0 if side == 0 else nm - 1
+        for bp in prange(gD.shape[1]):
+            _prep_m(np.int64(bp), side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM)
+    if hasn:
+        for side in range(2):
+            im = 0 if side == 0 else nn - 1
+            for bp in prange(hD.shape[1]):
+                _prep_n(np.int64(bp), side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM,
+                        hD, hQ, fbN)
+
+
+# =================================================================== volume kernels
+@jit(forceinline=True)
+def _row3_q(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """Fused quaternion update of the row (j, k) of a 3-D block, i innermost.
+
+    The role whose direction is 0 (i) reads its table at a fixed (j, k); the
+    two others read a contiguous run along i.
+    """
+    ni = xyz.shape[0]
+    nbad = 0
+    if L == 0:
+        cm = k if M == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                             lineD, lineQ, j, k, gD, gQ, i, cm, hD, hQ, i, cn)
+    elif M == 0:
+        cl = k if L == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                             lineD, lineQ, i, cl, gD, gQ, j, k, hD, hQ, i, cn)
+    else:
+        cl = k if L == 1 else j
+        cm = k if M == 1 else j
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                             lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k)
+    if nbad > 0:
+        _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+                 fbM, fbN, True)
+
+
+@jit(forceinline=True)
+def _row3_d(xyz, s, out, j, k, L, M, N, lineD, gD, hD):
+    """Fused baseline update of the row (j, k) of a 3-D block."""
+    ni = xyz.shape[0]
+    if L == 0:
+        cm = k if M == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, j, k, gD, i, cm, hD, i, cn)
+    elif M == 0:
+        cl = k if L == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, j, k, hD, i, cn)
+    else:
+        cl = k if L == 1 else j
+        cm = k if M == 1 else j
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, i, cm, hD, j, k)
+
+
+@jit(forceinline=True)
+def _row2_q(xyz, s, out, j, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """Fused quaternion update of the row j of a 2-D block (``hD``/``hQ``: zero dummies)."""
+    ni = xyz.shape[0]
+    nbad = 0
+    if L == 0:
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
+                             lineD, lineQ, j, 0, gD, gQ, i, 0, hD, hQ, 0, 0)
+    else:
+        for i in range(ni):
+            nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
+                             lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0)
+    if nbad > 0:
+        _fix_row(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
+                 fbM, fbN, False)
+
+
+@jit(forceinline=True)
+def _row2_d(xyz, s, out, j, L, M, lineD, gD, hD):
+    """Fused baseline update of the row j of a 2-D block."""
+    ni = xyz.shape[0]
+    if L == 0:
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, j, 0, gD, i, 0, hD, 0, 0)
+    else:
+        for i in range(ni):
+            _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, i, 0, gD, j, 0, hD, 0, 0)
+
+
+@pjit
+def _deform3_q(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """Fused 3-D quaternion update, parallel over k-planes (the row kernel does the work)."""
+    nj, nk = xyz.shape[1], xyz.shape[2]
+    for kp in prange(nk):
+        k = np.int64(kp)
+        for j in range(nj):
+            _row3_q(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+
+
+@pjit
+def _deform3_d(xyz, s, out, L, M, N, lineD, gD, hD):
+    """Fused 3-D baseline update (Q ≡ 1), parallel over k-planes."""
+    nj, nk = xyz.shape[1], xyz.shape[2]
+    for kp in prange(nk):
+        k = np.int64(kp)
+        for j in range(nj):
+            _row3_d(xyz, s, out, j, k, L, M, N, lineD, gD, hD)
+
+
+@pjit
+def _deform2_q(xyz, s, out, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """Fused 2-D quaternion update (nk = 1), parallel over rows."""
+    for jp in prange(xyz.shape[1]):
+        _row2_q(xyz, s, out, np.int64(jp), cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+
+
+@pjit
+def _deform2_d(xyz, s, out, L, M, lineD, gD, hD):
+    """Fused 2-D baseline update (nk = 1), parallel over rows."""
+    for jp in prange(xyz.shape[1]):
+        _row2_d(xyz, s, out, np.int64(jp), L, M, lineD, gD, hD)
+
+
+# =================================================================== arclength kernels
+@jit(inline="always")
+def _dist(xyz, i0, j0, k0, i1, j1, k1):
+    dx = xyz[i1, j1, k1, 0] - xyz[i0, j0, k0, 0]
+    dy = xyz[i1, j1, k1, 1] - xyz[i0, j0, k0, 1]
+    dz = xyz[i1, j1, k1, 2] - xyz[i0, j0, k0, 2]
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@jit(inline="always")
+def _mag(xyz, i0, j0, k0, i1, j1, k1):
+    return max(abs(xyz[i0, j0, k0, 0]), abs(xyz[i0, j0, k0, 1]), abs(xyz[i0, j0, k0, 2]),
+               abs(xyz[i1, j1, k1, 0]), abs(xyz[i1, j1, k1, 1]), abs(xyz[i1, j1, k1, 2]))
+
+
+@pjit
+def _arclength_kernel(xyz, s, rtol):
+    """Fill ``s`` (ni, nj, nk, 3) with the normalised cumulative arclength of every line."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    # directions i and j: one k-plane per task
+    for k in prange(nk):
+        buf = np.empty(ni)
+        acc = np.zeros(ni)
+        col = np.empty((ni, nj))
+        for j in range(nj):
+            if ni == 1:
+                s[0, j, k, 0] = 0.0
+                continue
+            a = 0.0
+            buf[0] = 0.0
+            for i in range(1, ni):
+                a += _dist(xyz, i - 1, j, k, i, j, k)
+                buf[i] = a
+            if not a > rtol * _mag(xyz, 0, j, k, ni - 1, j, k):
+                for i in range(ni):
+                    buf[i] = i
+                a = ni - 1.0
+            for i in range(ni - 1):
+                s[i, j, k, 0] = buf[i] / a
+            s[ni - 1, j, k, 0] = 1.0
+        if nj == 1:
+            for i in range(ni):
+                s[i, 0, k, 1] = 0.0
+        else:
+            for i in range(ni):
+                col[i, 0] = 0.0
+            for j in range(1, nj):
+                for i in range(ni):
+                    acc[i] += _dist(xyz, i, j - 1, k, i, j, k)
+                    col[i, j] = acc[i]
+            for i in range(ni):
+                if not acc[i] > rtol * _mag(xyz, i, 0, k, i, nj - 1, k):
+                    for j in range(nj):
+                        col[i, j] = j
+                    acc[i] = nj - 1.0
+            for j in range(nj - 1):
+                for i in range(ni):
+                    s[i, j, k, 1] = col[i, j] / acc[i]
+            for i in range(ni):
+                s[i, nj - 1, k, 1] = 1.0
+    # direction k: one j-slab per task
+    for j in prange(nj):
+        if nk == 1:
+            for i in range(ni):
+                s[i, j, 0, 2] = 0.0
+            continue
+        acc = np.zeros(ni)
+        col = np.empty((ni, nk))
+        for i in range(ni):
+            col[i, 0] = 0.0
+        for k in range(1, nk):
+            for i in range(ni):
+                acc[i] += _dist(xyz, i, j, k - 1, i, j, k)
+                col[i, k] = acc[i]
+        for i in range(ni):
+            if not acc[i] > rtol * _mag(xyz, i, j, 0, i, j, nk - 1):
+                for k in range(nk):
+                    col[i, k] = k
+                acc[i] = nk - 1.0
+        for k in range(nk - 1):
+            for i in range(ni):
+                s[i, j, k, 2] = col[i, k] / acc[i]
+        for i in range(ni):
+            s[i, j, nk - 1, 2] = 1.0
+
+
+@jit
+def _segment_q(q0, q1, s, out):
+    """Slerp along a segment: ``out[m] = slerp(q0, q1, s[m])``, shortest arc, exact at s = 0 and 1."""
+    d = q0[0] * q1[0] + q0[1] * q1[1] + q0[2] * q1[2] + q0[3] * q1[3]
+    sg = -1.0 if d < 0.0 else 1.0
+    b0 = sg * q1[0]
+    b1 = sg * q1[1]
+    b2 = sg * q1[2]
+    b3 = sg * q1[3]
+    w2, sw = _slerp_angle(q0[0], q0[1], q0[2], q0[3], b0, b1, b2, b3)
+    for m in range(s.shape[0]):
+        t = np.float64(s[m])
+        if t == 0.0:
+            for c in range(4):
+                out[m, c] = q0[c]
+        elif t == 1.0:
+            out[m, 0] = b0
+            out[m, 1] = b1
+            out[m, 2] = b2
+            out[m, 3] = b3
+        else:
+            wa, wb = _slerp_weights(t, w2, sw)
+            w = wa * q0[0] + wb * b0
+            x = wa * q0[1] + wb * b1
+            y = wa * q0[2] + wb * b2
+            z = wa * q0[3] + wb * b3
+            n = math.sqrt(w * w + x * x + y * y + z * z)
+            out[m, 0] = w / n
+            out[m, 1] = x / n
+            out[m, 2] = y / n
+            out[m, 3] = z / n
+
+
+# =================================================================== validation helpers
+def _fail(msg: str):
+    raise GridValueError(msg)
+
+
+def _check_xyz(xyz, name: str) -> np.ndarray:
+    if not isinstance(xyz, np.ndarray):
+        _fail(f"{name}: expected a numpy array of shape (ni, nj, nk, 3), got {type(xyz).__name__}")
+    if xyz.ndim != 4 or xyz.shape[-1] != 3 or min(xyz.shape[:3]) < 1:
+        _fail(f"{name}: expected shape (ni, nj, nk, 3), got {xyz.shape}")
+    if xyz.dtype != np.float64:
+        _fail(f"{name}: expected dtype float64, got {xyz.dtype}")
+    if not xyz.flags.f_contiguous:
+        _fail(f"{name}: expected a Fortran-ordered (i fastest) array, as Block.xyz is")
+    return xyz
+
+
+def _check_s(s, dims, name: str = "s") -> np.ndarray:
+    if not isinstance(s, np.ndarray):
+        _fail(f"{name}: expected a numpy array of shape {tuple(dims) + (3,)}, got {type(s).__name__}")
+    if s.shape != tuple(dims) + (3,):
+        _fail(f"{name}: expected shape {tuple(dims) + (3,)} (the block's arclength parameters), "
+              f"got {s.shape}")
+    if s.dtype != S_DTYPE:
+        _fail(f"{name}: expected dtype float64 (as arclength() returns), got {s.dtype}")
+    if not s.flags.f_contiguous:
+        _fail(f"{name}: expected a Fortran-ordered array, as arclength() returns")
+    return s
+
+
+def _check_field(a, shape, ncomp: int, name: str, copy: bool = True) -> np.ndarray:
+    """A face/side/patch field of the expected shape, float64, finite (unit if ncomp == 4).
+
+    Returns an F-ordered copy, or with ``copy=False`` the input itself when it
+    already is float64 (the fused drivers copy once, into their tables).
+    """
+    try:
+        arr = np.asarray(a, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise GridValueError(f"{name}: cannot be read as an array of floats ({exc})") from None
+    want = tuple(shape) + (ncomp,)
+    if arr.shape != want:
+        _fail(f"{name}: expected shape {want}, got {arr.shape}")
+    if ncomp == 4:
+        n2 = arr[..., 0] * arr[..., 0] + arr[..., 1] * arr[..., 1] + \
+            arr[..., 2] * arr[..., 2] + arr[..., 3] * arr[..., 3]
+        bad = float(np.max(np.abs(n2 - 1.0), initial=0.0))
+        if not bad <= 2e-6:       # also catches NaN and inf
+            if not np.all(np.isfinite(arr)):
+                _fail(f"{name}: holds non-finite values")
+            _fail(f"{name}: quaternions must be unit (max | |q|^2 - 1 | = {bad:.3g})")
+    elif not np.isfinite(np.sum(arr)) and not np.all(np.isfinite(arr)):
+        _fail(f"{name}: holds non-finite values")
+    return np.array(arr, order="F", copy=True) if copy else arr
+
+
+def _check_order(order, ndim: int, name: str = "order") -> tuple:
+    try:
+        o = tuple(operator.index(v) for v in order)
+    except TypeError:
+        raise GridValueError(f"{name}: expected a permutation of {tuple(range(ndim))}, "
+                             f"got {order!r}") from None
+    if sorted(o) != list(range(ndim)):
+        _fail(f"{name}: expected a permutation of {tuple(range(ndim))}, got {order!r}")
+    return o
+
+
+def _check_centre(centre) -> np.ndarray:
+    c = np.asarray(centre, dtype=np.float64)
+    if c.shape != (3,) or not np.all(np.isfinite(c)):
+        _fail(f"centre: expected 3 finite numbers, got {centre!r}")
+    return c
+
+
+def _check_out(out, dims) -> np.ndarray:
+    if out is None:
+        return np.empty(tuple(dims) + (3,), dtype=np.float64, order="F")
+    if not isinstance(out, np.ndarray) or out.shape != tuple(dims) + (3,) or \
+            out.dtype != np.float64 or not out.flags.f_contiguous or not out.flags.writeable:
+        _fail(f"out: expected a writeable float64 Fortran-ordered array of shape "
+              f"{tuple(dims) + (3,)}, got {getattr(out, 'shape', type(out).__name__)} "
+              f"{getattr(out, 'dtype', '')}")
+    return out
+
+
+def _face_dims(dims, d):
+    return tuple(n for e, n in enumerate(dims) if e != d)
+
+
+def _faces(face_fields, dims, ncomp: int, name: str, nfaces: int = 6) -> tuple:
+    if face_fields is None or isinstance(face_fields, np.ndarray) or len(face_fields) != nfaces:
+        _fail(f"{name}: expected a sequence of {nfaces} face arrays (imin, imax, jmin, jmax"
+              f"{', kmin, kmax' if nfaces == 6 else ''})")
+    return tuple(_check_field(face_fields[f], _face_dims(dims, f // 2), ncomp,
+                              f"{name}[{f}] ({FACES[f]})", copy=False) for f in range(nfaces))
+
+
+def _check_edges(fd, fq, dims, name_d: str, name_q: str):
+    """Faces must agree where they meet (Δ to 1e-9 relative, Q to 1e-9 up to sign)."""
+    nd = len(dims)
+    for d1 in range(nd):
+        for d2 in range(d1 + 1, nd):
+            for s1 in range(2):
+                for s2 in range(2):
+                    f1, f2 = 2 * d1 + s1, 2 * d2 + s2
+                    # face f1 (normal d1) restricted to index_d2 = end; its axes skip d1
+                    ax1 = [e for e in range(nd) if e != d1].index(d2)
+                    ax2 = [e for e in range(nd) if e != d2].index(d1)
+                    i1 = 0 if s2 == 0 else dims[d2] - 1
+                    i2 = 0 if s1 == 0 else dims[d1] - 1
+                    for arrs, nm, isq in ((fd, name_d, False), (fq, name_q, True)):
+                        if arrs is None:
+                            continue
+                        e1 = arrs[f1][(slice(None),) * ax1 + (i1,)]
+                        e2 = arrs[f2][(slice(None),) * ax2 + (i2,)]
+                        if isq:
+                            dot = np.einsum("...c,...c->...", e1, e2)
+                            e2 = e2 * np.where(dot < 0.0, -1.0, 1.0)[..., None]
+                        scale = 1.0 if isq else max(1.0, float(np.max(np.abs(e1), initial=0.0)))
+                        err = float(np.max(np.abs(e1 - e2), initial=0.0))
+                        if err > 1e-9 * scale:
+                            _fail(f"{nm}: faces {FACES[f1]} and {FACES[f2]} disagree on their "
+                                  f"common edge (max difference {err:.3g})")
+
+
+# =================================================================== public API
+def arclength(xyz, *, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
+    """Normalised cumulative arclength along every grid line of a block.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Block coordinates (``Block.xyz``), the **undeformed** grid.
+    rtol : float
+        A line shorter than ``rtol`` times its end points' largest coordinate
+        magnitude counts as zero-length.
+
+    Returns
+    -------
+    s : ndarray, shape (ni, nj, nk, 3), float64 (:data:`S_DTYPE`), Fortran order
+        ``s[..., d]`` is the arclength from the low face along the line in
+        index direction ``d``, divided by the line's length: exactly 0 on the
+        low face and exactly 1 on the high face, non-decreasing; ``index /
+        (n - 1)`` on a zero-length line (collapsed edges, poles); 0 where
+        ``n == 1``.
+
+    Raises
+    ------
+    GridValueError
+        Wrong shape, dtype or memory order of ``xyz``.
+    """
+    _check_xyz(xyz, "xyz")
+    s = np.empty(xyz.shape, dtype=S_DTYPE, order="F")
+    _arclength_kernel(xyz, s, float(rtol))
+    return s
+
+
+def arclength_curve(r) -> np.ndarray:
+    """Normalised cumulative arclength of a curve (a segment).
+
+    Parameters
+    ----------
+    r : array_like, shape (n, 3), float
+        Points along the curve.
+
+    Returns
+    -------
+    s : ndarray, shape (n,), float64
+        0 at the first point, exactly 1 at the last, index-uniform if the
+        curve has zero length, 0 if ``n == 1``.
+    """
+    if np.ndim(r) != 2:
+        _fail(f"r: expected shape (n, 3), got {np.shape(r)}")
+    arr = _check_field(r, np.shape(r)[:1], 3, "r")
+    return arclength(np.asfortranarray(arr[:, None, None, :]))[:, 0, 0, 0].copy()
+
+
+def arclength_surface(r) -> np.ndarray:
+    """Arclength parameters of a surface patch.
+
+    Parameters
+    ----------
+    r : array_like, shape (na, nb, 3), float
+        Patch points (e.g. ``Block.face(f)``).
+
+    Returns
+    -------
+    s : ndarray, shape (na, nb, 2), float64, Fortran order
+        ``s[..., 0]`` along ``a`` and ``s[..., 1]`` along ``b``, as in
+        :func:`arclength`.
+    """
+    if np.ndim(r) != 3:
+        _fail(f"r: expected shape (na, nb, 3), got {np.shape(r)}")
+    arr = _check_field(r, np.shape(r)[:2], 3, "r")
+    return np.asfortranarray(arclength(np.asfortranarray(arr[:, :, None, :]))[:, :, 0, :2])
+
+
+def face_params(s) -> tuple:
+    """The block's arclength parameters on its six faces, for ``deform_block(..., face_s=...)``.
+
+    Reading them out of ``s`` touches one cache line per point on the faces
+    normal to i; a caller that deforms the same block many times (the
+    Deformer) computes them once here and passes them on every step.
+
+    Parameters
+    ----------
+    s : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Arclength parameters (:func:`arclength`).
+
+    Returns
+    -------
+    face_s : tuple of 6 ndarray
+        Face ``f`` (imin, imax, jmin, jmax, kmin, kmax) of shape
+        ``Block.face(f).shape[:2] + (3,)``, float64, Fortran order (copies).
+    """
+    if not isinstance(s, np.ndarray) or s.ndim != 4:
+        _fail(f"s: expected an array of shape (ni, nj, nk, 3), got {getattr(s, 'shape', type(s))}")
+    _check_s(s, s.shape[:3])
+    out = []
+    for f in range(6):
+        idx = [slice(None)] * 3
+        idx[f // 2] = s.shape[f // 2] - 1 if f % 2 else 0
+        out.append(np.array(s[tuple(idx)], order="F"))
+    return tuple(out)
+
+
+def _check_face_s(face_s, s, dims, nfaces: int) -> tuple:
+    if face_s is None:
+        return face_params(s)
+    if isinstance(face_s, np.ndarray) or len(face_s) not in (nfaces, 6):
+        _fail(f"face_s: expected the {nfaces} face arrays of face_params(s)")
+    out = []
+    for f in range(nfaces):
+        want = _face_dims(dims, f // 2) + (3,)
+        a = face_s[f]
+        if not isinstance(a, np.ndarray) or a.dtype != np.float64 or a.shape != want:
+            _fail(f"face_s[{f}] ({FACES[f]}): expected a float64 array of shape {want} "
+                  f"(from face_params(s)), got {getattr(a, 'shape', type(a).__name__)}")
+        out.append(a)
+    return tuple(out)
+
+
+def lead_order(prescribed_counts: Sequence[int]) -> tuple:
+    """Direction order for TFI: lead with the direction whose end faces carry most prescribed points.
+
+    Parameters
+    ----------
+    prescribed_counts : sequence of 6 (3-D) or 4 (2-D) non-negative ints
+        Number of prescribed (wall or fixed) points on faces imin, imax,
+        jmin, jmax[, kmin, kmax].
+
+    Returns
+    -------
+    order : tuple of int
+        ``(L, M, N)`` (or ``(L, M)``): directions sorted by the summed counts
+        of their two end faces, largest first; ties go to the lower
+        direction index.
+    """
+    try:
+        c = [operator.index(v) for v in prescribed_counts]
+    except TypeError:
+        raise GridValueError(f"prescribed_counts: expected 4 or 6 integers, got "
+                             f"{prescribed_counts!r}") from None
+    if len(c) not in (4, 6) or min(c) < 0:
+        _fail(f"prescribed_counts: expected 4 or 6 non-negative integers, got {prescribed_counts!r}")
+    nd = len(c) // 2
+    return tuple(sorted(range(nd), key=lambda d: (-(c[2 * d] + c[2 * d + 1]), d)))
+
+
+def interp_segment(delta0, q0, delta1, q1, s):
+    """1-D interpolation of (Δ, Q) along a segment.
+
+    Parameters
+    ----------
+    delta0, delta1 : array_like, shape (3,)
+        Translations at the two ends.
+    q0, q1 : array_like, shape (4,), or None
+        Unit quaternions ``(w, x, y, z)`` at the ends; both None for the
+        classic baseline (``method="tfi"``).
+    s : array_like, shape (n,)
+        Parameters in [0, 1] (arclength of the undeformed segment).
+
+    Returns
+    -------
+    delta : ndarray, shape (n, 3), float64
+        ``(1 - s) delta0 + s delta1`` (exact at s = 0 and 1).
+    q : ndarray, shape (n, 4), float64, or None
+        Slerp along the shortest arc: ``q0`` exactly at s = 0 and ``±q1``
+        (the sign continuing the arc) exactly at s = 1; unit to round-off.
+    """
+    d0 = _check_field(delta0, (), 3, "delta0")
+    d1 = _check_field(delta1, (), 3, "delta1")
+    t = np.asarray(s, dtype=np.float64)
+    if t.ndim != 1 or not np.all(np.isfinite(t)) or np.any(t < 0.0) or np.any(t > 1.0):
+        _fail(f"s: expected a 1-D array of parameters in [0, 1], got shape {t.shape}")
+    tt = t[:, None]
+    delta = (1.0 - tt) * d0 + tt * d1
+    if (q0 is None) != (q1 is None):
+        _fail("q0, q1: give both quaternions or neither")
+    if q0 is None:
+        return delta, None
+    a = _check_field(q0, (), 4, "q0")
+    b = _check_field(q1, (), 4, "q1")
+    q = np.empty((t.shape[0], 4))
+    _segment_q(a, b, np.ascontiguousarray(t), q)
+    return delta, q
+
+
+# ------------------------------------------------------------------ reference (unfused)
+def _np_rel_log(base, q):
+    """log(conj(base) ⊗ q), q in base's hemisphere; (..., 4) -> (..., 3)."""
+    p = _qmul_np(base * np.array([1.0, -1.0, -1.0, -1.0]), q)
+    p = np.where(p[..., :1] < 0.0, -p, p)
+    n = np.linalg.norm(p[..., 1:], axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(n > 1e-30, np.arctan2(n, p[..., 0]) / np.where(n > 1e-30, n, 1.0),
+                     np.where(p[..., 0] > 0.0, 1.0 / np.where(p[..., 0] > 0.0, p[..., 0], 1.0), 0.0))
+    return p[..., 1:] * f[..., None]
+
+
+def _np_exp_times(base, r):
+    th = np.linalg.norm(r, axis=-1)
+    e = np.empty(r.shape[:-1] + (4,))
+    e[..., 0] = np.cos(th)
+    e[..., 1:] = r * np.sinc(th / np.pi)[..., None]
+    out = _qmul_np(base, e)
+    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def _np_normalize_or_fallback(W, base, terms):
+    """Normalise W (..., 4); where |W| < QNORM_MIN use the rotation-vector Boolean sum."""
+    n = np.linalg.norm(W, axis=-1)
+    out = W / np.maximum(n, QNORM_MIN)[..., None]
+    bad = n < QNORM_MIN
+    if np.any(bad):
+        b = base[bad]
+        b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+        r = np.zeros(b.shape[:-1] + (3,))
+        for w, F, U in terms:
+            wb = np.broadcast_to(w, bad.shape)[bad]
+            Fb = np.broadcast_to(F, bad.shape + (4,))[bad]
+            Ub = np.broadcast_to(U, bad.shape + (4,))[bad]
+            r += wb[:, None] * (_np_rel_log(b, Fb) - _np_rel_log(b, Ub))
+        out[bad] = _np_exp_times(b, r)
+    return out
+
+
+def _fields_ref(fd, fq, s, order):
+    """Plain numpy Boolean-sum TFI on a block; fd/fq face arrays (normal d removed), s (..., 3)."""
+    dims = s.shape[:3]
+    nd = len(order)
+
+    def bcf(face, d):
+        if nd == 2:            # 2-D faces are (n, 1, c): insert the missing direction
+            face = face[:, 0, :]
+            return np.expand_dims(np.expand_dims(face, d), 2)
+        return np.expand_dims(face, d)
+
+    sl = [np.asarray(s[..., d], dtype=np.float64)[..., None] for d in range(3)]
+    L = order[0]
+    D = (1.0 - sl[L]) * bcf(fd[2 * L], L) + sl[L] * bcf(fd[2 * L + 1], L)
+    Q = None
+    if fq is not None:
+        q0 = np.array(fq[2 * L], order="F", copy=True)
+        _coherent(q0)
+        a = np.broadcast_to(bcf(q0, L), dims + (4,))
+        b = np.broadcast_to(bcf(fq[2 * L + 1], L), dims + (4,))
+        Q = _qslerp_np(a, b, np.broadcast_to(sl[L][..., 0], dims))
+        base = Q.copy()
+        terms = []
+    for step, d in enumerate(order[1:]):
+        w = sl[d]
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[d] = slice(0, 1)
+        hi[d] = slice(dims[d] - 1, dims[d])
+        D0, D1 = D[tuple(lo)], D[tuple(hi)]
+        D = D + (1.0 - w) * (bcf(fd[2 * d], d) - D0) + w * (bcf(fd[2 * d + 1], d) - D1)
+        if Q is not None:
+            Q0, Q1 = Q[tuple(lo)], Q[tuple(hi)]
+            F0, F1 = bcf(fq[2 * d], d), bcf(fq[2 * d + 1], d)
+            F0 = F0 * np.where(np.sum(F0 * Q0, axis=-1) < 0.0, -1.0, 1.0)[..., None]
+            F1 = F1 * np.where(np.sum(F1 * Q1, axis=-1) < 0.0, -1.0, 1.0)[..., None]
+            if step == 0:
+                U0 = Q0 / np.linalg.norm(Q0, axis=-1, keepdims=True)
+                U1 = Q1 / np.linalg.norm(Q1, axis=-1, keepdims=True)
+            else:
+                U0, U1 = Vhat[tuple(lo)], Vhat[tuple(hi)]
+            Q = Q + (1.0 - w) * (F0 - Q0) + w * (F1 - Q1)
+            terms += [(1.0 - w[..., 0], F0, U0), (w[..., 0], F1, U1)]
+            if step == 0 and nd == 3:
+                Vhat = _np_normalize_or_fallback(Q, base, terms)
+    if Q is not None:
+        Q = _np_normalize_or_fallback(Q, base, terms)
+    return D, Q
+
+
+def _sides_as_faces(sides, dims, ncomp: int, name: str) -> tuple:
+    """2-D sides imin, imax (nj, c), jmin, jmax (ni, c) -> (n, 1, c) face arrays."""
+    if sides is None or isinstance(sides, np.ndarray) or len(sides) != 4:
+        _fail(f"{name}: expected a sequence of 4 side arrays (imin, imax, jmin, jmax)")
+    ni, nj = dims[0], dims[1]
+    out = []
+    for f in range(4):
+        n = nj if f < 2 else ni
+        a = _check_field(sides[f], (n,), ncomp, f"{name}[{f}] ({FACES[f]})")
+        out.append(np.asfortranarray(a[:, None, :]))
+    return tuple(out)
+
+
+def tfi_block_fields(face_delta, face_q, s, order):
+    """Unfused Soni TFI of (Δ, Q) over a block (reference implementation; allocates full size).
+
+    Parameters
+    ----------
+    face_delta : sequence of 6 arrays
+        Δ on faces imin, imax, jmin, jmax, kmin, kmax, each of shape
+        ``Block.face(f).shape[:2] + (3,)``; consistent on shared edges.  For a
+        2-D block (``len(order) == 2``): 4 sides imin, imax ``(nj, 3)``, jmin,
+        jmax ``(ni, 3)``.
+    face_q : sequence of 6 (or 4) arrays (..., 4) of unit quaternions, or None
+        Q on the same faces; None for the baseline (Q ≡ 1).
+    s : ndarray, shape (ni, nj, nk, 3), float64
+        The block's arclength parameters (:func:`arclength`).
+    order : sequence of int
+        ``(L, M, N)`` (``(L, M)`` in 2-D), e.g. from :func:`lead_order`.
+
+    Returns
+    -------
+    delta : ndarray, shape (ni, nj, nk, 3), float64
+    q : ndarray, shape (ni, nj, nk, 4), float64, or None
+        Unit quaternions (to 1e-12).
+    """
+    if not isinstance(s, np.ndarray) or s.ndim != 4:
+        _fail(f"s: expected an array of shape (ni, nj, nk, 3), got {getattr(s, 'shape', type(s))}")
+    dims = s.shape[:3]
+    _check_s(s, dims)
+    nd = len(order) if hasattr(order, "__len__") else 0
+    if nd not in (2, 3):
+        _fail(f"order: expected (L, M, N) or (L, M), got {order!r}")
+    o = _check_order(order, nd)
+    if nd == 2:
+        if dims[2] != 1:
+            _fail(f"s: a 2-D order needs nk == 1, got shape {s.shape}")
+        fd = _sides_as_faces(face_delta, dims, 3, "face_delta")
+        fq = None if face_q is None else _sides_as_faces(face_q, dims, 4, "face_q")
+    else:
+        fd = _faces(face_delta, dims, 3, "face_delta")
+        fq = None if face_q is None else _faces(face_q, dims, 4, "face_q")
+    D, Q = _fields_ref(fd, fq, s, o)
+    D = np.asfortranarray(np.broadcast_to(D, dims + (3,)))
+    if Q is not None:
+        Q = np.asfortranarray(np.broadcast_to(Q, dims + (4,)))
+    return D, Q
+
+
+def tfi_patch(delta, q, s, lead: int = 0) -> None:
+    """2-D Soni TFI on a patch, in place: fill the interior from the four sides.
+
+    Parameters
+    ----------
+    delta : ndarray, shape (na, nb, 3), float64, writeable
+        Δ; the sides ``a = 0``, ``a = na - 1``, ``b = 0``, ``b = nb - 1`` hold
+        the known values (consistent at the corners); the interior is
+        overwritten.
+    q : ndarray, shape (na, nb, 4), float64, writeable, or None
+        Unit quaternions, same layout (None: baseline, Q ≡ 1).  The interior
+        is overwritten with unit quaternions.
+    s : array_like, shape (na, nb, 2)
+        The patch's arclength parameters from the **undeformed** surface
+        (:func:`arclength_surface`).
+    lead : {0, 1}
+        Leading direction (0: along ``a``, slerp between the sides a = 0 and
+        a = na - 1).
+    """
+    for arr, nm, nc in ((delta, "delta", 3), (q, "q", 4)):
+        if arr is None and nm == "q":
+            continue
+        if not isinstance(arr, np.ndarray) or arr.ndim != 3 or arr.shape[-1] != nc or \
+                arr.dtype != np.float64 or not arr.flags.writeable:
+            _fail(f"{nm}: expected a writeable float64 array of shape (na, nb, {nc}), got "
+                  f"{getattr(arr, 'shape', type(arr).__name__)} {getattr(arr, 'dtype', '')}")
+    na, nb = delta.shape[:2]
+    if q is not None and q.shape[:2] != (na, nb):
+        _fail(f"q: expected shape {(na, nb, 4)} like delta, got {q.shape}")
+    sa = np.asarray(s)
+    if sa.shape != (na, nb, 2) or sa.dtype.kind != "f":
+        _fail(f"s: expected a float array of shape {(na, nb, 2)}, got {sa.shape} {sa.dtype}")
+    if lead not in (0, 1):
+        _fail(f"lead: expected 0 or 1, got {lead!r}")
+    if na <= 2 or nb <= 2:
+        return
+    sb = np.zeros((na, nb, 1, 3), order="F")
+    sb[:, :, 0, :2] = sa
+    sides_d = [delta[0], delta[-1], delta[:, 0], delta[:, -1]]
+    fd = _sides_as_faces(sides_d, (na, nb, 1), 3, "delta")
+    fq = None
+    if q is not None:
+        fq = _sides_as_faces([q[0], q[-1], q[:, 0], q[:, -1]], (na, nb, 1), 4, "q")
+    D, Q = _fields_ref(fd, fq, sb, (lead, 1 - lead))
+    delta[1:-1, 1:-1] = D[1:-1, 1:-1, 0]
+    if q is not None:
+        q[1:-1, 1:-1] = Q[1:-1, 1:-1, 0]
+
+
+# ------------------------------------------------------------------ fused drivers
+def _pair(faces, d, ncomp: int) -> np.ndarray:
+    """Stack the low and high faces normal to ``d``: (na, nb, ncomp, 2), F order."""
+    f0 = faces[2 * d]
+    out = np.empty(f0.shape + (2,), order="F")
+    out[..., 0] = f0
+    out[..., 1] = faces[2 * d + 1]
+    return out
+
+
+def _tables(dims, o, fd, fq, fs, hasn):
+    """Allocate and fill the O(surface) tables of the fused kernels.
+
+    Dummy tables are (2, 2, ·) so that their numba type (F layout) never
+    changes, which keeps one compiled specialisation per kernel.
+    """
+    L, M, N = o
+    hasq = fq is not None
+    # first axis padded to >= 2: a (1, 1, c) table would be typed C-contiguous and
+    # compile another specialisation of every kernel
+    sh = lambda d: (max(2, _face_dims(dims, d)[0]), _face_dims(dims, d)[1])  # noqa: E731
+    dummy = lambda c: np.zeros((2, 2, c), order="F")  # noqa: E731
+    lineD = np.empty(sh(L) + (6,), order="F")
+    gD = np.empty(sh(M) + (6,), order="F")
+    hD = np.empty(sh(N) + (6,), order="F") if hasn else dummy(6)
+    if hasq:
+        lineQ = np.empty(sh(L) + (10,), order="F")
+        gQ = np.empty(sh(M) + (8,), order="F")
+        fbM = np.empty(sh(M) + (16,), order="F")
+        hQ = np.empty(sh(N) + (8,), order="F") if hasn else dummy(8)
+        fbN = np.empty(sh(N) + (16,), order="F") if hasn else dummy(16)
+    else:
+        lineQ, gQ, hQ, fbM, fbN = dummy(10), dummy(8), dummy(8), dummy(16), dummy(16)
+    FL, FM = _pair(fd, L, 3), _pair(fd, M, 3)
+    FN = _pair(fd, N, 3) if hasn else np.zeros((2, 2, 3, 2), order="F")
+    if hasq:
+        QL, QM = _pair(fq, L, 4), _pair(fq, M, 4)
+        QN = _pair(fq, N, 4) if hasn else np.zeros((2, 2, 4, 2), order="F")
+        q0 = np.array(QL[..., 0], order="F")
+        _coherent(q0)
+        QL[..., 0] = q0
+    else:
+        QL = QM = QN = np.zeros((2, 2, 4, 2), order="F")
+    SM = _pair(fs, M, 3)
+    SN = _pair(fs, N, 3) if hasn else np.zeros((2, 2, 3, 2), order="F")
+    _prep(SM, SN, dims[M], dims[N], L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq,
+          lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
+
+
+def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
+                 face_s=None) -> np.ndarray:
+    """Fused volume stage of one 3-D block: ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``.
+
+    (Δ, Q) is the Soni TFI of the six faces' values (DESIGN 3.4), evaluated
+    point by point inside the update: no full-size Δ or Q array is formed.
+    Parallel over k-planes; i innermost.
+
+    Parameters
+    ----------
+    xyz_u : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Undeformed block coordinates.
+    s : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Its arclength parameters (:func:`arclength`).
+    face_delta : sequence of 6 array_like
+        Δ on faces imin, imax, jmin, jmax, kmin, kmax, face ``f`` of shape
+        ``Block.face(f).shape[:2] + (3,)``; consistent on shared edges.
+    face_q : sequence of 6 array_like (na, nb, 4) of unit quaternions, or None
+        Q on the same faces (consistent on edges up to sign).  None: the
+        classic baseline, Q ≡ 1 and Δ the displacement, ``R_d = R_u + Δ``.
+    centre : array_like, shape (3,)
+        Rotation centre ``c``.
+    order : sequence of 3 int
+        ``(L, M, N)``, a permutation of (0, 1, 2) (:func:`lead_order`).
+    out : ndarray, shape (ni, nj, nk, 3), float64, Fortran order, optional
+        Receives the result; may be ``xyz_u`` itself (in place).
+    face_s : tuple of 6 ndarray, optional
+        ``face_params(s)``, computed once by a caller that deforms the block
+        repeatedly (saves ~20 ms per call on a 10 M-point block when a face
+        normal to i is an M or N face).  Must be the faces of ``s``.
+
+    Returns
+    -------
+    xyz_d : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        ``out`` if given.  Zero Δ with identity Q returns ``xyz_u`` bit for bit.
+
+    Raises
+    ------
+    GridValueError
+        A wrong shape, dtype or memory order (the message names the
+        argument), non-finite or non-unit face values, or faces that disagree
+        on a shared edge.
+    """
+    _check_xyz(xyz_u, "xyz_u")
+    dims = xyz_u.shape[:3]
+    _check_s(s, dims)
+    o = _check_order(order, 3)
+    fd = _faces(face_delta, dims, 3, "face_delta")
+    fq = None if face_q is None else _faces(face_q, dims, 4, "face_q")
+    _check_edges(fd, fq, dims, "face_delta", "face_q")
+    c = _check_centre(centre)
+    out = _check_out(out, dims)
+    fs = _check_face_s(face_s, s, dims, 6)
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, o, fd, fq, fs, True)
+    L, M, N = o
+    if fq is None:
+        _deform3_d(xyz_u, s, out, L, M, N, lineD, gD, hD)
+    else:
+        _deform3_q(xyz_u, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    return out
+
+
+def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
+                    face_s=None) -> np.ndarray:
+    """Fused volume stage of one 2-D block (``nk == 1``).
+
+    Parameters
+    ----------
+    xyz_u : ndarray, shape (ni, nj, 1, 3), float64, Fortran order
+        Undeformed block coordinates.
+    s : ndarray, shape (ni, nj, 1, 3), float64, Fortran order
+        Its arclength parameters (:func:`arclength`).
+    side_delta : sequence of 4 array_like
+        Δ on the sides imin, imax ``(nj, 3)`` and jmin, jmax ``(ni, 3)``;
+        consistent at the corners.
+    side_q : sequence of 4 array_like (n, 4) of unit quaternions, or None
+        Q on the same sides; None for the baseline (``R_d = R_u + Δ``).
+    centre : array_like, shape (3,)
+        Rotation centre.
+    order : sequence of 2 int
+        ``(L, M)``, a permutation of (0, 1).
+    out : ndarray, shape (ni, nj, 1, 3), float64, Fortran order, optional
+        Receives the result; may be ``xyz_u``.
+    face_s : tuple of 4 (or 6) ndarray, optional
+        ``face_params(s)`` (its first four faces are the sides), computed once.
+
+    Returns
+    -------
+    xyz_d : ndarray, shape (ni, nj, 1, 3), float64, Fortran order
+    """
+    _check_xyz(xyz_u, "xyz_u")
+    dims = xyz_u.shape[:3]
+    if dims[2] != 1:
+        _fail(f"xyz_u: a 2-D block needs nk == 1, got shape {xyz_u.shape}")
+    _check_s(s, dims)
+    o = _check_order(order, 2)
+    fd = _sides_as_faces(side_delta, dims, 3, "side_delta")
+    fq = None if side_q is None else _sides_as_faces(side_q, dims, 4, "side_q")
+    _check_edges(fd, fq, dims[:2], "side_delta", "side_q")
+    c = _check_centre(centre)
+    out = _check_out(out, dims)
+    L, M = o
+    fs = _check_face_s(face_s, s, dims, 4)
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, (L, M, 2), fd, fq, fs, False)
+    if fq is None:
+        _deform2_d(xyz_u, s, out, L, M, lineD, gD, hD)
+    else:
+        _deform2_q(xyz_u, s, out, c[0], c[1], c[2], L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    return out

@@ -1,0 +1,17 @@
+"""Block connectivity: point-matched interfaces and boundary patches.
+
+:func:`connect` finds the interfaces of a grid (coincident boundary points
+grown into maximal rectangles with a CGNS ``Transform``) and classifies the
+rest of the boundary into patches (wall, fixed, symmetry, free);
+:func:`classify` re-applies user kinds.  A :class:`Connectivity` is saved and
+read as JSON (:meth:`Connectivity.to_json`) or as a Neutral Map File
+(:meth:`Connectivity.to_nmf`).  See ``docs/connectivity.md``.
+"""
+
+from __future__ import annotations
+
+from .model import KINDS, Connectivity, FaceMap, Interface, Patch, face_axes
+from .search import DEFAULT_RTOL, classify, connect, node_labels
+
+__all__ = ["connect", "classify", "node_labels", "Connectivity", "Interface", "Patch", "FaceMap", "KINDS",
+           "DEFAULT_RTOL", "face_axes"]
