@@ -518,3 +518,22 @@ def test_cli_reports_bad_parameters(cli, tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "odd" in err
     assert not (tmp_path / "x.x").exists()
+
+
+# ----------------------------------------------------------------- cross-check with connectivity
+def test_connectivity_finds_the_documented_interfaces(small_wing):
+    from tfi_quat.topology import connect
+
+    conn = connect(small_wing, **{k: v for k, v in gen.boundary_patches("wing", small_wing).items()})
+    found = {(i.master.block, i.master.face, i.slave.block, i.slave.face, tuple(i.transform))
+             for i in conn.interfaces}
+    assert found == {(0, "jmin", 0, "jmin", (-1, -2, 3)), (0, "kmax", 1, "kmin", (1, 2, 3)),
+                     (1, "jmin", 1, "jmin", (-1, -2, 3)), (1, "kmax", 2, "kmin", (1, 2, 3)),
+                     (1, "kmax", 3, "imin", (2, 3, 1)), (2, "imax", 3, "jmin", (2, 3, 1)),
+                     (2, "jmin", 3, "kmin", (-2, -3, 1))}
+    kinds = {(p.spec.block, p.spec.face, p.kind) for p in conn.patches}
+    assert (0, "jmin", "wall") in kinds and (1, "jmin", "wall") in kinds and (0, "kmin", "symmetry") in kinds
+    tb = gen.two_block(17, 9)
+    (itf,) = connect(tb).interfaces
+    assert {(itf.master.block, itf.master.face), (itf.slave.block, itf.slave.face)} == \
+        {(0, "jmax"), (1, "imax")}
