@@ -21,6 +21,7 @@ SUBCOMMANDS = {
     "info": "._info",
     "convert": "._convert",
     "connect": "._connect",
+    "generate": "._generate",
 }
 
 

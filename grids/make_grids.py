@@ -1,0 +1,89 @@
+"""Regenerate the sample grids and their case files in this folder.
+
+    python grids/make_grids.py [NAME ...]
+
+Each entry of :data:`SAMPLES` records the generator, its parameters, the
+motion written to the case file and a one-line purpose; ``tests/test_generate.py``
+regenerates the small grids from these records and compares them with the
+shipped files.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+
+#: name -> (generator, parameters, motion for the case file or None, purpose)
+SAMPLES = {
+    "naca0012_c_257x65": (
+        "airfoil", dict(naca="0012", topology="C", ni=257, nj=65, first_spacing=1e-5, farfield=20.0),
+        dict(rotate=10.0, axis=[0.0, 0.0, 1.0], about=[0.25, 0.0, 0.0], translate=[0.0, 0.05, 0.0]),
+        "the memo's figure 4 case: viscous C-grid, rigid pitch and plunge of the airfoil"),
+    "naca4412_o_257x65": (
+        "airfoil", dict(naca="4412", topology="O", ni=257, nj=65, first_spacing=1e-5, farfield=20.0),
+        dict(rotate=-8.0, axis=[0.0, 0.0, 1.0], about=[0.25, 0.0, 0.0]),
+        "cambered section, periodic O-grid seam"),
+    "cylinder_o_129x65": (
+        "cylinder", dict(ni=129, nj=65, radius=0.5, first_spacing=1e-4, farfield=20.0),
+        dict(translate=[0.0, 0.1, 0.0]),
+        "analytic O-grid, rigid translation"),
+    "channel_bump_129x49": (
+        "channel", dict(ni=129, nj=49, length=3.0, height=1.0, bump_height=0.1, first_spacing=1e-3),
+        None,
+        "single-block H-grid; wall with fixed neighbours (bump shape changes)"),
+    "two_block_65x33": (
+        "two-block", dict(ni=65, nj=33, length=3.0, height=1.0, bump_height=0.1, first_spacing=2e-3),
+        None,
+        "two blocks, interface with swapped index axes, one block with a wall"),
+    "wing_ch_501k": (
+        "wing", dict(naca="0012", aspect_ratio=4.0, taper=0.5, sweep=30.0, ni=129, nj=49, nk_wing=45,
+                     nk_cap=9, nk_out=25, first_spacing=2e-5, farfield=15.0, span_farfield=10.0),
+        dict(deformation="bend", amplitude=0.15, span_axis=[0.0, 1.0, 0.0], span=1.5,
+             direction=[0.0, 0.0, 1.0]),
+        "3-D C-H wing: wake cuts, tip cap with collapsed edge, symmetry plane, swapped/reversed interfaces"),
+}
+
+
+def build(name: str):
+    """Return ``(grid, case)`` of one sample (the case's grid path is ``NAME.x`` in this folder)."""
+    from tfi_quat import generate as gen
+    from tfi_quat.case import Case, Motion
+
+    kind, params, motion, _ = SAMPLES[name]
+    grid = gen.GENERATORS[kind](**params)
+    patches = gen.boundary_patches(kind, grid, n_wake=params.get("n_wake"),
+                                   topology=params.get("topology", "C"))
+    case = Case(grid=HERE / f"{name}.x", motion=None if motion is None else Motion(**motion), **patches)
+    return grid, case
+
+
+def sha256(path) -> str:
+    """Hex SHA-256 of a file."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def main(names) -> int:
+    import tfi_quat
+    from tfi_quat.case import save_case
+
+    for name in names or SAMPLES:
+        grid, case = build(name)
+        tfi_quat.write(HERE / f"{name}.x", grid, overwrite=True)
+        save_case(HERE / f"{name}.toml", case)
+        print(f"{name}: {len(grid)} block(s), {grid.npoints} points")
+    lines = [f"{sha256(HERE / f'{n}.x')}  {n}.x" for n in SAMPLES if (HERE / f"{n}.x").exists()]
+    (HERE / "SHA256SUMS").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(HERE.parent))      # the checkout's tfi_quat, installed or not
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,539 @@
+"""Grid generators: cell validity, wall orthogonality, exact cuts and interfaces, determinism."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import tfi_quat
+from tfi_quat import Grid, GridValueError
+from tfi_quat import generate as gen
+from tfi_quat.case import load_case
+from tfi_quat.generate import _cell_volumes
+
+from conftest import sheared_box
+
+
+# ----------------------------------------------------------------- test helpers
+def wall_normals_2d(w, closed):
+    """Unit normals of a clockwise wall curve (n, 2): central differences, rotated +90 deg."""
+    if closed:
+        q = w[:-1]
+        t = np.roll(q, -1, axis=0) - np.roll(q, 1, axis=0)
+        t = np.concatenate([t, t[:1]])
+    else:
+        t = np.gradient(w, axis=0)
+    n = np.stack([-t[:, 1], t[:, 0]], axis=-1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def max_deviation_2d(xy, lo, hi, closed, layers=10):
+    """Largest angle (deg) between the j-lines of the first ``layers`` layers and the wall normal."""
+    n = wall_normals_2d(xy[:, 0], closed)[lo:hi + 1]
+    worst = 0.0
+    for j in range(layers):
+        d = xy[lo:hi + 1, j + 1] - xy[lo:hi + 1, j]
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        worst = max(worst, float(np.degrees(np.arccos(np.clip((d * n).sum(-1), -1, 1))).max()))
+    return worst
+
+
+def xy_of(grid, b=0):
+    return grid[b].xyz[:, :, 0, :2]
+
+
+# ----------------------------------------------------------------- basic pieces
+def test_geometric_spacing():
+    s = gen.geometric_spacing(64, 20.0, 1e-5)
+    assert s.shape == (65,) and s[0] == 0.0 and s[-1] == 20.0
+    d = np.diff(s)
+    assert d[0] == pytest.approx(1e-5, rel=1e-9)
+    ratio = d[1:] / d[:-1]
+    assert np.allclose(ratio, ratio[0], rtol=1e-9) and ratio[0] > 1.0
+    shrink = np.diff(gen.geometric_spacing(10, 1.0, 0.3))
+    assert shrink[0] == pytest.approx(0.3) and np.all(np.diff(shrink) < 0)
+    with pytest.raises(GridValueError, match="first spacing"):
+        gen.geometric_spacing(4, 1.0, 2.0)
+
+
+def test_naca4_sections():
+    x = np.linspace(0.0, 1.0, 201)
+    xu, yu, xl, yl = gen.naca4("0012", x)
+    assert yu[-1] == 0.0 and yl[-1] == 0.0 and xu[-1] == 1.0
+    assert np.max(yu - yl) == pytest.approx(0.12, abs=2e-4)
+    xu, yu, xl, yl = gen.naca4("0012", x, blunt_te=True)
+    assert yu[-1] - yl[-1] == pytest.approx(2 * 0.6 * (0.2969 - 0.126 - 0.3516 + 0.2843 - 0.1015), rel=1e-12)
+    xu, yu, xl, yl = gen.naca4("4412", x)
+    camber = 0.5 * (yu + yl)
+    assert camber.max() == pytest.approx(0.04, abs=5e-4)
+    assert x[np.argmax(camber)] == pytest.approx(0.4, abs=0.02)
+    for bad in ("12", "abcd", "0000", "4012"):
+        with pytest.raises(GridValueError, match="naca"):
+            gen.naca4(bad, x)
+
+
+def test_cell_volumes_exact_for_affine_grids():
+    a = np.array([[2.0, 0.3, 0.1], [0.2, 1.5, 0.0], [0.0, 0.4, 1.0]])
+    i, j, k = np.meshgrid(np.arange(4.0), np.arange(3.0), np.arange(5.0), indexing="ij")
+    xyz = np.asfortranarray(np.stack([i, j, k], axis=-1) @ a.T)
+    v = _cell_volumes(xyz)
+    assert v.shape == (3, 2, 4) and np.allclose(v, np.linalg.det(a), rtol=1e-12)
+    assert np.all(_cell_volumes(xyz[::-1]) < 0)
+    box = sheared_box(6, 5, 4)
+    # the sheared box's cells are bilinear; their volumes are positive and sum to the box volume
+    assert np.all(_cell_volumes(box) > 0)
+    flat = np.zeros((3, 2, 1, 3))
+    flat[..., 0] = np.arange(3.0)[:, None, None] * 2.0
+    flat[..., 1] = np.arange(2.0)[None, :, None] * 0.5
+    assert np.allclose(_cell_volumes(flat), 1.0)
+
+
+# ----------------------------------------------------------------- airfoils
+AIRFOIL_CASES = [
+    ("0012", "C", 1e-5, False, 257, 65),
+    ("0012", "C", 1e-6, False, 129, 49),
+    ("4412", "C", 1e-5, False, 129, 41),
+    ("2408", "C", 3e-5, False, 97, 33),
+    ("0012", "O", 1e-5, False, 129, 41),
+    ("4412", "O", 1e-6, False, 257, 65),
+    ("0012", "O", 1e-5, True, 129, 41),
+    ("4415", "O", 1e-4, True, 97, 33),
+]
+
+
+@pytest.mark.parametrize("naca,topo,fs,blunt,ni,nj", AIRFOIL_CASES)
+def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
+    g = gen.airfoil(naca, topo, ni=ni, nj=nj, first_spacing=fs, blunt_te=blunt)
+    assert isinstance(g, Grid) and g.ndim == 2 and g.dims == [(ni, nj, 1)]
+    xy = xy_of(g)
+    area = _cell_volumes(g[0].xyz)
+    assert area.min() > 0.0, f"{(area <= 0).sum()} non-positive cells"
+    lo, hi = gen.airfoil_wall_range(ni, topo)
+    closed = topo == "O"
+    assert max_deviation_2d(xy, lo, hi, closed) <= 0.5
+    # first cell height is first_spacing all along the wall
+    h = np.linalg.norm(xy[lo:hi + 1, 1] - xy[lo:hi + 1, 0], axis=-1)
+    assert np.allclose(h, fs, rtol=1e-9)
+    # far field at 15-20 chords (and not beyond 30)
+    r = np.linalg.norm(xy[:, -1] - [0.5, 0.0], axis=-1)
+    assert r.min() > 14.0 and r.max() < 30.0
+    # the wall is the airfoil: chord 1 from (0, 0)
+    w = xy[lo:hi + 1, 0]
+    assert np.any(np.all(w == 0.0, axis=1))                      # leading edge at the origin
+    assert blunt or np.any(np.all(w == [1.0, 0.0], axis=1))      # sharp trailing edge at (1, 0)
+    assert -1e-3 < w[:, 0].min() and w[:, 0].max() < 1.0 + 1e-3
+    # clustering at the leading and trailing edges
+    ds = np.linalg.norm(np.diff(w, axis=0), axis=-1)
+    ile = np.argmin(w[:, 0])
+    assert ds[ile] < 0.5 * ds.mean() and min(ds[0], ds[-1]) < 0.5 * ds.mean()
+
+
+@pytest.mark.parametrize("naca,ni,nj,fs", [("0012", 257, 65, 1e-5), ("0024", 129, 49, 1e-5),
+                                           ("4412", 257, 65, 1e-6)])
+def test_blunt_c_grid(naca, ni, nj, fs):
+    nb = 4
+    g = gen.airfoil(naca, "C", ni=ni, nj=nj, first_spacing=fs, blunt_te=True, n_base=nb)
+    x = g[0].xyz
+    assert _cell_volumes(x).min() > 0.0
+    lo, hi = gen.airfoil_wall_range(ni, "C")
+    # the cut ends at the middle of the base, bit-identical on both sides
+    assert np.array_equal(x[:lo + 1, 0], x[hi:, 0][::-1])
+    base = x[lo:lo + nb + 1, 0, 0]
+    chord = base[-1, :2] - base[0, :2]                          # a straight base, going down
+    rel = base[:, :2] - base[0, :2]
+    assert np.allclose(chord[0] * rel[:, 1] - chord[1] * rel[:, 0], 0.0, atol=1e-15)
+    assert chord[1] < -5e-4
+    # orthogonal everywhere on the wall but on the base, whose ends meet the cut
+    # at concave right angles (no positive grid can leave those orthogonally)
+    assert max_deviation_2d(x[:, :, 0, :2], lo + nb, hi - nb, False) <= 0.5
+
+
+def test_small_c_grids_do_not_fold():
+    # regression: coarse C-grids used to fold cells at the trailing-edge junction
+    for ni, nj, fs in ((33, 9, 1e-5), (65, 17, 1e-4), (49, 13, 1e-3), (97, 25, 1e-3), (65, 17, 1e-3)):
+        g = gen.airfoil("0012", "C", ni=ni, nj=nj, first_spacing=fs)
+        assert _cell_volumes(g[0].xyz).min() > 0.0, (ni, nj, fs)
+
+
+def test_c_grid_wake_cut_is_bit_identical():
+    ni, nj, nw = 129, 41, 30
+    g = gen.airfoil("4412", "C", ni=ni, nj=nj, n_wake=nw)
+    x = g[0].xyz
+    lo, hi = gen.airfoil_wall_range(ni, "C", nw)
+    assert (lo, hi) == (nw, ni - 1 - nw)
+    assert np.array_equal(x[:lo + 1, 0], x[hi:, 0][::-1])
+    # and only the cut: the first layer off it separates
+    assert not np.any(np.all(x[:lo, 1] == x[hi + 1:, 1][::-1], axis=-1))
+    # the wake cut lies on y = 0 behind the trailing edge at x = 1
+    assert np.all(x[:lo + 1, 0, 0, 1] == 0.0) and x[lo, 0, 0, 0] == 1.0
+
+
+def test_o_grid_seam_is_bit_identical():
+    for blunt in (False, True):
+        x = gen.airfoil("2412", "O", ni=97, nj=33, blunt_te=blunt)[0].xyz
+        assert np.array_equal(x[0], x[-1])
+
+
+def test_folded_cells_are_reported_not_returned():
+    xyz = np.zeros((4, 3, 1, 3), order="F")
+    xyz[..., 0] = np.arange(4.0)[:, None, None]
+    xyz[..., 1] = np.arange(3.0)[None, :, None]
+    assert gen._checked(Grid([xyz], ndim=2), "test") is not None
+    xyz[2, 1, 0, 0] = -0.5                     # pull a point back over two neighbours
+    with pytest.raises(GridValueError, match=r"test: 2 folded .* block 1, first at cell \(2, 1\)"):
+        gen._checked(Grid([xyz], ndim=2), "test")
+
+
+def test_small_wings_do_not_fold():
+    # regression: coarse wings used to twist hexahedra near the tip (3-D normal correction
+    # larger than the span spacing)
+    for ni, nj, fs in ((33, 13, 1e-3), (49, 17, 1e-4), (33, 21, 1e-5)):
+        g = gen.wing(ni=ni, nj=nj, nk_wing=5, nk_cap=3, nk_out=4, first_spacing=fs)
+        assert min(_cell_volumes(b.xyz).min() for b in g) > 0.0
+
+
+def test_airfoil_is_deterministic():
+    a = gen.airfoil("4412", "C", ni=97, nj=33)
+    b = gen.airfoil("4412", "C", ni=97, nj=33)
+    assert a == b and a is not b
+
+
+@pytest.mark.parametrize("kw,match", [
+    (dict(topology="X"), "topology"),
+    (dict(ni=128), "odd"),
+    (dict(ni=5), ">= 9"),
+    (dict(first_spacing=0.1), "first_spacing"),
+    (dict(first_spacing=-1.0), "first_spacing"),
+    (dict(farfield=1.0), "farfield"),
+    (dict(n_wake=63, ni=129), "even"),
+    (dict(naca="00120"), "naca"),
+    (dict(smoothing=0.9), "smoothing"),
+])
+def test_airfoil_rejects_bad_arguments(kw, match):
+    with pytest.raises(GridValueError, match=match):
+        gen.airfoil(**kw)
+
+
+# ----------------------------------------------------------------- cylinder, channel, two-block
+@pytest.mark.parametrize("ni,nj,fs", [(129, 65, 1e-4), (33, 17, 1e-2), (9, 5, 1e-3)])
+def test_cylinder(ni, nj, fs):
+    g = gen.cylinder(ni, nj, radius=0.5, first_spacing=fs, farfield=20.0)
+    xy = xy_of(g)
+    r = np.linalg.norm(xy, axis=-1)
+    assert np.allclose(r[:, 0], 0.5, rtol=1e-14) and np.allclose(r[:, -1], 20.0, rtol=1e-14)
+    assert np.allclose(r[:, 1] - 0.5, fs, rtol=1e-9)
+    assert np.array_equal(xy[0], xy[-1])
+    assert _cell_volumes(g[0].xyz).min() > 0.0
+    assert max_deviation_2d(xy, 0, ni - 1, True, layers=min(10, nj - 1)) <= 1e-5
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(ni=33, nj=17, bump_height=0.3), dict(bump_height=0.0),
+                                dict(ni=65, nj=33, first_spacing=1e-5, bump_height=0.2)])
+def test_channel(kw):
+    g = gen.channel(**kw)
+    xy = xy_of(g)
+    ni, nj = xy.shape[:2]
+    h = kw.get("bump_height", 0.1)
+    x = xy[:, 0, 0]
+    expect = np.where((x > 1.0) & (x < 2.0), h * np.sin(np.pi * (x - 1.0)) ** 2, 0.0)
+    assert np.allclose(xy[:, 0, 1], expect, atol=1e-15)
+    assert np.all(xy[:, -1, 1] == 1.0)
+    assert np.allclose(xy[0, :, 0], 0.0) and np.allclose(xy[-1, :, 0], 3.0)
+    assert _cell_volumes(g[0].xyz).min() > 0.0
+    assert max_deviation_2d(xy, 0, ni - 1, False) <= 0.5
+
+
+@pytest.mark.parametrize("ni,nj", [(65, 33), (17, 9), (9, 5)])
+def test_two_block_interface(ni, nj):
+    g = gen.two_block(ni, nj)
+    assert len(g) == 2 and g.ndim == 2
+    lower, upper = g[0].xyz, g[1].xyz
+    nh = (nj + 1) // 2
+    assert g.dims == [(ni, nh, 1), (nh, ni, 1)]
+    # block 1 jmax == block 2 imax (block 2's axes are turned): bit-identical
+    assert np.array_equal(lower[:, -1], upper[-1, :])
+    for b in g:
+        assert _cell_volumes(b.xyz).min() > 0.0
+    assert np.all(upper[0, :, 0, 1] == 1.0)           # block 2 imin: the upper wall
+    assert max_deviation_2d(xy_of(g, 0), 0, ni - 1, False, layers=min(10, nh - 1)) <= 0.5
+
+
+def test_small_generators_are_deterministic():
+    assert gen.cylinder(17, 9) == gen.cylinder(17, 9)
+    assert gen.channel(17, 9) == gen.channel(17, 9)
+    assert gen.two_block(17, 9) == gen.two_block(17, 9)
+
+
+# ----------------------------------------------------------------- wing
+SMALL_WING = dict(ni=65, nj=25, nk_wing=9, nk_cap=5, nk_out=7, first_spacing=1e-5)
+
+
+@pytest.fixture(scope="module")
+def small_wing():
+    return gen.wing(**SMALL_WING)
+
+
+def test_wing_blocks_and_volumes(small_wing):
+    g = small_wing
+    assert g.ndim == 3 and len(g) == 4
+    ni, nj = SMALL_WING["ni"], SMALL_WING["nj"]
+    nh = (ni + 1) // 2
+    assert g.dims == [(ni, nj, 9), (ni, nj, 5), (nh, nj, 7), (7, nh, nj)]
+    for n, b in enumerate(g):
+        v = _cell_volumes(b.xyz)
+        assert v.min() > 0.0, f"block {n + 1}: {(v <= 0).sum()} non-positive cells"
+
+
+def test_wing_interfaces_are_bit_identical(small_wing):
+    b1, b2, b3, b4 = (b.xyz for b in small_wing)
+    ih = (b1.shape[0] - 1) // 2
+    assert np.array_equal(b1[:, :, -1], b2[:, :, 0])                     # 1 kmax = 2 kmin
+    assert np.array_equal(b2[:ih + 1, :, -1], b3[:, :, 0])               # 2 kmax (part) = 3 kmin
+    # 2 kmax (other part) = 4 imin with swapped axes: 4 is (k, i, j) of the original
+    assert np.array_equal(b2[ih:, :, -1], b4[0])
+    assert np.array_equal(b3[:, 0, :], b4[:, ::-1, 0].transpose(1, 0, 2))  # 3 jmin = 4 kmin, i reversed
+    assert np.array_equal(b3[-1], b4[:, 0, :].transpose(1, 0, 2))         # 3 imax = 4 jmin, swapped
+
+
+def test_wing_cuts_symmetry_and_tip(small_wing):
+    b1, b2 = small_wing[0].xyz, small_wing[1].xyz
+    ni = b1.shape[0]
+    lo, hi = gen.wing_wall_range(ni)
+    for b in (b1, b2):                                  # wake cuts
+        assert np.array_equal(b[:lo + 1, 0], b[hi:, 0][::-1])
+    assert np.all(b1[:, :, 0, 1] == 0.0)                # root face in the symmetry plane y = 0
+    # the cap ends in a collapsed section: upper and lower surfaces coincide
+    assert np.array_equal(b2[lo:hi + 1, 0, -1], b2[lo:hi + 1, 0, -1][::-1])
+    assert not np.array_equal(b2[lo:hi + 1, 0, 0], b2[lo:hi + 1, 0, 0][::-1])
+    semispan, x_le, chord = gen.wing_geometry()
+    assert np.all(b1[:, :, -1, 1][:, 0] == pytest.approx(semispan))
+    assert 3.0 <= 4.0 * semispan / (1.0 + chord(semispan)) <= 6.0   # aspect ratio (2b)^2 / S
+
+
+def test_wing_wall_orthogonality(small_wing):
+    b1 = small_wing[0].xyz
+    ni = b1.shape[0]
+    lo, hi = gen.wing_wall_range(ni)
+    w = b1[:, 0]
+    ti = np.gradient(w, axis=0)
+    tk = np.gradient(w, axis=1)
+    n = np.cross(ti, tk)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    worst = 0.0
+    for j in range(10):
+        d = b1[:, j + 1] - b1[:, j]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        cos = np.abs(np.einsum("ikc,ikc->ik", d, n))[lo:hi + 1, 1:-1]
+        worst = max(worst, float(np.degrees(np.arccos(np.clip(cos, -1, 1))).max()))
+    assert worst <= 0.5
+    # and the first layer leaves the wall outwards, at first_spacing
+    h = np.linalg.norm(b1[lo:hi + 1, 1] - b1[lo:hi + 1, 0], axis=-1)
+    assert np.allclose(h, SMALL_WING["first_spacing"], rtol=1e-9)
+
+
+@pytest.mark.parametrize("kw", [dict(sweep=0.0, taper=1.0, aspect_ratio=3.0),
+                                dict(naca="4415", sweep=45.0, taper=0.3, aspect_ratio=6.0)])
+def test_wing_variants_have_positive_cells(kw):
+    g = gen.wing(**SMALL_WING, **kw)
+    for n, b in enumerate(g):
+        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+
+
+def test_wing_is_deterministic(small_wing):
+    assert gen.wing(**SMALL_WING) == small_wing
+
+
+@pytest.mark.parametrize("kw,match", [(dict(ni=67), "multiple of 4"), (dict(sweep=80.0), "sweep"),
+                                      (dict(taper=0.0), "taper"), (dict(aspect_ratio=0.5), "aspect_ratio"),
+                                      (dict(nk_cap=1), "nk_cap")])
+def test_wing_rejects_bad_arguments(kw, match):
+    with pytest.raises(GridValueError, match=match):
+        gen.wing(**kw)
+
+
+# ----------------------------------------------------------------- boundary patches
+def test_boundary_patches_resolve_and_sit_on_the_walls(small_wing):
+    g = gen.airfoil("0012", "C", ni=97, nj=33)
+    p = gen.boundary_patches("airfoil", g)
+    (wall,) = p["walls"]
+    (a0, a1), _ = wall.resolve(g).range
+    x = g[0].xyz[a0:a1 + 1, 0, 0]
+    assert x[0, 0] == 1.0 and x[-1, 0] == 1.0 and x[:, 0].min() == 0.0
+    for key in ("walls", "symmetry", "fixed"):
+        for spec in p[key]:
+            spec.resolve(g)
+    pw = gen.boundary_patches("wing", small_wing)
+    assert [str(s) for s in pw["symmetry"]] == ["1:kmin"]
+    for key in ("walls", "symmetry", "fixed"):
+        for spec in pw[key]:
+            spec.resolve(small_wing)
+    # every wall point of the wing is on the surface block faces jmin, inside the airfoil range
+    lo, hi = gen.wing_wall_range(SMALL_WING["ni"])
+    assert pw["walls"][0].range[0] == (lo, hi)
+    with pytest.raises(GridValueError, match="unknown generator"):
+        gen.boundary_patches("sphere", g)
+
+
+# ----------------------------------------------------------------- shipped grids
+GRIDS = Path(__file__).resolve().parent.parent / "grids"
+
+
+def _samples():
+    spec = importlib.util.spec_from_file_location("make_grids", GRIDS / "make_grids.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+SAMPLES = _samples()
+SMALL_SAMPLES = [n for n in SAMPLES.SAMPLES if not n.startswith("wing")]
+
+
+def test_shipped_files_are_the_recorded_ones():
+    sums = dict(reversed(line.split()) for line in (GRIDS / "SHA256SUMS").read_text().splitlines())
+    assert set(sums) == {f"{n}.x" for n in SAMPLES.SAMPLES}
+    total = 0
+    for name, digest in sums.items():
+        assert SAMPLES.sha256(GRIDS / name) == digest, name
+        total += (GRIDS / name).stat().st_size
+    assert total < 20e6
+    readme = (GRIDS / "README.md").read_text()
+    for n in SAMPLES.SAMPLES:
+        assert f"{n}.x" in readme and f"{n}.toml" in readme
+
+
+@pytest.mark.parametrize("name", SMALL_SAMPLES)
+def test_shipped_small_grids_match_the_generator(name):
+    shipped = tfi_quat.read(GRIDS / f"{name}.x")
+    grid, case = SAMPLES.build(name)
+    assert shipped.ndim == grid.ndim and shipped.dims == grid.dims
+    for a, b in zip(shipped, grid):
+        # equal to round-off (other CPUs may differ in the last bits of sin/cos)
+        assert np.allclose(a.xyz, b.xyz, rtol=0.0, atol=1e-12 * np.abs(b.xyz).max())
+    loaded = load_case(GRIDS / f"{name}.toml")
+    assert loaded.grid == (GRIDS / f"{name}.x").resolve()
+    assert (loaded.walls, loaded.symmetry, loaded.fixed, loaded.motion) == \
+        (case.walls, case.symmetry, case.fixed, case.motion)
+    loaded.check(shipped)
+    for b in shipped:
+        assert _cell_volumes(b.xyz).min() > 0.0
+
+
+def test_shipped_naca0012_is_the_memo_case():
+    case = load_case(GRIDS / "naca0012_c_257x65.toml")
+    assert [str(w) for w in case.walls] == ["1:jmin:65-193,1-1"]
+    g = tfi_quat.read(case.grid)
+    x = g[0].xyz[64:193, 0, 0]
+    assert g.dims == [(257, 65, 1)] and x[:, 0].min() == 0.0 and x[0, 0] == x[-1, 0] == 1.0
+    assert np.array_equal(g[0].xyz[:65, 0], g[0].xyz[192:, 0][::-1])
+
+
+def test_shipped_wing_properties():
+    case = load_case(GRIDS / "wing_ch_501k.toml")
+    g = tfi_quat.read(case.grid)
+    case = case.check(g)
+    params = SAMPLES.SAMPLES["wing_ch_501k"][1]
+    ni, nj = params["ni"], params["nj"]
+    nh = (ni + 1) // 2
+    assert g.ndim == 3 and g.dims == [(ni, nj, 45), (ni, nj, 9), (nh, nj, 25), (25, nh, nj)]
+    assert 0.4e6 < g.npoints < 2e6
+    for n, b in enumerate(g):
+        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+    b1, b2, b3, b4 = (b.xyz for b in g)
+    ih = (ni - 1) // 2
+    assert np.array_equal(b1[:, :, -1], b2[:, :, 0])
+    assert np.array_equal(b2[:ih + 1, :, -1], b3[:, :, 0])
+    assert np.array_equal(b2[ih:, :, -1], b4[0])
+    assert np.array_equal(b3[:, 0, :], b4[:, ::-1, 0].transpose(1, 0, 2))
+    assert np.array_equal(b3[-1], b4[:, 0, :].transpose(1, 0, 2))
+    lo, hi = gen.wing_wall_range(ni)
+    assert case.walls[0].range == ((lo, hi), (0, 44))
+    assert np.array_equal(b1[:lo + 1, 0], b1[hi:, 0][::-1])
+    assert np.all(b1[:, :, 0, 1] == 0.0)
+    # wall orthogonality of the first 10 layers (interior span stations)
+    w = b1[:, 0]
+    n = np.cross(np.gradient(w, axis=0), np.gradient(w, axis=1))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    d = b1[lo:hi + 1, 1:11] - b1[lo:hi + 1, :10]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    cos = np.abs(np.einsum("ijkc,ikc->ijk", d, n[lo:hi + 1]))[:, :, 1:-1]
+    assert np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) <= 0.5
+
+
+# ----------------------------------------------------------------- CLI
+@pytest.fixture
+def cli(monkeypatch):
+    """``tfi_quat.cli.main`` with only this subcommand registered (others live elsewhere)."""
+    from tfi_quat import cli as cli_mod
+    monkeypatch.setattr(cli_mod, "SUBCOMMANDS", {"generate": "._generate"})
+    return cli_mod.main
+
+
+def test_cli_generate_airfoil_with_case(cli, tmp_path, capsys):
+    out, case = tmp_path / "a.x", tmp_path / "sub" / "a.toml"
+    case.parent.mkdir()
+    rc = cli(["generate", "airfoil", "--naca", "4412", "--ni", "97", "--nj", "33", "-o", str(out),
+              "--case", str(case)])
+    assert rc == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 1 and "97x33x1" in lines[0] and str(out) in lines[0]
+    assert tfi_quat.read(out) == gen.airfoil("4412", "C", ni=97, nj=33)
+    c = load_case(case)
+    assert c.grid == out.resolve() and [str(w) for w in c.walls] == ["1:jmin:25-73,1-1"]
+    assert 'grid = "../a.x"' in case.read_text()
+
+
+@pytest.mark.parametrize("argv,dims", [
+    (["cylinder", "--ni", "17", "--nj", "9"], [(17, 9, 1)]),
+    (["channel", "--ni", "17", "--nj", "9"], [(17, 9, 1)]),
+    (["two-block", "--ni", "17", "--nj", "9"], [(17, 5, 1), (5, 17, 1)]),
+    (["airfoil", "--topology", "o", "--ni", "65", "--nj", "25", "--blunt-te"], [(65, 25, 1)]),
+    (["wing", "--ni", "65", "--nj", "25", "--nk-wing", "5", "--nk-cap", "3", "--nk-out", "4"],
+     [(65, 25, 5), (65, 25, 3), (33, 25, 4), (4, 33, 25)]),
+])
+def test_cli_generate_every_kind(cli, tmp_path, capsys, argv, dims):
+    out = tmp_path / "g.x"
+    assert cli(["generate", *argv, "-o", str(out), "--case", str(tmp_path / "g.toml")]) == 0
+    assert len(capsys.readouterr().out.strip().splitlines()) == 1
+    g = tfi_quat.read(out)
+    assert g.dims == dims
+    load_case(tmp_path / "g.toml").check(g)
+
+
+def test_cli_refuses_to_overwrite_without_force(cli, tmp_path, capsys):
+    out = tmp_path / "c.x"
+    out.write_bytes(b"keep")
+    assert cli(["generate", "cylinder", "--ni", "9", "--nj", "5", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "exists" in err and "--force" in err and out.read_bytes() == b"keep"
+    assert cli(["generate", "cylinder", "--ni", "9", "--nj", "5", "-o", str(out), "--force"]) == 0
+    assert tfi_quat.read(out) == gen.cylinder(9, 5)
+
+
+def test_cli_reports_bad_parameters(cli, tmp_path, capsys):
+    assert cli(["generate", "airfoil", "--ni", "128", "-o", str(tmp_path / "x.x")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "odd" in err
+    assert not (tmp_path / "x.x").exists()
+
+
+# ----------------------------------------------------------------- cross-check with connectivity
+def test_connectivity_finds_the_documented_interfaces(small_wing):
+    from tfi_quat.topology import connect
+
+    conn = connect(small_wing, **{k: v for k, v in gen.boundary_patches("wing", small_wing).items()})
+    found = {(i.master.block, i.master.face, i.slave.block, i.slave.face, tuple(i.transform))
+             for i in conn.interfaces}
+    assert found == {(0, "jmin", 0, "jmin", (-1, -2, 3)), (0, "kmax", 1, "kmin", (1, 2, 3)),
+                     (1, "jmin", 1, "jmin", (-1, -2, 3)), (1, "kmax", 2, "kmin", (1, 2, 3)),
+                     (1, "kmax", 3, "imin", (2, 3, 1)), (2, "imax", 3, "jmin", (2, 3, 1)),
+                     (2, "jmin", 3, "kmin", (-2, -3, 1))}
+    kinds = {(p.spec.block, p.spec.face, p.kind) for p in conn.patches}
+    assert (0, "jmin", "wall") in kinds and (1, "jmin", "wall") in kinds and (0, "kmin", "symmetry") in kinds
+    tb = gen.two_block(17, 9)
+    (itf,) = connect(tb).interfaces
+    assert {(itf.master.block, itf.master.face), (itf.slave.block, itf.slave.face)} == \
+        {(0, "jmax"), (1, "imax")}

@@ -1,0 +1,397 @@
+"""Case files: which grid, which patches are walls, symmetry planes or fixed, how the walls move.
+
+A case file is TOML (layout in ``docs/formats.md``)::
+
+    grid = "naca0012_c_257x65.x"        # relative to the case file
+    output = "moved.x"                   # optional, relative to the case file
+    walls = ["1:jmin:65-193"]            # BLOCK:FACE[:A1-A2,B1-B2], 1-based, inclusive
+    symmetry = []
+    fixed = ["1:jmax", "1:imin", "1:imax"]
+
+    [motion]                             # optional
+    rotate = 10.0                        # degrees, right-handed about `axis`
+    axis = [0.0, 0.0, 1.0]
+    about = [0.25, 0.0, 0.0]
+    translate = [0.0, 0.05, 0.0]
+    deformation = "twist"                # optional: "bend" or "twist"
+    amplitude = 5.0                      # twist: degrees; bend: length
+    span_axis = [0.0, 1.0, 0.0]
+    span = 1.5
+    direction = [0.0, 0.0, 1.0]          # bend only
+
+:func:`load_case` reads and validates one (unknown keys, bad patch strings,
+wrong types and a missing grid file are :class:`~tfi_quat.errors.CaseError`
+naming the case file and the key); :func:`save_case` writes one.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CaseError
+from .io._atomic import atomic_output
+from .spec import PatchSpec, parse_patch_spec
+
+try:  # Python >= 3.11
+    import tomllib as _toml
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as _toml  # type: ignore[no-redef]
+
+__all__ = ["Case", "Motion", "load_case", "save_case", "DEFORMATIONS"]
+
+#: named wall deformations of :class:`Motion`
+DEFORMATIONS = ("bend", "twist")
+
+_PATCH_KEYS = ("walls", "symmetry", "fixed")
+_TOP_KEYS = ("grid", "output") + _PATCH_KEYS + ("motion",)
+
+
+def _vec3(value, what: str) -> tuple[float, float, float]:
+    try:
+        v = tuple(float(c) for c in value)
+    except (TypeError, ValueError):
+        raise CaseError(f"{what}: expected 3 numbers, got {value!r}") from None
+    if len(v) != 3 or not all(math.isfinite(c) for c in v):
+        raise CaseError(f"{what}: expected 3 finite numbers, got {value!r}")
+    return v  # type: ignore[return-value]
+
+
+def _num(value, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CaseError(f"{what}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise CaseError(f"{what}: expected a finite number, got {value!r}")
+    return v
+
+
+def _rotation_matrix(axis, angle_deg: float) -> np.ndarray:
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    t = math.radians(angle_deg)
+    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """A prescribed wall motion: a named deformation, then a rigid motion.
+
+    Attributes
+    ----------
+    rotate : float
+        Rigid rotation angle, degrees, right-handed about ``axis``.
+    axis : (3,) floats
+        Rotation axis (non-zero; normalised on use).
+    about : (3,) floats
+        A point on the rotation axis (also the origin of the deformation).
+    translate : (3,) floats
+        Rigid translation, applied after the rotation.
+    deformation : {None, "bend", "twist"}
+        Optional named deformation applied before the rigid motion.  With
+        ``s = clip((p - about) . span_axis, 0, span) / span``:
+        ``twist`` rotates each point about the line through ``about`` along
+        ``span_axis`` by ``amplitude * s**2`` degrees; ``bend`` moves it by
+        ``amplitude * s**2`` along ``direction``.
+    amplitude : float
+        Twist angle (degrees) or bend deflection (length) at ``s = 1``.
+    span_axis : (3,) floats
+        Direction along which the deformation grows.
+    span : float
+        Length over which it grows (> 0 when a deformation is given).
+    direction : (3,) floats
+        Bend direction.
+    """
+
+    rotate: float = 0.0
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    about: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    translate: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    deformation: str | None = None
+    amplitude: float = 0.0
+    span_axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    span: float = 1.0
+    direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    def __post_init__(self):
+        set_ = object.__setattr__
+        for name in ("rotate", "amplitude", "span"):
+            set_(self, name, _num(getattr(self, name), f"motion.{name}"))
+        for name in ("axis", "about", "translate", "span_axis", "direction"):
+            set_(self, name, _vec3(getattr(self, name), f"motion.{name}"))
+        for name in ("axis", "span_axis", "direction"):
+            if not any(getattr(self, name)):
+                raise CaseError(f"motion.{name}: must not be the zero vector")
+        if self.deformation is not None:
+            if not isinstance(self.deformation, str) or self.deformation.lower() not in DEFORMATIONS:
+                raise CaseError(f"motion.deformation: expected one of {', '.join(DEFORMATIONS)}, "
+                                f"got {self.deformation!r}")
+            set_(self, "deformation", self.deformation.lower())
+        if self.span <= 0.0:
+            raise CaseError(f"motion.span: must be > 0, got {self.span}")
+
+    # dict-like access, for code that treats the motion as a mapping
+    def keys(self) -> list[str]:
+        """Field names, in declaration order."""
+        return [f.name for f in fields(self)]
+
+    def __getitem__(self, key: str):
+        if key not in self.keys():
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def get(self, key: str, default=None):
+        """Field value by name, ``default`` for an unknown name."""
+        return getattr(self, key) if key in self.keys() else default
+
+    def to_dict(self) -> dict:
+        """The motion as a plain dict (vectors as lists).
+
+        Leaves out the deformation parameters when there is no deformation,
+        and ``direction`` unless the deformation is a bend.
+        """
+        skip = set()
+        if self.deformation is None:
+            skip = {"deformation", "amplitude", "span_axis", "span", "direction"}
+        elif self.deformation != "bend":
+            skip = {"direction"}
+        return {f.name: (list(v) if isinstance(v, tuple) else v)
+                for f in fields(self) if f.name not in skip
+                for v in (getattr(self, f.name),)}
+
+    @property
+    def is_rigid(self) -> bool:
+        """True when there is no named deformation."""
+        return self.deformation is None
+
+    def apply(self, points) -> np.ndarray:
+        """Moved positions of ``points``.
+
+        Parameters
+        ----------
+        points : array_like, shape (..., 3)
+
+        Returns
+        -------
+        ndarray of float64, shape (..., 3)
+            A new array; the input is not modified.
+        """
+        p = np.array(points, dtype=np.float64)
+        if p.shape[-1:] != (3,):
+            raise CaseError(f"motion.apply: points must have shape (..., 3), got {p.shape}")
+        c = np.asarray(self.about)
+        if self.deformation is not None:
+            sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
+            s = np.clip((p - c) @ sa, 0.0, self.span) / self.span
+            f = self.amplitude * s * s
+            if self.deformation == "bend":
+                d = np.asarray(self.direction) / np.linalg.norm(self.direction)
+                p = p + f[..., None] * d
+            else:
+                t = np.radians(f)[..., None]
+                r = p - c
+                # Rodrigues rotation about sa by angle t, per point
+                p = c + r * np.cos(t) + np.cross(sa, r) * np.sin(t) + \
+                    sa * (r @ sa)[..., None] * (1.0 - np.cos(t))
+        if self.rotate != 0.0:
+            p = c + (p - c) @ _rotation_matrix(self.axis, self.rotate).T
+        return p + np.asarray(self.translate)
+
+
+@dataclass
+class Case:
+    """A deformation case.
+
+    Attributes
+    ----------
+    grid : Path
+        The grid file (absolute after :func:`load_case`).
+    walls, symmetry, fixed : list of PatchSpec
+        Patches (0-based in the API, 1-based in the file).
+    motion : Motion or None
+    output : Path or None
+        Where to write the result (absolute after :func:`load_case`).
+    source : Path or None
+        The case file this case was read from.
+    """
+
+    grid: Path
+    walls: list[PatchSpec] = field(default_factory=list)
+    symmetry: list[PatchSpec] = field(default_factory=list)
+    fixed: list[PatchSpec] = field(default_factory=list)
+    motion: Motion | None = None
+    output: Path | None = None
+    source: Path | None = None
+
+    def check(self, grid) -> "Case":
+        """Check every patch against ``grid``; return a case with explicit ranges.
+
+        Raises
+        ------
+        CaseError
+            A patch names a block or range the grid does not have.
+        """
+        where = f"{self.source}: " if self.source else ""
+        out = {}
+        for key in _PATCH_KEYS:
+            resolved = []
+            for n, p in enumerate(getattr(self, key)):
+                try:
+                    resolved.append(p.resolve(grid))
+                except CaseError as exc:
+                    raise CaseError(f"{where}{key}[{n}]: {exc}") from None
+            out[key] = resolved
+        return Case(self.grid, out["walls"], out["symmetry"], out["fixed"], self.motion,
+                    self.output, self.source)
+
+
+def _patches(data, key: str, where: str) -> list[PatchSpec]:
+    value = data.get(key, [])
+    if isinstance(value, str) or not isinstance(value, list):
+        raise CaseError(f"{where}: key {key!r}: expected a list of patch strings, got {value!r}")
+    out = []
+    for n, text in enumerate(value):
+        if not isinstance(text, str):
+            raise CaseError(f"{where}: key {key!r}[{n}]: expected a patch string "
+                            f"\"BLOCK:FACE[:A1-A2,B1-B2]\", got {text!r}")
+        try:
+            out.append(parse_patch_spec(text))
+        except CaseError as exc:
+            raise CaseError(f"{where}: key {key!r}[{n}]: {exc}") from None
+    return out
+
+
+def _motion(value, where: str) -> Motion:
+    if not isinstance(value, dict):
+        raise CaseError(f"{where}: key 'motion': expected a table [motion], got {value!r}")
+    known = {f.name for f in fields(Motion)}
+    for key in value:
+        if key not in known:
+            raise CaseError(f"{where}: unknown key 'motion.{key}' (known: {', '.join(sorted(known))})")
+    try:
+        return Motion(**value)
+    except CaseError as exc:
+        raise CaseError(f"{where}: {exc}") from None
+
+
+def load_case(path, check_grid: bool = True) -> Case:
+    """Read a TOML case file.
+
+    Parameters
+    ----------
+    path : str or path-like
+    check_grid : bool
+        Require the grid file to exist.
+
+    Returns
+    -------
+    Case
+        With ``grid`` and ``output`` resolved against the case file's folder.
+
+    Raises
+    ------
+    CaseError
+        Missing or unreadable file, TOML syntax, unknown keys, wrong types,
+        bad patch strings, bad motion values, missing grid file; the message
+        names the case file and the key.
+    """
+    p = Path(os.fspath(path))
+    where = str(p)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise CaseError(f"{where}: cannot read the case file ({exc.strerror or exc})") from None
+    try:
+        data = _toml.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise CaseError(f"{where}: not UTF-8 text ({exc})") from None
+    except _toml.TOMLDecodeError as exc:
+        raise CaseError(f"{where}: TOML syntax error: {exc}") from None
+    for key in data:
+        if key not in _TOP_KEYS:
+            raise CaseError(f"{where}: unknown key {key!r} (known: {', '.join(_TOP_KEYS)})")
+    base = p.resolve().parent
+    if "grid" not in data:
+        raise CaseError(f"{where}: key 'grid' is missing (the grid file, relative to the case file)")
+    paths = {}
+    for key in ("grid", "output"):
+        if key in data:
+            if not isinstance(data[key], str) or not data[key].strip():
+                raise CaseError(f"{where}: key {key!r}: expected a file name, got {data[key]!r}")
+            paths[key] = Path(os.path.normpath(base / data[key]))
+    if check_grid and not paths["grid"].is_file():
+        raise CaseError(f"{where}: key 'grid': grid file {paths['grid']} does not exist")
+    motion = _motion(data["motion"], where) if "motion" in data else None
+    return Case(grid=paths["grid"], walls=_patches(data, "walls", where),
+                symmetry=_patches(data, "symmetry", where), fixed=_patches(data, "fixed", where),
+                motion=motion, output=paths.get("output"), source=p)
+
+
+# ---------------------------------------------------------------- writing
+def _toml_str(s: str) -> str:
+    out = ['"']
+    for ch in s:
+        if ch in '"\\':
+            out.append("\\" + ch)
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        else:
+            out.append(ch)
+    out.append('"')
+    return "".join(out)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return _toml_str(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise CaseError(f"cannot write {v!r} to a case file")
+
+
+def _rel(target: Path, base: Path) -> str:
+    target = Path(os.path.abspath(target))
+    try:
+        return Path(os.path.relpath(target, base)).as_posix()
+    except ValueError:  # another drive on Windows
+        return target.as_posix()
+
+
+def save_case(path, case: Case) -> None:
+    """Write ``case`` as a TOML case file.
+
+    ``grid`` and ``output`` are written relative to the case file's folder
+    (absolute when that is impossible); patches in their 1-based text form.
+
+    Parameters
+    ----------
+    path : str or path-like
+    case : Case
+    """
+    p = Path(os.fspath(path))
+    base = Path(os.path.abspath(p)).parent
+    lines = ["# tfi_quat case file (docs/formats.md)",
+             f"grid = {_toml_str(_rel(Path(case.grid), base))}"]
+    if case.output is not None:
+        lines.append(f"output = {_toml_str(_rel(Path(case.output), base))}")
+    for key in _PATCH_KEYS:
+        specs = getattr(case, key)
+        if not all(isinstance(s, PatchSpec) for s in specs):
+            raise CaseError(f"{p}: {key}: expected PatchSpec items")
+        lines.append(f"{key} = {_toml_value([str(s) for s in specs])}")
+    if case.motion is not None:
+        lines += ["", "[motion]"]
+        for key, value in case.motion.to_dict().items():
+            lines.append(f"{key} = {_toml_value(value)}")
+    text = "\n".join(lines) + "\n"
+    with atomic_output(p, "wb") as fh:
+        fh.write(text.encode("utf-8"))
