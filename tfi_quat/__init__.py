@@ -21,4 +21,24 @@ __all__ = [
     "read", "write",
     "TfiQuatError", "GridFormatError", "GridValueError", "ConnectivityError",
     "CaseError", "DeformationError", "OverwriteError",
+    "Deformer", "connect", "Connectivity",
 ]
+
+# The numba-backed parts load on first use, so ``import tfi_quat`` (and the
+# CLI's start-up) stays fast.
+_LAZY = {
+    "Deformer": (".deform", "Deformer"),
+    "connect": (".topology", "connect"),
+    "Connectivity": (".topology", "Connectivity"),
+}
+
+
+def __getattr__(name):
+    try:
+        modname, attr = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module 'tfi_quat' has no attribute {name!r}") from None
+    import importlib
+    value = getattr(importlib.import_module(modname, __name__), attr)
+    globals()[name] = value
+    return value

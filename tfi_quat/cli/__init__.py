@@ -22,6 +22,7 @@ SUBCOMMANDS = {
     "convert": "._convert",
     "connect": "._connect",
     "generate": "._generate",
+    "deform": "._deform",
 }
 
 
