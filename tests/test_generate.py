@@ -537,3 +537,22 @@ def test_connectivity_finds_the_documented_interfaces(small_wing):
     (itf,) = connect(tb).interfaces
     assert {(itf.master.block, itf.master.face), (itf.slave.block, itf.slave.face)} == \
         {(0, "jmax"), (1, "imax")}
+
+
+@pytest.mark.parametrize("ni,nj,fs", [(257, 65, 1e-5), (129, 49, 1e-4)])
+def test_c_grid_wake_lines_stay_normal_to_the_cut(ni, nj, fs):
+    # regression: smoothing used to lean the wake-normal lines over until,
+    # near the outflow, they ran almost parallel to the cut (cells that any
+    # deformation folds)
+    g = gen.airfoil("0012", "C", ni=ni, nj=nj, first_spacing=fs)
+    x = g[0].xyz[:, :, 0, :2]
+    lo, hi = gen.airfoil_wall_range(ni, "C")
+    far = x[:, 0, 0] > 7.0                  # wake points more than 6 chords behind the TE
+    assert far[:lo].any()
+    e = np.diff(x[far], axis=1)             # along the wake-normal lines
+    ang = np.degrees(np.arctan2(np.abs(e[..., 0]), np.abs(e[..., 1])))
+    assert ang.max() < 5.0
+    # and no layer crosses the wake cut (which positive cells alone would not show)
+    for j in range(1, nj):
+        y, xm = x[:, j, 1], 0.5 * (x[:-1, j, 0] + x[1:, j, 0])
+        assert not np.any((np.sign(y[:-1]) != np.sign(y[1:])) & (xm > 1.0)), j

@@ -151,6 +151,10 @@ def _curve_normals(p: np.ndarray, closed: bool) -> np.ndarray:
     return n
 
 
+#: largest smoothing move per marching sub-step, as a fraction of the sub-step
+SMOOTH_CAP = 2.0
+
+
 def _limited(lap: np.ndarray, nrm: np.ndarray, eps: float, dh: float) -> np.ndarray:
     """Smoothing displacement ``eps * lap``.
 
@@ -161,6 +165,9 @@ def _limited(lap: np.ndarray, nrm: np.ndarray, eps: float, dh: float) -> np.ndar
     size = np.linalg.norm(lap, axis=-1, keepdims=True)
     back = np.einsum("...i,...i->...", lap, nrm)[..., None] < 0.0
     lim = np.where(back, np.minimum(eps, 0.5 * dh / np.maximum(size, 1e-300)), eps)
+    # never more than the step itself: in thin near-wall layers an unscaled
+    # smoothing move would lean the grid lines over in a single layer
+    lim = np.minimum(lim, SMOOTH_CAP * dh / np.maximum(size, 1e-300))
     return lap * lim
 
 
@@ -192,7 +199,7 @@ def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> np.ndarra
 
 
 def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
-             smoothing: float = 0.3, end_normals=None) -> np.ndarray:
+             smoothing: float = 0.3, end_normals=None, keep_spacing=None) -> np.ndarray:
     """March curves outwards.
 
     Each point moves straight along its wall normal while the distance is
@@ -215,6 +222,16 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
         Final Laplacian smoothing coefficient per sub-step (0..0.5).
     end_normals : (ndarray (2,), ndarray (2,)), optional
         Fixed marching directions of the two ends of open curves.
+    keep_spacing : ndarray of float, shape (n,) or (nb, n), optional
+        Open curves, per point in [0, 1]: how much of the smoothing only
+        straightens the layer and keeps its point distribution (neighbours
+        averaged with weights inverse to their distances, which leaves a
+        point on a straight layer in place) instead of evening the spacing.
+        C-grid wakes: their geometric stretching would otherwise be smoothed
+        out layer after layer, leaning the wake-normal lines over until,
+        near the outflow, they run almost parallel to the cut (cells a
+        deformation folds at once).  Near the trailing edge the even
+        smoothing is kept: the layers must turn round the junction.
 
     Returns
     -------
@@ -259,11 +276,33 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
                     p = np.concatenate([q, q[:, :1]], axis=1)
                 else:
                     lap = 0.5 * (p[:, :-2] + p[:, 2:]) - p[:, 1:-1]
+                    if keep_spacing is not None:
+                        hl = np.linalg.norm(p[:, 1:-1] - p[:, :-2], axis=-1)[..., None]
+                        hr = np.linalg.norm(p[:, 2:] - p[:, 1:-1], axis=-1)[..., None]
+                        lap_w = (hr * p[:, :-2] + hl * p[:, 2:]) / np.maximum(hl + hr, 1e-300) - p[:, 1:-1]
+                        a = np.broadcast_to(keep_spacing, p.shape[:2])[:, 1:-1, None]
+                        lap = (1.0 - a) * lap + a * lap_w
                     p[:, 1:-1] += free[:, 1:-1] * _limited(lap, nrm[:, 1:-1], eps, dh)
         p = np.where(free, p, wall + dist[j] * n0)
         out[:, :, j] = p
     if closed:
         out[:, -1] = out[:, 0]
+    return out
+
+
+def _wake_keep_spacing(s_wake: np.ndarray, n: int) -> np.ndarray:
+    """``keep_spacing`` of a C curve: 0 on the section, rising smoothly from 0
+    at 2 chords behind the trailing edge to 1 at 6 chords along each wake
+    (``s_wake``: distances of the wake points from the trailing edge, in
+    chords, trailing edge excluded; the curve runs outflow -> wake ->
+    section -> wake -> outflow).  Even smoothing stays where the layers must
+    turn round the junction."""
+    nw = s_wake.shape[0]
+    t = np.clip((s_wake - 2.0) / 4.0, 0.0, 1.0)
+    ramp = t * t * (3.0 - 2.0 * t)
+    out = np.zeros(n)
+    out[n - nw:] = ramp
+    out[:nw] = ramp[::-1]
     return out
 
 
@@ -499,7 +538,8 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
     wake = np.stack([te[0] + s[1:], np.full(nw, te[1])], axis=-1)   # TE -> outflow
     c_curve = np.concatenate([wake[::-1], curve, wake])
     xy = _march2d(c_curve[None], dist, False, n_ortho, smoothing,
-                  end_normals=(np.array([0.0, -1.0]), np.array([0.0, 1.0])))[0]
+                  end_normals=(np.array([0.0, -1.0]), np.array([0.0, 1.0])),
+                  keep_spacing=_wake_keep_spacing(s[1:], c_curve.shape[0]))[0]
     return _checked(Grid([_block2d(xy, "airfoil_C")], ndim=2), f"airfoil {naca} C-grid")
 
 
@@ -848,6 +888,7 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
 
     x_out = float(np.max(xle + ch)) + wake_length
     curves = np.empty((nk, ni, 2))
+    keep = np.empty((nk, ni))
     for k in range(nk):
         sec, ds_te = _section_curve(naca, n_side, False, 0, thickness_scale=scale[k])
         sec = sec * ch[k]
@@ -858,9 +899,10 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
         wake = np.stack([te[0] + s[1:], np.full(nw, te[1])], axis=-1)
         wake[-1, 0] = x_out
         curves[k] = np.concatenate([wake[::-1], sec, wake])
+        keep[k] = _wake_keep_spacing(s[1:] / ch[k], ni)
     dist = geometric_spacing(nj - 1, farfield, first_spacing)
     sec2d = _march2d(curves, dist, False, n_ortho, smoothing,
-                     end_normals=(np.array([0.0, -1.0]), np.array([0.0, 1.0])))
+                     end_normals=(np.array([0.0, -1.0]), np.array([0.0, 1.0])), keep_spacing=keep)
     # global array (i, j, k, xyz); i reversed so that (i, j, k) is right-handed
     g = np.empty((ni, nj, nk, 3))
     g[..., 0] = sec2d[:, ::-1, :, 0].transpose(1, 2, 0)

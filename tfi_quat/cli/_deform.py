@@ -67,7 +67,15 @@ def _motion(args, case):
         tr = args.translate or (0.0, 0.0, 0.0)
     elif case is not None and case.motion is not None:
         m = case.motion
-        rot, axis, about, tr = m.rotate, m.axis, m.about, m.translate
+        desc = "walls moved by the case file's motion:"
+        if m.deformation is not None:
+            unit = "deg" if m.deformation == "twist" else ""
+            desc += (f" {m.deformation} {m.amplitude:g}{unit} at {m.span:g} along {tuple(m.span_axis)}"
+                     f" from {tuple(m.about)}" + (f" towards {tuple(m.direction)}" if m.deformation == "bend" else "")
+                     + ",")
+        desc += (f" rotated {m.rotate:g} deg about axis {tuple(m.axis)} through {tuple(m.about)},"
+                 f" translated {tuple(m.translate)}")
+        return m.apply, desc
     else:
         raise CaseError("no wall motion: give --moved, --rotate/--translate, or a case file with [motion]")
     desc = f"walls rotated {rot:g} deg about axis {tuple(axis)} through {tuple(about)}, translated {tuple(tr)}"
