@@ -151,10 +151,14 @@ def test_motion_apply_rigid_and_named():
     # quarter turn about z
     q = Motion(rotate=90.0).apply([[1.0, 0.0, 0.0]])
     assert np.allclose(q, [[0.0, 1.0, 0.0]])
-    # bend: zero at the root, amplitude at the span end, constant beyond
+    # bend: zero at the root, amplitude at the span end, on along the tangent
+    # beyond (slope 2 * 0.3 / 2 = 0.3 per unit span: continuous rotation)
     b = Motion(deformation="bend", amplitude=0.3, span=2.0, span_axis=(0, 1, 0), direction=(0, 0, 1))
     y = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 2.0, 0.0], [0, 5.0, 0]])
-    assert np.allclose(b.apply(y)[:, 2], [0.0, 0.0, 0.075, 0.3, 0.3])
+    assert np.allclose(b.apply(y)[:, 2], [0.0, 0.0, 0.075, 0.3, 0.3 + 3 * 0.3])
+    eps = 1e-6
+    slope = (b.apply([[0, 2.0 + eps, 0]]) - b.apply([[0, 2.0 - eps, 0]]))[0, 2] / (2 * eps)
+    assert slope == pytest.approx(0.3, rel=1e-6)
     # twist: rotation about the span axis growing like s^2; points on the axis stay
     t = Motion(deformation="twist", amplitude=10.0, span=1.0, span_axis=(0, 1, 0))
     moved = t.apply([[1.0, 1.0, 0.0], [0.0, 0.5, 0.0]])

@@ -12,6 +12,8 @@ from tfi_quat.quality import negative_cells
 
 import _deform_grids as G
 
+FORMULATIONS = ["samareh", "local"]
+
 CASES = {
     "o-grid": G.o_grid,
     "two-block": G.two_block_o,
@@ -56,9 +58,10 @@ def _motion_for(name):
     return rigid_motion(20.0, (0, 0, 1), (0.3, 0.0, 0.0), (0.2, -0.1, 0.0))
 
 
-def test_walls_land_exactly(case):
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_walls_land_exactly(case, formulation):
     name, grid, walls, sym, fixed = case
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
     move = _motion_for(name)
     out = d.deform(move)
     for blk, ref, m in zip(out, grid, _wall_mask(d, grid)):
@@ -67,18 +70,20 @@ def test_walls_land_exactly(case):
     assert not negative_cells(out, grid)
 
 
-def test_zero_motion_returns_the_grid(case):
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_zero_motion_returns_the_grid(case, formulation):
     name, grid, walls, sym, fixed = case
     for method in ("quaternion", "tfi"):
-        out = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method).deform(lambda p: p)
+        out = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method, formulation=formulation).deform(lambda p: p)
         for blk, ref in zip(out, grid):
             np.testing.assert_allclose(blk.xyz, ref.xyz, rtol=0, atol=1e-13 * _scale(grid))
 
 
-def test_reference_untouched_and_no_drift(case):
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_reference_untouched_and_no_drift(case, formulation):
     name, grid, walls, sym, fixed = case
     before = grid.copy()
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
     a = d.deform(_motion_for(name))
     d.deform(rigid_motion(40.0, (0, 0, 1)))
     b = d.deform(_motion_for(name))
@@ -86,12 +91,13 @@ def test_reference_untouched_and_no_drift(case):
     assert a == b
 
 
-def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case):
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, formulation):
     """DESIGN property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
     name, grid, walls, sym, fixed = case
     faces = ("imin", "imax", "jmin", "jmax") + (("kmin", "kmax") if grid.ndim == 3 else ())
     every = [f"{b + 1}:{f}" for b in range(len(grid)) for f in faces]
-    d = Deformer(grid, walls=every)
+    d = Deformer(grid, walls=every, formulation=formulation)
     move = rigid_motion(35.0, (0.2, 0.3, 1.0) if grid.ndim == 3 else (0, 0, 1), (0.5, -0.2, 0.1 if grid.ndim == 3 else 0.0),
                         (0.3, 0.1, 0.05 if grid.ndim == 3 else 0.0))
     out = d.deform(move)
@@ -100,10 +106,11 @@ def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case):
                                    rtol=0, atol=1e-10 * _scale(grid))
 
 
-def test_interface_points_stay_bit_identical():
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_interface_points_stay_bit_identical(formulation):
     for builder in (G.o_grid, G.two_block_o, G.box_pair):
         grid, walls, sym, fixed = builder()
-        d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+        d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
         out = d.deform(rigid_motion(15.0, (0, 0, 1), (0.4, 0.1, 0.0), (0.1, 0.2, 0.0)))
         assert d.connectivity.interfaces, builder.__name__
         for itf in d.connectivity.interfaces:
@@ -116,9 +123,10 @@ def test_interface_points_stay_bit_identical():
             assert np.array_equal(a, b), f"{builder.__name__}: interface {m} not bit-identical"
 
 
-def test_fixed_patches_do_not_move_and_symmetry_stays_in_plane():
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_fixed_patches_do_not_move_and_symmetry_stays_in_plane(formulation):
     grid, walls, sym, fixed = G.o_grid_3d()
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
     out = d.deform(rigid_motion(25.0, (0, 0, 1), (0.2, 0.0, 0.0), (0.1, 0.3, 0.0)))
     x, r = out[0].xyz, grid[0].xyz
     assert np.array_equal(x[:, -1], r[:, -1])                      # far field fixed, bit for bit
@@ -145,12 +153,13 @@ def _orthogonality_change(out, ref, layers=5):
 
 
 @pytest.mark.parametrize("angle", [10.0, 30.0, 45.0])
-def test_near_wall_orthogonality_kept_under_rigid_rotation(angle):
+@pytest.mark.parametrize("formulation", ["samareh"])
+def test_near_wall_orthogonality_kept_under_rigid_rotation(angle, formulation):
     """DESIGN property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
     grid, walls, sym, fixed = G.o_grid(65, 33)
     move = rigid_motion(angle, (0, 0, 1), (0.5, 0.0, 0.0), (0.3, 0.2, 0.0))
-    q = Deformer(grid, walls=walls, fixed=fixed).deform(move)
-    t = Deformer(grid, walls=walls, fixed=fixed, method="tfi").deform(move)
+    q = Deformer(grid, walls=walls, fixed=fixed, formulation=formulation).deform(move)
+    t = Deformer(grid, walls=walls, fixed=fixed, method="tfi", formulation=formulation).deform(move)
     dq = _orthogonality_change(q, grid)
     dt = _orthogonality_change(t, grid)
     assert dq <= 0.1, dq
@@ -165,11 +174,12 @@ def _transform_grid(grid, f):
 
 
 @pytest.mark.parametrize("name", ["o-grid", "box-pair", "o-grid-3d"])
-def test_translation_and_rotation_of_the_whole_problem(name):
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_translation_and_rotation_of_the_whole_problem(name, formulation):
     """DESIGN property 5: moving the whole problem moves the result the same way."""
     grid, walls, sym, fixed = CASES[name]()
     move = _motion_for(name)
-    base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed).deform(move)
+    base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(move)
     scale = _scale(grid)
     T = np.array([3.0, -2.0, 0.0 if grid.ndim == 2 else 1.5])
     if grid.ndim == 2:
@@ -181,7 +191,7 @@ def test_translation_and_rotation_of_the_whole_problem(name):
         g2 = _transform_grid(grid, f)
         if name == "o-grid-3d" and f(np.zeros(3))[2] != 0.0:
             continue
-        out = Deformer(g2, walls=walls, symmetry=sym, fixed=fixed).deform(lambda p: f(move(finv(p))))
+        out = Deformer(g2, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(lambda p: f(move(finv(p))))
         for a, b in zip(out, base):
             np.testing.assert_allclose(a.xyz.reshape(-1, 3, order="F"),
                                        f(b.xyz.reshape(-1, 3, order="F")), rtol=0, atol=1e-9 * scale)
@@ -220,3 +230,15 @@ def test_bad_inputs_are_clear_errors():
         d.deform(lambda p: p * np.nan)
     with pytest.raises(DeformationError, match="dimensions"):
         d.deform(G.channel()[0])
+
+
+def test_local_formulation_is_independent_of_the_centre():
+    """The local formulation has no rotation centre: any ``centre`` gives the same grid."""
+    grid, walls, sym, fixed = G.o_grid_3d()
+    move = rigid_motion(25.0, (0, 0, 1), (0.2, 0.0, 0.0), (0.1, 0.3, 0.0))
+    a = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation="local").deform(move)
+    b = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation="local",
+                 centre=(40.0, -7.0, 0.0)).deform(move)
+    assert a == b
+    with pytest.raises(CaseError, match="formulation"):
+        Deformer(grid, walls=walls, formulation="global")

@@ -97,7 +97,12 @@ class Motion:
         ``s = clip((p - about) . span_axis, 0, span) / span``:
         ``twist`` rotates each point about the line through ``about`` along
         ``span_axis`` by ``amplitude * s**2`` degrees; ``bend`` moves it by
-        ``amplitude * s**2`` along ``direction``.
+        ``amplitude * s**2`` along ``direction``.  Beyond ``span`` the twist
+        stays at ``amplitude`` and the bend goes on along its tangent,
+        ``amplitude * (2 s' - 1)`` with ``s' = (p - about) . span_axis / span``:
+        both keep the sections' rotation continuous, so what lies past the
+        span (a wing-tip cap) turns with the last section instead of shearing
+        against it.
     amplitude : float
         Twist angle (degrees) or bend deflection (length) at ``s = 1``.
     span_axis : (3,) floats
@@ -187,12 +192,16 @@ class Motion:
         c = np.asarray(self.about)
         if self.deformation is not None:
             sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
-            s = np.clip((p - c) @ sa, 0.0, self.span) / self.span
-            f = self.amplitude * s * s
+            s = np.maximum((p - c) @ sa, 0.0) / self.span
             if self.deformation == "bend":
+                # a * s**2 up to s = 1, then on along its tangent: the slope
+                # (the sections' rotation) stays continuous past the span, so
+                # a wing-tip cap turns with the tip section
+                f = self.amplitude * np.where(s <= 1.0, s * s, 2.0 * s - 1.0)
                 d = np.asarray(self.direction) / np.linalg.norm(self.direction)
                 p = p + f[..., None] * d
             else:
+                f = self.amplitude * np.minimum(s, 1.0) ** 2
                 t = np.radians(f)[..., None]
                 r = p - c
                 # Rodrigues rotation about sa by angle t, per point

@@ -45,6 +45,7 @@ from .spec import PatchSpec, parse_patch_spec
 __all__ = ["Deformer", "rigid_motion", "StepTimings"]
 
 WALL, FIXED, SYMMETRY, DERIVED = 3, 2, 1, 0
+_ORIGIN = np.zeros(3)
 
 
 def _hermite(s: np.ndarray) -> np.ndarray:
@@ -173,6 +174,17 @@ def _merge_quaternions(gid, q, acc, count):
 
 
 # ------------------------------------------------------------- set-up data
+def _twist_about(q: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """The rotation of each ``q`` about the unit axis ``n`` (swing-twist split)."""
+    tw = np.empty_like(q)
+    tw[:, 0] = q[:, 0]
+    tw[:, 1:] = n * np.sum(q[:, 1:] * n, axis=1, keepdims=True)
+    norm = np.linalg.norm(tw, axis=1)
+    tw[norm == 0.0] = [1.0, 0.0, 0.0, 0.0]
+    norm[norm == 0.0] = 1.0
+    return tw / norm[:, None]
+
+
 @dataclass
 class _Rect:
     block: int
@@ -190,6 +202,7 @@ class _PatchTFI:
     write: np.ndarray          # bool (na, nb): interior points this patch defines
     block: int = 0
     face: str = ""
+    e: np.ndarray | None = None   # local formulation: P - TFI(P on the sides), written points
 
 
 @dataclass
@@ -205,6 +218,7 @@ class _BlockPlan:
     s: np.ndarray                       # arclength parameters (ni, nj, nk, 3)
     order: tuple[int, ...]
     face_gid: list[np.ndarray] = field(default_factory=list)   # per face (na, nb)
+    e: np.ndarray | None = None         # local formulation: R_u - TFI(R_u on the faces)
 
 
 class Deformer:
@@ -242,15 +256,26 @@ class Deformer:
         large motions).  Both reproduce the boundaries exactly.
     idw_power : float
         Exponent of the inverse-distance weights of free vertices.
+    formulation : {"samareh", "local"}
+        How rotations act on positions (``method="quaternion"`` only).
+        ``samareh`` (default, the memo): ``R_d = c + Δ + rot(Q, R_u - c)``
+        with Δ and Q interpolated, arms measured from the centre ``c``.
+        ``local``: ``R_d = TFI(boundary R_d) + rot(Q, E)`` with
+        ``E = R_u - TFI(boundary R_u)``, the grid's offset from the
+        interpolant of its own boundary: no centre, arms only as long as
+        that offset (see ``docs/deformer.md`` for when each is better).
     """
 
     def __init__(self, grid: Grid, walls=(), symmetry=(), fixed=(), connectivity=None,
                  method: str = "quaternion", centre=None, tol: float | None = None,
-                 blending: str = "hermite", idw_power: float = 3.0, max_idw_sources: int = 2000):
+                 blending: str = "hermite", idw_power: float = 3.0, max_idw_sources: int = 2000,
+                 formulation: str = "samareh"):
         if not isinstance(grid, Grid):
             raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
         if method not in ("quaternion", "tfi"):
             raise CaseError(f"method must be 'quaternion' or 'tfi', got {method!r}")
+        if formulation not in ("local", "samareh"):
+            raise CaseError(f"formulation must be 'local' or 'samareh', got {formulation!r}")
         if blending not in _BLENDINGS:
             raise CaseError(f"blending must be one of {', '.join(_BLENDINGS)}, got {blending!r}")
         t0 = time.perf_counter()
@@ -260,6 +285,8 @@ class Deformer:
         self.ndim = grid.ndim
         self.method = method
         self._use_q = method == "quaternion"
+        self.formulation = formulation
+        self._local = self._use_q and formulation == "local"
         if grid.ndim == 3:
             for b, blk in enumerate(grid):
                 if min(blk.dims) < 2:
@@ -294,6 +321,8 @@ class Deformer:
         self._build_segments_and_patches()
         self._build_symmetry()
         self._build_blocks()
+        if self._local:
+            self._build_local_arms()
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -643,6 +672,37 @@ class Deformer:
             sel = blk_of == b
             self._scatter.append((self._copies_key[sel] - self._offsets[b], self._copies_gid[sel]))
 
+    def _build_local_arms(self) -> None:
+        """The local formulation's arms ``E = R_u - TFI(R_u from the boundary)``.
+
+        Segments: the offset from the chord between the known end points;
+        patches: from the 2-D TFI of the patch's sides; blocks: from the 3-D
+        (2-D) TFI of the block's faces (sides), all with the same parameters
+        and leading directions as the step uses.
+        """
+        P = self._P
+        if self._gaps is not None:
+            left, right, ptr, pts, t = self._gaps
+            lo = np.repeat(left, np.diff(ptr))
+            hi = np.repeat(right, np.diff(ptr))
+            self._gap_e = P[pts] - ((1.0 - t)[:, None] * P[lo] + t[:, None] * P[hi])
+        for p in self._patches:
+            d = np.ascontiguousarray(P[p.gid])
+            tfi.tfi_patch(d, None, p.s, p.lead)
+            p.e = np.ascontiguousarray(P[p.gid][p.write] - d[p.write])
+        zero = np.zeros(3)
+        for blk, plan in zip(self.grid, self._blocks):
+            fd = tuple(np.ascontiguousarray(P[g]) for g in plan.face_gid)
+            base = np.zeros_like(blk.xyz, order="F")
+            interp = np.empty_like(blk.xyz, order="F")
+            if self.ndim == 3:
+                tfi.deform_block(base, plan.s, fd, None, zero, plan.order, out=interp)
+            else:
+                tfi.deform_block_2d(base, plan.s, tuple(d[:, 0] for d in fd), None, zero, plan.order,
+                                    out=interp)
+            np.subtract(blk.xyz, interp, out=interp)
+            plan.e = interp
+
     # -------------------------------------------------------------- a step
     def wall_points(self) -> np.ndarray:
         """Undeformed positions ``(n, 3)`` of the (distinct) wall points, in the order
@@ -724,6 +784,11 @@ class Deformer:
         qw = acc[wall]
         qw /= np.linalg.norm(qw, axis=1, keepdims=True)
         gq[wall] = qw
+        if self._local:
+            # the local formulation carries deformed positions, not translations
+            gdelta[:] = self._P
+            gdelta[wall] = rd[wall]
+            return gdelta, gq
         # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
         gdelta[wall] = rd[wall] - c - qa.rotate(qw, self._P[wall] - c)
         return gdelta, gq
@@ -733,10 +798,21 @@ class Deformer:
             return
         src, w, decay, ref = self._idw
         free = self._free_vertices
-        gdelta[free] = decay[:, None] * (w @ gdelta[src])
+        if not self._local:
+            gdelta[free] = decay[:, None] * (w @ gdelta[src])
         if gq is None:
             return
         qs = gq[src]                                         # (ns, 4)
+        if self._local:
+            # each wall source predicts the vertex by its own rigid motion,
+            # rd_s + rot(q_s, P_v - P_s); the predictions are blended and decayed
+            pv = self._P[free]
+            pred = np.empty((free.size, 3))
+            for a in range(0, free.size, 64):
+                arm = pv[a:a + 64, None, :] - self._P[src][None, :, :]
+                moved = gdelta[src][None] + qa.rotate(np.broadcast_to(qs, arm.shape[:2] + (4,)), arm)
+                pred[a:a + 64] = np.einsum("vs,vsc->vc", w[a:a + 64], moved)
+            gdelta[free] = pv + decay[:, None] * (pred - pv)
         qref = qs[ref]                                       # (nv, 4)
         sign = np.where(qref @ qs.T >= 0.0, 1.0, -1.0)       # (nv, ns)
         qbar = (w * sign) @ qs
@@ -754,13 +830,18 @@ class Deformer:
         left, right, ptr, pts, s = self._gaps
         _fill_gaps(gdelta, gq if gq is not None else np.empty((1, 4)), left, right, ptr, pts, s,
                    gq is not None)
+        if self._local:
+            gdelta[pts] += qa.rotate(gq[pts], self._gap_e)
 
     def _patch_stage(self, gdelta, gq) -> None:
         for p in self._patches:
             d = np.ascontiguousarray(gdelta[p.gid])
             q = np.ascontiguousarray(gq[p.gid]) if gq is not None else None
             tfi.tfi_patch(d, q, p.s, p.lead)
-            gdelta[p.gid[p.write]] = d[p.write]
+            if p.e is not None:
+                gdelta[p.gid[p.write]] = d[p.write] + qa.rotate(q[p.write], p.e)
+            else:
+                gdelta[p.gid[p.write]] = d[p.write]
             if q is not None:
                 gq[p.gid[p.write]] = q[p.write]
 
@@ -779,6 +860,11 @@ class Deformer:
         n = self._sym_normal
         c = self.centre
         arm = self._P[sym] - c
+        if self._local:
+            pos = gdelta[sym]
+            gdelta[sym] = pos - np.sum((pos - self._sym_point) * n, axis=1, keepdims=True) * n
+            gq[sym] = _twist_about(gq[sym], n)
+            return
         if gq is not None:
             pos = c + gdelta[sym] + qa.rotate(gq[sym], arm)
         else:
@@ -787,20 +873,15 @@ class Deformer:
         if gq is None:
             gdelta[sym] = pos - self._P[sym]
             return
-        q = gq[sym]
-        tw = np.empty_like(q)
-        tw[:, 0] = q[:, 0]
-        tw[:, 1:] = n * np.sum(q[:, 1:] * n, axis=1, keepdims=True)
-        norm = np.linalg.norm(tw, axis=1)
-        tw[norm == 0.0] = [1.0, 0.0, 0.0, 0.0]
-        norm[norm == 0.0] = 1.0
-        tw /= norm[:, None]
+        tw = _twist_about(gq[sym], n)
         gq[sym] = tw
         gdelta[sym] = pos - c - qa.rotate(tw, arm)
 
     def _boundary_positions(self, gdelta, gq, rd) -> np.ndarray:
         c = self.centre
-        if gq is not None:
+        if self._local:
+            pos = gdelta.copy()
+        elif gq is not None:
             pos = c + gdelta + qa.rotate(gq, self._P - c)
         else:
             pos = self._P + gdelta
@@ -852,12 +933,14 @@ class Deformer:
             fd = tuple(np.ascontiguousarray(gdelta[g]) for g in plan.face_gid)
             fq = tuple(np.ascontiguousarray(gq[g]) for g in plan.face_gid) if gq is not None else None
             out = np.empty_like(blk.xyz, order="F")
+            # local: TFI(boundary positions) + rot(Q, E); samareh: c + Δ + rot(Q, R_u - c)
+            base, c = (plan.e, _ORIGIN) if self._local else (blk.xyz, self.centre)
             if self.ndim == 3:
-                tfi.deform_block(blk.xyz, plan.s, fd, fq, self.centre, plan.order, out=out)
+                tfi.deform_block(base, plan.s, fd, fq, c, plan.order, out=out)
             else:
                 sd = tuple(d[:, 0] for d in fd)
                 sq = tuple(q[:, 0] for q in fq) if fq is not None else None
-                tfi.deform_block_2d(blk.xyz, plan.s, sd, sq, self.centre, plan.order, out=out)
+                tfi.deform_block_2d(base, plan.s, sd, sq, c, plan.order, out=out)
             local, gid = self._scatter[b]
             out.reshape(-1, 3, order="F")[local] = pos[gid]
             if self.ndim == 2:
