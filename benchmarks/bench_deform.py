@@ -56,9 +56,10 @@ def main(argv=None):
     coord_bytes = npts * 24
     print(f"wing: {len(grid)} blocks, {npts / 1e6:.2f} M points ({coord_bytes / 1e6:.0f} MB coordinates), "
           f"generated in {tg:.1f} s")
-    for method in ("quaternion", "tfi"):
+    for method, form in (("quaternion", "samareh"), ("quaternion", "local"), ("tfi", "samareh")):
         t0 = time.perf_counter()
-        d = Deformer(grid, walls=bp["walls"], symmetry=bp["symmetry"], fixed=bp["fixed"], method=method)
+        d = Deformer(grid, walls=bp["walls"], symmetry=bp["symmetry"], fixed=bp["fixed"], method=method,
+                     formulation=form)
         setup = time.perf_counter() - t0
         move = beam(span)
         d.deform(move)                                   # first call: compilation excluded
@@ -74,7 +75,8 @@ def main(argv=None):
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
         dt, tm = best
-        print(f"\n{method}: set-up {setup:.2f} s ({setup / dt:.1f} steps)")
+        label = method if method == "tfi" else f"{method} ({form})"
+        print(f"\n{label}: set-up {setup:.2f} s ({setup / dt:.1f} steps)")
         print(f"  step {dt:.3f} s = {npts / dt / 1e6:.1f} M points/s end to end")
         for stage in ("walls", "skeleton", "faces", "volumes"):
             v = getattr(tm, stage)

@@ -23,6 +23,7 @@ SUBCOMMANDS = {
     "connect": "._connect",
     "generate": "._generate",
     "deform": "._deform",
+    "demo": "._demo",
 }
 
 
