@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
 from tfi_quat import GridValueError, tfi
+from tfi_quat import quaternion as qa
 from tfi_quat.grid import Block
 
 from conftest import sheared_box
@@ -685,3 +686,30 @@ def test_deform_block_validates_arguments():
         tfi.deform_block_2d(xyz, s, fd[:4], None, c, (0, 1))
     with pytest.raises(GridValueError, match="order"):
         tfi.tfi_block_fields(fd, None, s, (0, 1, 2, 3))
+
+
+@pytest.mark.parametrize("lead", [0, 1])
+@pytest.mark.parametrize("with_q", [True, False])
+def test_compiled_patch_kernel_equals_the_reference(lead, with_q):
+    rng = np.random.default_rng(7 + lead)
+    na, nb = 23, 17
+    a = np.linspace(0.0, 1.0, na) ** 1.7
+    b = np.linspace(0.0, 2.0, nb)
+    P = np.zeros((na, nb, 3))
+    P[..., 0] = a[:, None]
+    P[..., 1] = b[None, :] + 0.1 * a[:, None] ** 2
+    P[..., 2] = 0.2 * np.sin(3 * a[:, None]) * np.cos(b[None, :])
+    s = tfi.arclength_surface(P)
+    d = rng.normal(size=(na, nb, 3))
+    q = qa.normalize(rng.normal(size=(na, nb, 4)) * 0.3 + [1.0, 0.0, 0.0, 0.0]) if with_q else None
+    d1, d2 = d.copy(), d.copy()
+    q1 = None if q is None else q.copy()
+    q2 = None if q is None else q.copy()
+    tfi.tfi_patch(d1, q1, s, lead)
+    tfi.tfi_patch_fast(d2, q2, tfi.patch_params(s), lead)
+    np.testing.assert_allclose(d2, d1, rtol=0, atol=1e-13)
+    assert np.array_equal(d2[0], d[0]) and np.array_equal(d2[:, -1], d[:, -1])
+    if with_q:
+        sign = np.sign(np.sum(q1 * q2, axis=-1))[..., None]
+        np.testing.assert_allclose(q2 * sign, q1, rtol=0, atol=1e-13)
+        np.testing.assert_allclose(np.linalg.norm(q2, axis=-1), 1.0, atol=1e-14)

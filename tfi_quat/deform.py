@@ -203,6 +203,7 @@ class _PatchTFI:
     block: int = 0
     face: str = ""
     e: np.ndarray | None = None   # local formulation: P - TFI(P on the sides), written points
+    params: tuple | None = None   # tfi.patch_params(s), for the compiled patch kernel
 
 
 @dataclass
@@ -638,7 +639,7 @@ class Deformer:
             write = np.zeros(g.shape, dtype=bool)
             idx = np.argwhere(inner)[np.sort(first)]
             write[idx[:, 0], idx[:, 1]] = True
-            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face))
+            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face, params=tfi.patch_params(s)))
             known[flat] = True
         self._patches = patches
         if not known.all():
@@ -837,7 +838,7 @@ class Deformer:
         for p in self._patches:
             d = np.ascontiguousarray(gdelta[p.gid])
             q = np.ascontiguousarray(gq[p.gid]) if gq is not None else None
-            tfi.tfi_patch(d, q, p.s, p.lead)
+            tfi.tfi_patch_fast(d, q, p.params, p.lead)
             if p.e is not None:
                 gdelta[p.gid[p.write]] = d[p.write] + qa.rotate(q[p.write], p.e)
             else:

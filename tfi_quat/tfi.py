@@ -63,7 +63,8 @@ from .quaternion import slerp as _qslerp_np
 __all__ = [
     "S_DTYPE", "QNORM_MIN",
     "arclength", "arclength_curve", "arclength_surface",
-    "face_params", "lead_order", "interp_segment", "tfi_patch", "tfi_block_fields",
+    "face_params", "lead_order", "interp_segment", "tfi_patch", "patch_params", "tfi_patch_fast",
+    "tfi_block_fields",
     "deform_block", "deform_block_2d",
 ]
 
@@ -605,6 +606,36 @@ def _deform2_d(xyz, s, out, L, M, lineD, gD, hD):
     """Fused 2-D baseline update (nk = 1), parallel over rows."""
     for jp in prange(xyz.shape[1]):
         _row2_d(xyz, s, out, np.int64(jp), L, M, lineD, gD, hD)
+
+
+@pjit
+def _fields2(s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """2-D Soni TFI of the fields themselves (Δ and unit Q), for patches; rows in parallel."""
+    ni, nj = s.shape[0], s.shape[1]
+    for jp in prange(nj):
+        j = np.int64(jp)
+        for i in range(ni):
+            if L == 0:
+                la, lb, ma, mb = j, 0, i, 0
+            else:
+                la, lb, ma, mb = i, 0, j, 0
+            t = np.float64(s[i, j, 0, L])
+            sm = np.float64(s[i, j, 0, M])
+            dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, 0, 0, 0.0)
+            outD[i, j, 0] = dx
+            outD[i, j, 1] = dy
+            outD[i, j, 2] = dz
+            if hasq:
+                qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, 0, 0, 0.0)
+                n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                if n < QNORM_MIN:
+                    qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, 0, 0, 0.0,
+                                                 False)
+                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                outQ[i, j, 0] = qw / n
+                outQ[i, j, 1] = qx / n
+                outQ[i, j, 2] = qy / n
+                outQ[i, j, 3] = qz / n
 
 
 # =================================================================== arclength kernels
@@ -1229,6 +1260,48 @@ def tfi_patch(delta, q, s, lead: int = 0) -> None:
     delta[1:-1, 1:-1] = D[1:-1, 1:-1, 0]
     if q is not None:
         q[1:-1, 1:-1] = Q[1:-1, 1:-1, 0]
+
+
+def patch_params(s) -> tuple:
+    """Precompute what :func:`tfi_patch_fast` needs from a patch's ``s`` (na, nb, 2):
+    the parameters in block layout ``(na, nb, 1, 3)`` and their side tables."""
+    sa = np.asarray(s, dtype=np.float64)
+    if sa.ndim != 3 or sa.shape[-1] != 2:
+        _fail(f"s: expected a float array of shape (na, nb, 2), got {sa.shape}")
+    s4 = np.zeros(sa.shape[:2] + (1, 3), order="F")
+    s4[:, :, 0, :2] = sa
+    return s4, face_params(s4)
+
+
+def tfi_patch_fast(delta, q, params, lead: int = 0) -> None:
+    """:func:`tfi_patch` through a compiled kernel (same result to round-off).
+
+    ``params`` is :func:`patch_params` of the patch's arclength parameters,
+    computed once; ``delta`` (na, nb, 3) and ``q`` (na, nb, 4) or None are
+    filled in place from their four sides (the sides are left as they are).
+    """
+    s4, fs = params
+    na, nb = s4.shape[:2]
+    if delta.shape != (na, nb, 3) or (q is not None and q.shape != (na, nb, 4)):
+        _fail(f"delta/q: expected shapes {(na, nb, 3)} / {(na, nb, 4)}, got {delta.shape} / "
+              f"{None if q is None else q.shape}")
+    if lead not in (0, 1):
+        _fail(f"lead: expected 0 or 1, got {lead!r}")
+    if na <= 2 or nb <= 2:
+        return
+    dims = (na, nb, 1)
+    fd = _sides_as_faces([delta[0], delta[-1], delta[:, 0], delta[:, -1]], dims, 3, "delta")
+    fq = None
+    if q is not None:
+        fq = _sides_as_faces([q[0], q[-1], q[:, 0], q[:, -1]], dims, 4, "q")
+    L, M = lead, 1 - lead
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, (L, M, 2), fd, fq, fs[:4], False)
+    outD = np.empty((na, nb, 3), order="F")
+    outQ = np.empty((na, nb, 4), order="F") if q is not None else np.empty((2, 2, 4), order="F")
+    _fields2(s4, outD, outQ, q is not None, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    delta[1:-1, 1:-1] = outD[1:-1, 1:-1]
+    if q is not None:
+        q[1:-1, 1:-1] = outQ[1:-1, 1:-1]
 
 
 # ------------------------------------------------------------------ fused drivers
