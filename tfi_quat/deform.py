@@ -40,7 +40,7 @@ from . import tfi
 from ._jit import jit
 from .errors import CaseError, DeformationError
 from .grid import FACES, Block, Grid
-from .spec import PatchSpec, parse_patch_spec
+from .spec import PatchSpec, as_patch_specs, parse_patch_spec
 
 __all__ = ["Deformer", "rigid_motion", "StepTimings"]
 
@@ -84,21 +84,7 @@ def rigid_motion(rotate_deg: float = 0.0, axis=(0.0, 0.0, 1.0), about=(0.0, 0.0,
 
 
 def _as_specs(items, what: str) -> list[PatchSpec]:
-    if items is None:
-        return []
-    if isinstance(items, (str, PatchSpec)):
-        items = [items]
-    out = []
-    for it in items:
-        if isinstance(it, PatchSpec):
-            out.append(it)
-        elif isinstance(it, str):
-            out.append(parse_patch_spec(it))
-        elif isinstance(it, (tuple, list)) and len(it) in (2, 3):
-            out.append(PatchSpec(*it))
-        else:
-            raise CaseError(f"{what}: cannot read {it!r} as a patch (BLOCK:FACE[:range] or PatchSpec)")
-    return out
+    return as_patch_specs(items, what)
 
 
 def _face_ijk(dims, face: str, rng) -> np.ndarray:

@@ -161,14 +161,8 @@ def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
 
 # ------------------------------------------------------------ near-wall orthogonality
 def _wall_specs(grid: Grid, walls):
-    from .spec import PatchSpec, parse_patch_spec
-    out = []
-    for w in walls:
-        spec = parse_patch_spec(w) if isinstance(w, str) else w
-        if not isinstance(spec, PatchSpec):
-            raise TypeError(f"walls: expected PatchSpec or 'B:FACE[:range]' strings, got {w!r}")
-        out.append(spec.resolve(grid))
-    return out
+    from .spec import as_patch_specs
+    return [spec.resolve(grid) for spec in as_patch_specs(walls, "walls")]
 
 
 def _patch_normals(w: np.ndarray, ndim: int) -> np.ndarray:

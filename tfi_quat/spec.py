@@ -121,3 +121,24 @@ def parse_patch_spec(text: str) -> PatchSpec:
         return PatchSpec(block, parts[1], rng)
     except CaseError as exc:
         raise CaseError(f"patch {text!r}: {exc}") from None
+
+
+def as_patch_specs(items, what: str) -> list[PatchSpec]:
+    """A list of :class:`PatchSpec` from PatchSpecs, ``"B:FACE[:range]"`` strings or
+    ``(block, face[, range])`` tuples (0-based); one item may be given bare.
+    ``what`` names the argument in the error message."""
+    if items is None:
+        return []
+    if isinstance(items, (str, PatchSpec)):
+        items = [items]
+    out = []
+    for it in items:
+        if isinstance(it, PatchSpec):
+            out.append(it)
+        elif isinstance(it, str):
+            out.append(parse_patch_spec(it))
+        elif isinstance(it, (tuple, list)) and len(it) in (2, 3):
+            out.append(PatchSpec(*it))
+        else:
+            raise CaseError(f"{what}: cannot read {it!r} as a patch (BLOCK:FACE[:range] or PatchSpec)")
+    return out
