@@ -800,3 +800,25 @@ def test_fortran_exponent_without_e_letter(tmp_path):
     p.write_text("2 1\n0.1234567-100 1.5+002\n0 0\n")
     g = read(p)
     assert g[0].xyz[0, 0, 0, 0] == 0.1234567e-100 and g[0].xyz[1, 0, 0, 0] == 150.0
+
+
+@pytest.mark.parametrize("endian", ["<", ">"])
+def test_signalling_nan_in_a_float32_file_is_reported_not_warned(tmp_path, endian):
+    # widening a signalling NaN raises the FPU's invalid flag: numpy warns, and warnings are errors here
+    vals = np.arange(12, dtype=np.uint32).astype(np.float32).view(np.uint32)
+    vals[5] = 0x7F800001
+    p = tmp_path / "snan.x"
+    p.write_bytes(struct.pack(f"{endian}3i", 2, 2, 1) + vals.astype(f"{endian}u4").tobytes())
+    with pytest.raises(GridFormatError, match=r"snan\.x: block 1 of 1: non-finite coordinate y = nan at "
+                                              r"\(i, j, k\) = \(2, 1, 1\).*byte offset 32"):
+        read(p)
+    g = read(p, allow_nonfinite=True)
+    assert g.source_format.precision == 4 and np.isnan(g[0].xyz[1, 0, 0, 1])
+    # and back out as float32, binary and text
+    write(tmp_path / "o.x", g, endian=endian)
+    write(tmp_path / "o.fmt", g, encoding="ascii")
+    assert np.isnan(read(tmp_path / "o.fmt", precision=4, allow_nonfinite=True)[0].xyz[1, 0, 0, 1])
+    snan64 = np.array([0x7FF0000000000001], np.uint64).view(np.float64)[0]
+    h = Grid([Block(np.full((2, 1, 1, 3), snan64), allow_nonfinite=True)])
+    write(tmp_path / "s.x", h, precision=4)
+    assert np.isnan(read(tmp_path / "s.x", allow_nonfinite=True)[0].xyz).all()

@@ -64,7 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GridFormatError, GridValueError
-from ..grid import Block, Grid
+from ..grid import Block, Grid, has_z
 from .._jit import jit
 from . import register
 from ._atomic import atomic_output, check_target
@@ -536,7 +536,9 @@ def _read_task(fd, task):
         if dest.dtype.kind == "i" and (tmp.min() < -(1 << 31) or tmp.max() >= (1 << 31)):
             bad = int(np.argmax((tmp < -(1 << 31)) | (tmp >= (1 << 31))))
             return ("range", first + bad, int(tmp[bad]))
-        dest[...] = tmp
+        # a signalling NaN raises the "invalid" flag when widened; NaNs are reported below
+        with np.errstate(invalid="ignore"):
+            dest[...] = tmp
     if check:
         bad = _first_nonfinite(dest)
         if bad is not None:
@@ -1013,7 +1015,8 @@ def _detect_ascii(path, data: bytes, fixed):
 def _read_ascii(path, data: bytes, vals: np.ndarray, fmt, layout, allow_nonfinite) -> list[Block]:
     """The blocks of a text file whose numbers ``vals`` fit ``fmt`` with this layout."""
     if fmt.precision == 4:
-        with np.errstate(over="ignore"):    # out-of-range values become inf: reported below
+        # out-of-range values become inf: reported below (as NaN payloads are)
+        with np.errstate(over="ignore", invalid="ignore"):
             vals = vals.astype(np.float32).astype(np.float64)
     nd = fmt.ndim
     blocks = []
@@ -1258,7 +1261,7 @@ def write(path, grid: Grid, *, like: Plot3DFormat | None = None, overwrite: bool
                               "(write with multiblock=True)")
     if fmt.ndim == 2:
         for n, b in enumerate(grid):
-            if b.dims[2] != 1 or np.any(b.xyz[..., 2]):
+            if b.dims[2] != 1 or has_z(b.xyz):
                 raise GridFormatError(f"{path}: block {n + 1} is 3-D (nk = {b.dims[2]}, or z != 0); "
                                       "it cannot be written as a 2-D Plot3D file")
     if fmt.encoding == "fortran":
@@ -1290,7 +1293,7 @@ def _write_array(fh, arr: np.ndarray, dtype: np.dtype, where: str = "") -> None:
 
 def _convert(chunk: np.ndarray, dtype: np.dtype, where: str) -> np.ndarray:
     """``chunk`` as ``dtype``; float values beyond the float32 range are an error, not inf."""
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):   # signalling NaNs stay NaN
         out = chunk.astype(dtype)
     if dtype.kind == "f" and dtype.itemsize == 4:
         lost = np.isinf(out) & np.isfinite(chunk)
@@ -1377,7 +1380,8 @@ def _write_ascii(fh, grid: Grid, fmt: Plot3DFormat, path="Plot3D file") -> None:
             vals = flat[c * n:(c + 1) * n]
             if fmt.precision == 4:
                 single = _convert(vals, np.dtype(np.float32), f"{path}: block {bn + 1} of {len(grid)}")
-                _write_values_text(fh, single.astype(np.float64), "%.9g")
+                with np.errstate(invalid="ignore"):
+                    _write_values_text(fh, single.astype(np.float64), "%.9g")
             else:
                 _write_values_text(fh, vals, "%.17g")
         if fmt.iblank:
