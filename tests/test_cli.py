@@ -579,3 +579,25 @@ def test_info_unambiguous_file_has_no_also_fits(capsys, h5grid, tmp_path):
     plot3d.write(q, two_block_grid())
     rc, out, _ = run_cli(capsys, "info", q)
     assert rc == 0 and "also fits" not in out
+
+
+def test_info_leaves_out_variants_with_absurd_iblank(capsys, tmp_path):
+    # one 2-D float64 block in a multi-block file fits, byte for byte, a single-block 3-D
+    # float32 file with IBLANK and ni = 1; its "IBLANK" would be coordinate bytes
+    p = tmp_path / "c.x"
+    plot3d.write(p, Grid([annulus(9, 5)], 2))
+    fits = plot3d.detect_all(p)
+    assert Plot3DFormat(precision=4, iblank=True, multiblock=False) in fits
+    rc, out, _ = run_cli(capsys, "info", p, "--json")
+    assert rc == 0 and "also_fits" not in json.loads(out)
+    # the same shape with small integers where that IBLANK would be is listed
+    q = tmp_path / "d.x"
+    xyz = np.zeros((1, 9, 5, 3), order="F")
+    xyz[0, :, :, :2] = annulus(9, 5)[:, :, 0, :2]
+    plot3d.write(q, Grid([Block(xyz, np.ones((1, 9, 5), np.int32))]), precision=4, iblank=True,
+                 multiblock=False)
+    rc, out, _ = run_cli(capsys, "info", q, "--json")
+    s = json.loads(out)
+    assert Plot3DFormat(**s["variant"]) == Plot3DFormat(ndim=2)
+    assert [Plot3DFormat(**a["variant"]) for a in s["also_fits"]] == \
+        [Plot3DFormat(precision=4, iblank=True, multiblock=False)]

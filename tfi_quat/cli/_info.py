@@ -276,10 +276,31 @@ _FIELD_OPTIONS = {
 }
 
 
+#: IBLANK values beyond this size mark a variant as implausible (real ones are small:
+#: 1 field, 0 hole, 2 or -n fringe with donor grid n)
+IBLANK_PLAUSIBLE = 1 << 20
+
+
+def _plausible(path, variant) -> bool:
+    """Whether the file read as ``variant`` has plausible IBLANK values (or none)."""
+    from ..io.plot3d import read as read_plot3d
+    if not variant.iblank:
+        return True
+    try:
+        g = read_plot3d(path, format=variant, allow_nonfinite=True)
+    except TfiQuatError:
+        return False
+    return all(int(np.abs(b.iblank.astype(np.int64)).max()) <= IBLANK_PLAUSIBLE for b in g)
+
+
 def other_variants(args, path, grid: Grid) -> list[dict]:
     """The other Plot3D variants the file fits, each with the options that read it so.
 
     Empty for HDF5 files and for Plot3D files that fit one variant only.
+    Variants whose IBLANK values would be absurd (beyond ``IBLANK_PLAUSIBLE``
+    in size: coordinate bytes read as integers) are left out: a 2-D float64
+    file with one block fits, byte for byte, a 3-D single-block float32 file
+    with IBLANK and ``ni = 1``.
     """
     from ..io.plot3d import Plot3DFormat, detect_all
     chosen = grid.source_format
@@ -288,7 +309,7 @@ def other_variants(args, path, grid: Grid) -> list[dict]:
     fits = detect_all(path, **input_overrides(args))
     out = []
     for alt in fits:
-        if alt == chosen:
+        if alt == chosen or not _plausible(path, alt):
             continue
         # the fields that differ from the chosen variant, plus any that tell ``alt``
         # from a preferred fit sharing those
