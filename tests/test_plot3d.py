@@ -822,3 +822,24 @@ def test_signalling_nan_in_a_float32_file_is_reported_not_warned(tmp_path, endia
     h = Grid([Block(np.full((2, 1, 1, 3), snan64), allow_nonfinite=True)])
     write(tmp_path / "s.x", h, precision=4)
     assert np.isnan(read(tmp_path / "s.x", allow_nonfinite=True)[0].xyz).all()
+
+
+def test_long_tokens_are_converted_by_the_compiled_scanner():
+    # "%.24e" has 25 significant digits: past the 19 a uint64 holds; the first 19 decide the
+    # rounding except in rare halfway cases, which fall back to Python's float
+    rng = np.random.default_rng(4)
+    a = rng.standard_normal(2000) * 10.0 ** rng.integers(-300, 300, 2000)
+    data = " ".join("%.24e" % v for v in a.tolist()).encode()
+    buf = np.frombuffer(data, np.uint8)
+    out = np.empty(a.size)
+    hi, lo, exact10 = plot3d._decimal_tables()
+    fb = np.empty((3, a.size), np.int64)
+    k, nfb = plot3d._parse_decimals(buf, out, out.view(np.uint64), hi, lo, exact10, fb)
+    assert k == a.size and nfb < 10
+    assert np.array_equal(plot3d._parse_text(data, "t")[:], a)
+    # 1 + 2**-53 exactly, the halfway point between 1 and the next float64: decided by digit 54
+    halfway = "1.00000000000000011102230246251565404236316680908203125"
+    k, nfb = plot3d._parse_decimals(np.frombuffer(halfway.encode(), np.uint8), out, out.view(np.uint64),
+                                    hi, lo, exact10, fb)
+    assert nfb == 1 and _parse(halfway)[0] == float(halfway) == 1.0
+    assert _parse(halfway + "1")[0] == float(halfway + "1") == 1.0000000000000002

@@ -45,10 +45,11 @@ files); float32 values and the other byte order are converted chunk by
 chunk, so the peak memory stays at the grid's own size plus a few
 megabytes.  ASCII files are written with 17 significant digits and read by
 one compiled pass over the text that converts every plain decimal exactly
-(correctly rounded, Clinger's fast path and the Eisel-Lemire algorithm), so
-float64 values round-trip bit for bit; the rare other tokens (more than 19
-digits, subnormals, ``nan``) go through Python's ``float``, which also
-reports a non-numeric token with its line.
+(correctly rounded, Clinger's fast path and the Eisel-Lemire algorithm, also
+for tokens of more than 19 digits when the first 19 decide the rounding), so
+float64 values round-trip bit for bit; the rare other tokens (halfway cases
+past 19 digits, subnormals, ``nan``) go through Python's ``float``, which
+also reports a non-numeric token with its line.
 """
 
 from __future__ import annotations
@@ -627,10 +628,11 @@ def _token_position(data: bytes, index: int):
 def _parse_text(data: bytes, path) -> np.ndarray:
     """All whitespace-separated numbers of the file as float64, correctly rounded.
 
-    The compiled scanner converts every plain decimal token (up to 19
-    significant digits) exactly; the rare others (more digits, subnormal or
-    overflowing values, ``nan``, ``inf``, Fortran's ``1.0-100``) go through
-    Python's ``float``, which also finds the first non-numeric token.
+    The compiled scanner converts every plain decimal token exactly (more
+    than 19 significant digits too, unless the digits past the 19th decide
+    the rounding); the rare others (those, subnormal or overflowing values,
+    ``nan``, ``inf``, Fortran's ``1.0-100``) go through Python's ``float``,
+    which also finds the first non-numeric token.
     """
     buf = np.frombuffer(data, dtype=np.uint8)
     ntok = _count_tokens(buf)
@@ -850,6 +852,17 @@ def _parse_decimals(buf, out, bits, p5hi, p5lo, exact10, fallback):
                         ub |= _U(1) << _U(63)
                     bits[k] = ub
                     done = True
+        elif ok and i == end:
+            # more than 19 significant digits: the value lies in [w, w + 1) * 10**q, so
+            # when both ends round to the same float64, so does the value
+            q = adj + e
+            b = _eisel_lemire(w, q, p5hi, p5lo)
+            if b >= 0 and b == _eisel_lemire(w + _U(1), q, p5hi, p5lo):
+                ub = _U(b)
+                if neg:
+                    ub |= _U(1) << _U(63)
+                bits[k] = ub
+                done = True
         if not done:
             out[k] = np.nan
             if nfb < fallback.shape[1]:
