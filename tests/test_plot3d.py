@@ -358,9 +358,10 @@ def test_detect_all_lists_every_fit_preferred_first(tmp_path):
     write(q, Grid([sheared_box()]), encoding="fortran")
     assert plot3d.detect_all(q) == [detect(q)] == [Plot3DFormat(encoding="fortran")]
     a = tmp_path / "t.fmt"
-    a.write_text("1\n2 1 1\n0 1 0 0 0 0 1 1\n")     # 3-D no iblank, or 2-D ... no: 8 values
+    a.write_text("1\n1 1 1\n1 1 1\n")   # one 3-D block of one point, or single-block with IBLANK
     fits = plot3d.detect_all(a)
-    assert fits[0] == detect(a) and len(fits) == len(set(fits))
+    assert fits == [Plot3DFormat(encoding="ascii"), Plot3DFormat(encoding="ascii", multiblock=False, iblank=True)]
+    assert fits[0] == detect(a)
     for f in fits:
         assert read(a, format=f).source_format == f
 
