@@ -2,7 +2,9 @@
 
 Writes and reads a 3-D multiblock grid (default 20 M points, float64) with
 ``tfi_quat.io.hdf5`` uncompressed and gzip-compressed, and in the same run
-writes and reads the same coordinate bytes with plain numpy.  Then times
+writes and reads the same coordinate bytes with plain numpy.  ``write()``
+is durable (temporary file, ``fsync``, rename) and is compared with
+``tofile`` + ``fsync``; the HDF5 writer alone (no fsync) with plain ``tofile``.  Then times
 ``read_face`` (each of the six faces) and ``read_block`` on the largest
 block.  Every figure is the best of ``--repeat`` runs (gzip: at most 2), run
 round-robin with the numpy reference so that the ratios are fair on a shared
@@ -101,6 +103,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dir", default=None, help="folder for the files (default: a temporary one)")
     args = ap.parse_args(argv)
 
+    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     grid = make_grid(int(args.points), args.blocks)
     npts = grid.npoints
     nbytes = sum(b.xyz.nbytes for b in grid)
@@ -130,6 +133,17 @@ def main(argv=None) -> int:
                     out.append(a.reshape(b.dims + (3,), order="F"))
             return out
 
+        def np_write_fsync():
+            with open(raw, "wb") as fh:
+                for b in grid:
+                    b.xyz.T.tofile(fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+
+        def h5_writer_alone():
+            # the HDF5 file as write() makes it, without the temporary file, fsync and rename
+            hdf5._write_file(h5, grid, None, None, None)
+
         def os_write():
             fd = os.open(raw, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
             try:
@@ -139,22 +153,26 @@ def main(argv=None) -> int:
                 os.close(fd)
 
         level = args.level
-        w = best_of({"np": (np_write, raw), "os": (os_write, raw),
-                     "h5": (lambda: hdf5.write(h5, grid), h5)}, args.repeat)
+        w = best_of({"np": (np_write, raw), "os": (os_write, raw), "h5w": (h5_writer_alone, h5),
+                     "npsync": (np_write_fsync, raw), "h5": (lambda: hdf5.write(h5, grid), h5)},
+                    args.repeat)
         r = best_of({"np": (np_read, None), "h5": (lambda: hdf5.read(h5), None),
                      "h5raw": (lambda: hdf5.read(h5, allow_nonfinite=True), None)}, args.repeat)
         row("np tofile (same bytes)", w["np"])
         row("np fromfile (same bytes)", r["np"])
         row("os.write (same bytes)", w["os"], w["np"])
-        row("hdf5 write", w["h5"], w["np"], f"file {os.path.getsize(h5) / nbytes:.3f}x")
+        row("hdf5 writer alone", w["h5w"], w["np"], "no fsync")
+        row("np tofile + fsync", w["npsync"])
+        row("hdf5 write()", w["h5"], w["npsync"], f"vs tofile+fsync; file {os.path.getsize(h5) / nbytes:.3f}x")
         row("hdf5 read", r["h5"], r["np"], f"peak mem {peak_ratio(lambda: hdf5.read(h5), nbytes):.2f}x")
         row("hdf5 read, no NaN scan", r["h5raw"], r["np"])
         if not args.no_gzip:
             gzrep = min(args.repeat, 2)
-            w = best_of({"np": (np_write, raw), "gz": (lambda: hdf5.write(
+            w = best_of({"np": (np_write_fsync, raw), "gz": (lambda: hdf5.write(
                 gz, grid, compression="gzip", compression_level=level), gz)}, gzrep)
             r = best_of({"np": (np_read, None), "gz": (lambda: hdf5.read(gz), None)}, gzrep)
-            row(f"hdf5 write gzip {level}", w["gz"], w["np"], f"file {os.path.getsize(gz) / nbytes:.3f}x")
+            row(f"hdf5 write() gzip {level}", w["gz"], w["np"],
+                f"vs tofile+fsync; file {os.path.getsize(gz) / nbytes:.3f}x")
             row(f"hdf5 read gzip {level}", r["gz"], r["np"])
 
         big = grid[0]
@@ -172,7 +190,8 @@ def main(argv=None) -> int:
           f"best of {args.repeat} (gzip: {min(args.repeat, 2)}); hot page cache")
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cpus, "
           f"python {platform.python_version()}, numpy {np.__version__}, h5py "
-          f"{__import__('h5py').version.version}, HDF5 {__import__('h5py').version.hdf5_version}")
+          f"{__import__('h5py').version.version}, HDF5 {__import__('h5py').version.hdf5_version}; "
+          f"load average {load0:.1f} at start, {os.getloadavg()[0]:.1f} at the end")
     head = ("operation", "time s", "Mpoints/s", "GB/s", "x numpy", "notes")
     widths = [max(len(r[c]) for r in rows + [head]) for c in range(len(head))]
     print("| " + " | ".join(h.ljust(w) for h, w in zip(head, widths)) + " |")

@@ -532,3 +532,72 @@ def test_convert_plot3d_never_replaces_its_input_without_force(capsys, tmp_path)
     assert run_cli(capsys, "convert", a, a, "--big-endian", "--force")[0] == 0
     assert plot3d.detect(a).endian == ">"
     assert [b.xyz.tobytes() for b in tfi_quat.read(a)] == [b.xyz.tobytes() for b in two_block_grid()]
+
+
+def test_info_lists_the_other_variants_an_ambiguous_file_fits(capsys, tmp_path):
+    # 2-D with 8-byte integers: float64 without IBLANK and float32 with IBLANK are the same size
+    p = tmp_path / "amb.x"
+    grid = Grid([annulus(5, 3)], 2)
+    plot3d.write(p, grid, precision=4, iblank=True, int_size=8, multiblock=False)
+    rc, out, err = run_cli(capsys, "info", p)
+    chosen = Plot3DFormat(ndim=2, int_size=8, multiblock=False)
+    other = chosen.replace(precision=4, iblank=True)
+    assert rc == 0 and err == ""
+    lines = out.splitlines()
+    assert lines[1] == f"  format      plot3d: {chosen.describe()}"
+    assert lines[2] == (f"  also fits   plot3d: {other.describe()} "
+                        "(read it so with --precision single --iblank)")
+    rc, out, _ = run_cli(capsys, "info", p, "--json")
+    s = json.loads(out)
+    assert [Plot3DFormat(**a["variant"]) for a in s["also_fits"]] == [other]
+    assert s["also_fits"][0]["options"] == "--precision single --iblank"
+    # the options given read the other variant, and then nothing else fits
+    rc, out, _ = run_cli(capsys, "info", p, "--json", *s["also_fits"][0]["options"].split())
+    s = json.loads(out)
+    assert Plot3DFormat(**s["variant"]) == other and "also_fits" not in s
+    assert s["iblank"] is True
+    assert s["bbox"]["max"][0] == pytest.approx(3.0, rel=1e-6)
+
+
+def test_info_hint_options_select_each_alternative(capsys, tmp_path):
+    # a one-point grid fits several variants; every hint must read exactly its variant
+    p = tmp_path / "tiny.x"
+    plot3d.write(p, Grid([annulus(1, 1)], 2))
+    rc, out, _ = run_cli(capsys, "info", p, "--json")
+    alts = json.loads(out)["also_fits"]
+    assert rc == 0 and len(alts) >= 2
+    for a in alts:
+        rc, out, _ = run_cli(capsys, "info", p, "--json", *a["options"].split())
+        assert rc == 0 and json.loads(out)["variant"] == a["variant"], a
+
+
+def test_info_unambiguous_file_has_no_also_fits(capsys, h5grid, tmp_path):
+    p, _ = h5grid
+    rc, out, _ = run_cli(capsys, "info", p, "--json")
+    assert rc == 0 and "also_fits" not in json.loads(out)
+    q = tmp_path / "a.x"
+    plot3d.write(q, two_block_grid())
+    rc, out, _ = run_cli(capsys, "info", q)
+    assert rc == 0 and "also fits" not in out
+
+
+def test_info_leaves_out_variants_with_absurd_iblank(capsys, tmp_path):
+    # one 2-D float64 block in a multi-block file fits, byte for byte, a single-block 3-D
+    # float32 file with IBLANK and ni = 1; its "IBLANK" would be coordinate bytes
+    p = tmp_path / "c.x"
+    plot3d.write(p, Grid([annulus(9, 5)], 2))
+    fits = plot3d.detect_all(p)
+    assert Plot3DFormat(precision=4, iblank=True, multiblock=False) in fits
+    rc, out, _ = run_cli(capsys, "info", p, "--json")
+    assert rc == 0 and "also_fits" not in json.loads(out)
+    # the same shape with small integers where that IBLANK would be is listed
+    q = tmp_path / "d.x"
+    xyz = np.zeros((1, 9, 5, 3), order="F")
+    xyz[0, :, :, :2] = annulus(9, 5)[:, :, 0, :2]
+    plot3d.write(q, Grid([Block(xyz, np.ones((1, 9, 5), np.int32))]), precision=4, iblank=True,
+                 multiblock=False)
+    rc, out, _ = run_cli(capsys, "info", q, "--json")
+    s = json.loads(out)
+    assert Plot3DFormat(**s["variant"]) == Plot3DFormat(ndim=2)
+    assert [Plot3DFormat(**a["variant"]) for a in s["also_fits"]] == \
+        [Plot3DFormat(precision=4, iblank=True, multiblock=False)]

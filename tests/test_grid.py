@@ -89,3 +89,38 @@ def test_copy_is_deep_and_equal():
     assert h == g
     h[0].xyz[0, 0, 0, 0] += 1.0
     assert h != g
+
+
+@pytest.mark.parametrize("bad", [np.zeros((2, 2, 2, 3), dtype=complex), np.full((2, 2, 2, 3), "1.0"),
+                                 np.zeros((2, 2, 2, 3), dtype=bool), np.zeros((2, 2, 2, 3), dtype=object)])
+def test_block_rejects_non_real_dtypes(bad):
+    with pytest.raises(GridValueError, match=rf"block 'b': xyz must be real numbers, got dtype {bad.dtype}"):
+        Block(bad, name="b")
+
+
+def test_integer_and_float32_coordinates_become_float64():
+    b = Block(np.arange(24, dtype=np.int16).reshape(2, 2, 2, 3))
+    assert b.xyz.dtype == np.float64 and b.xyz.flags.f_contiguous and b.xyz[1, 1, 1, 2] == 23
+
+
+@pytest.mark.parametrize("bad", [np.inf, -np.inf])
+def test_block_infinite_is_an_error_too(bad):
+    xyz = sheared_box()
+    xyz[0, 3, 2, 2] = bad
+    with pytest.raises(GridValueError, match=r"block 'w': 1 non-finite .*\(1, 4, 3\).*component z"):
+        Block(xyz, name="w")
+
+
+def test_grid_wraps_arrays_with_names_and_keeps_block_names():
+    g = Grid([sheared_box(), Block(sheared_box(2, 2, 2), name="tip")])
+    assert [b.name for b in g] == ["block1", "tip"]
+    assert g.npoints == 60 + 8 and g.dims == [(5, 4, 3), (2, 2, 2)] and not g.has_iblank
+
+
+def test_error_classes():
+    import tfi_quat
+    from tfi_quat import errors
+    assert issubclass(tfi_quat.GridFormatError, ValueError)
+    assert issubclass(tfi_quat.GridFormatError, errors.TfiQuatError)
+    assert issubclass(GridValueError, ValueError) and issubclass(GridValueError, errors.TfiQuatError)
+    assert issubclass(errors.OverwriteError, FileExistsError)

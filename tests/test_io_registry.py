@@ -36,6 +36,23 @@ def test_unknown_extension_hdf5_by_signature_else_error(tmp_path, grid):
         tq.read(p, format="cgns")
 
 
+def test_write_with_unknown_extension_or_format_is_an_error_and_writes_nothing(tmp_path, grid):
+    with pytest.raises(tq.GridFormatError, match=r"grid\.dat: unknown file extension; give format="):
+        tq.write(tmp_path / "grid.dat", grid)
+    with pytest.raises(tq.GridFormatError, match=r"unknown format 'vtk': expected one of hdf5, plot3d"):
+        tq.write(tmp_path / "grid.x", grid, format="vtk")
+    assert os.listdir(tmp_path) == []
+    tq.write(tmp_path / "grid.dat", grid, format="plot3d")
+    assert tq.read(tmp_path / "grid.dat", format="plot3d") == grid
+
+
+def test_read_of_a_folder_or_missing_file(tmp_path):
+    with pytest.raises(tq.GridFormatError, match="is a directory"):
+        tq.read(tmp_path)
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        tq.read(tmp_path / "none.x")
+
+
 def test_importing_one_format_module_does_not_hide_the_other(tmp_path, grid):
     code = ("import tfi_quat.io.hdf5, tfi_quat as tq, numpy as np;"
             "g = tq.Grid([np.zeros((2, 2, 2, 3))]);"

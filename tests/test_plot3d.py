@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import os
 import struct
 import tempfile
@@ -123,6 +124,44 @@ def test_round_trip_every_variant(data, fmt):
     with tempfile.TemporaryDirectory() as d:
         got = write_read(grid, Path(d) / "g.x", fmt)
     assert_same_grid(got, grid, fmt)
+
+
+def _every_variant() -> list[Plot3DFormat]:
+    """Every distinct variant (fields an encoding ignores at their defaults)."""
+    out = {}
+    for values in itertools.product(*(plot3d._CHOICES[n] for n in plot3d._FIELD_NAMES)):
+        f = Plot3DFormat(**dict(zip(plot3d._FIELD_NAMES, values))).canonical()
+        out[f] = None
+    return list(out)
+
+
+EVERY_VARIANT = _every_variant()
+
+
+def test_every_variant_is_enumerated():
+    # binary 2 endian x 2 int x 2 multiblock x 2 ndim x 2 precision x 2 iblank,
+    # fortran that x 2 records x 2 marker sizes, ascii 2 x 2 x 2 x 2
+    assert len(EVERY_VARIANT) == 64 + 256 + 16
+
+
+@pytest.mark.parametrize("n", range(len(EVERY_VARIANT)),
+                         ids=lambda n: EVERY_VARIANT[n].describe().replace(", ", "-"))
+def test_round_trip_each_variant(tmp_path, n):
+    """Each variant at least once, whatever hypothesis draws: 1 or 3 blocks, iblank in some."""
+    fmt = EVERY_VARIANT[n]
+    rng = np.random.default_rng(n)
+    blocks = []
+    for b in range(3 if fmt.multiblock else 1):
+        dims = (int(rng.integers(1, 5)), int(rng.integers(1, 5)),
+                1 if fmt.ndim == 2 else int(rng.integers(1, 5)))
+        xyz = np.asfortranarray(rng.standard_normal(dims + (3,)) * 10.0 ** rng.integers(-20, 20, dims + (3,)))
+        if fmt.ndim == 2:
+            xyz[..., 2] = 0.0
+        xyz.ravel(order="K")[0] = -0.0
+        ib = rng.integers(-2, 3, size=dims).astype(np.int32) if b != 1 else None
+        blocks.append(Block(xyz, ib))
+    grid = Grid(blocks, fmt.ndim)
+    assert_same_grid(write_read(grid, tmp_path / "g.x", fmt), grid, fmt)
 
 
 @given(seed=st.integers(0, 2 ** 32 - 1), multiblock=st.booleans(), ndim=st.sampled_from([2, 3]))
@@ -307,6 +346,26 @@ def test_ambiguous_file_prefers_common_variant_and_override_picks_the_other(tmp_
     assert np.array_equal(g[0].xyz, annulus(3, 2).astype(np.float32).astype(float))
 
 
+def test_detect_all_lists_every_fit_preferred_first(tmp_path):
+    grid = Grid([annulus(3, 2)], 2)
+    p = tmp_path / "amb.x"
+    write(p, grid, precision=4, iblank=True, int_size=8, multiblock=False)
+    both = [Plot3DFormat(precision=8, ndim=2, int_size=8, multiblock=False),
+            Plot3DFormat(precision=4, iblank=True, ndim=2, int_size=8, multiblock=False)]
+    assert plot3d.detect_all(p) == both
+    assert plot3d.detect_all(p, iblank=True) == both[1:]
+    q = tmp_path / "one.x"
+    write(q, Grid([sheared_box()]), encoding="fortran")
+    assert plot3d.detect_all(q) == [detect(q)] == [Plot3DFormat(encoding="fortran")]
+    a = tmp_path / "t.fmt"
+    a.write_text("1\n1 1 1\n1 1 1\n")   # one 3-D block of one point, or single-block with IBLANK
+    fits = plot3d.detect_all(a)
+    assert fits == [Plot3DFormat(encoding="ascii"), Plot3DFormat(encoding="ascii", multiblock=False, iblank=True)]
+    assert fits[0] == detect(a)
+    for f in fits:
+        assert read(a, format=f).source_format == f
+
+
 def test_override_that_does_not_fit_is_an_error(tmp_path):
     p = tmp_path / "g.x"
     write(p, Grid([sheared_box()]))
@@ -382,9 +441,15 @@ def test_zero_dimension_in_header(tmp_path):
         read(p, format=Plot3DFormat())
 
 
-def test_header_claiming_more_than_the_file_holds_fails_before_allocating(tmp_path):
+@pytest.mark.parametrize("encoding", ["binary", "fortran"])
+def test_header_claiming_more_than_the_file_holds_fails_before_allocating(tmp_path, encoding):
     p = tmp_path / "huge.x"
-    p.write_bytes(struct.pack("<i3i", 1, 100000, 100000, 100000) + np.zeros(30).tobytes())
+    if encoding == "binary":
+        p.write_bytes(struct.pack("<i3i", 1, 100000, 100000, 100000) + np.zeros(30).tobytes())
+    else:
+        p.write_bytes(fortran_record(struct.pack("<i", 1)) +
+                      fortran_record(struct.pack("<3i", 100000, 100000, 100000)) +
+                      fortran_record(np.zeros(30).tobytes()))
     tracemalloc.start()
     try:
         with pytest.raises(GridFormatError, match=r"(?s)huge\.x.*truncated: block 1 of 1.*claims "
@@ -395,7 +460,7 @@ def test_header_claiming_more_than_the_file_holds_fails_before_allocating(tmp_pa
         tracemalloc.stop()
     assert peak < 1 << 20
     with pytest.raises(GridFormatError, match=r"block 1 of 1 \(100000x100000x100000\)"):
-        read(p, format=Plot3DFormat())
+        read(p, format=Plot3DFormat(encoding=encoding))
 
 
 def test_inconsistent_fortran_record_markers(tmp_path):
@@ -409,6 +474,77 @@ def test_inconsistent_fortran_record_markers(tmp_path):
     p.write_bytes(bytes(data))
     with pytest.raises(GridFormatError, match=rf"block 1: inconsistent Fortran record marker at byte "
                                               rf"offset {off}: reads 7, the record holds {24 * n1} bytes"):
+        read(p)
+
+
+@pytest.mark.parametrize("records", ["block", "coordinate"])
+@pytest.mark.parametrize("where", ["count lead", "count trail", "dims lead", "dims trail",
+                                   "block 1 lead", "block 2 trail"])
+def test_every_fortran_record_marker_is_checked(tmp_path, records, where):
+    p = _binary_box(tmp_path, encoding="fortran", records=records)
+    data = bytearray(p.read_bytes())
+    n1, n2 = 5 * 4 * 3, 4 * 3 * 2
+    rec1 = 24 * n1 if records == "block" else 8 * n1       # first record of block 1
+    offsets = {"count lead": 0, "count trail": 8, "dims lead": 12, "dims trail": 12 + 4 + 24,
+               "block 1 lead": 44, "block 2 trail": len(data) - 4}
+    off = offsets[where]
+    want = {"count lead": 4, "count trail": 4, "dims lead": 24, "dims trail": 24,
+            "block 1 lead": rec1, "block 2 trail": 24 * n2 if records == "block" else 8 * n2}[where]
+    assert struct.unpack_from("<i", data, off)[0] == want
+    struct.pack_into("<i", data, off, want + 8)
+    p.write_bytes(bytes(data))
+    with pytest.raises(GridFormatError) as e:
+        read(p)
+    assert str(e.value).startswith(f"{p}: no Plot3D variant fits")
+    # told it is this kind of Fortran file, the reader names the marker, its offset and value
+    with pytest.raises(GridFormatError) as e:
+        read(p, encoding="fortran", records=records, ndim=3, multiblock=True)
+    msg = str(e.value)
+    assert f"byte offset {off}" in msg and f"reads {want + 8}" in msg, msg
+    if where.startswith("block"):
+        assert f"block {where[6]}: inconsistent Fortran record marker at byte offset {off}" in msg
+
+
+def test_fortran_dimension_below_one(tmp_path):
+    p = tmp_path / "neg.x"
+    p.write_bytes(fortran_record(struct.pack(">i", 1), ">") + fortran_record(struct.pack(">3i", 2, -1, 2), ">")
+                  + fortran_record(np.zeros(3 * 4, ">f8").tobytes(), ">"))
+    with pytest.raises(GridFormatError, match=r"neg\.x: not a Fortran unformatted, big-endian.*: header: "
+                                              r"block 1 dimension j = -1 at byte offset 20 must be >= 1"):
+        read(p, format=Plot3DFormat(encoding="fortran", endian=">"))
+    with pytest.raises(GridFormatError, match=r"(?s)neg\.x: no Plot3D variant fits.*dimension j = -1 at "
+                                              r"byte offset 20"):
+        read(p)
+
+
+def test_nonfinite_in_fortran_coordinate_records_names_the_byte(tmp_path):
+    xyz = sheared_box(3, 2, 2)
+    xyz[2, 1, 0, 2] = np.nan   # z of point (3, 2, 1): value 3 + 1 * 3 = 5 of the z record
+    p = tmp_path / "nan.x"
+    write(p, Grid([Block(xyz, allow_nonfinite=True)]), encoding="fortran", records="coordinate",
+          endian=">", multiblock=False)
+    n = 12
+    # dims record (4 + 12 + 4), then x and y records (4 + 8n + 4 each), then z's lead marker
+    off = 20 + 2 * (8 + 8 * n) + 4 + 8 * 5
+    assert np.isnan(np.frombuffer(p.read_bytes()[off:off + 8], ">f8")[0])
+    with pytest.raises(GridFormatError, match=rf"nan\.x: block 1 of 1: non-finite coordinate z = nan at "
+                                              rf"\(i, j, k\) = \(3, 2, 1\) \(1-based\), byte offset {off} "):
+        read(p)
+
+
+def test_text_file_with_stray_bytes_names_their_line(tmp_path):
+    p = tmp_path / "g.fmt"
+    write(p, Grid([sheared_box(3, 2, 2)]), encoding="ascii")
+    lines = p.read_bytes().split(b"\n")
+    # a non-ASCII comment and a DOS end-of-file mark: not printable ASCII, so not taken as text,
+    # and no binary variant fits either: the text reader says where
+    lines[3] = lines[3] + " caf\u00e9".encode()
+    p.write_bytes(b"\n".join(lines) + b"\x1a")
+    with pytest.raises(GridFormatError, match=r"g\.fmt: line 4, column \d+: non-numeric token 'caf.*mostly "
+                                              r"text"):
+        read(p)
+    p.write_bytes(b"\n".join(lines[:3] + lines[4:]) + b"\x1a")
+    with pytest.raises(GridFormatError, match=r"g\.fmt: line \d+, column 1: non-numeric token '\\x1a'"):
         read(p)
 
 
@@ -555,6 +691,26 @@ class _FakeGrid(Grid):
         return False
 
 
+@pytest.mark.parametrize("fmt", [Plot3DFormat(), Plot3DFormat(encoding="fortran", endian=">"),
+                                 Plot3DFormat(precision=4, iblank=True)])
+def test_binary_write_allocates_no_copy_of_the_grid(tmp_path, fmt):
+    """Native float64 blocks go out from their own memory, others in 2 MiB chunks."""
+    rng = np.random.default_rng(2)
+    grid = Grid([np.asfortranarray(rng.random((100, 100, 60, 3)))])      # 14.4 MB
+    tracemalloc.start()
+    try:
+        write(tmp_path / "w.x", grid, like=fmt, iblank=fmt.iblank)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    chunk = plot3d._CHUNK * 8
+    # an IBLANK the grid lacks is written as ones (2.4 MB of int32 here); without IBLANK nothing
+    limit = (chunk if fmt.precision == 4 or fmt.endian == ">" else 0) + (1 << 20) + \
+        (grid.npoints * 4 if fmt.iblank else 0)
+    assert peak <= limit, (peak, limit)
+    assert read(tmp_path / "w.x").source_format == fmt
+
+
 def test_failed_write_leaves_target_untouched_and_no_temp_file(tmp_path, monkeypatch):
     p = tmp_path / "t.x"
     p.write_bytes(b"precious")
@@ -645,3 +801,46 @@ def test_fortran_exponent_without_e_letter(tmp_path):
     p.write_text("2 1\n0.1234567-100 1.5+002\n0 0\n")
     g = read(p)
     assert g[0].xyz[0, 0, 0, 0] == 0.1234567e-100 and g[0].xyz[1, 0, 0, 0] == 150.0
+
+
+@pytest.mark.parametrize("endian", ["<", ">"])
+def test_signalling_nan_in_a_float32_file_is_reported_not_warned(tmp_path, endian):
+    # widening a signalling NaN raises the FPU's invalid flag: numpy warns, and warnings are errors here
+    vals = np.arange(12, dtype=np.uint32).astype(np.float32).view(np.uint32)
+    vals[5] = 0x7F800001
+    p = tmp_path / "snan.x"
+    p.write_bytes(struct.pack(f"{endian}3i", 2, 2, 1) + vals.astype(f"{endian}u4").tobytes())
+    with pytest.raises(GridFormatError, match=r"snan\.x: block 1 of 1: non-finite coordinate y = nan at "
+                                              r"\(i, j, k\) = \(2, 1, 1\).*byte offset 32"):
+        read(p)
+    g = read(p, allow_nonfinite=True)
+    assert g.source_format.precision == 4 and np.isnan(g[0].xyz[1, 0, 0, 1])
+    # and back out as float32, binary and text
+    write(tmp_path / "o.x", g, endian=endian)
+    write(tmp_path / "o.fmt", g, encoding="ascii")
+    assert np.isnan(read(tmp_path / "o.fmt", precision=4, allow_nonfinite=True)[0].xyz[1, 0, 0, 1])
+    snan64 = np.array([0x7FF0000000000001], np.uint64).view(np.float64)[0]
+    h = Grid([Block(np.full((2, 1, 1, 3), snan64), allow_nonfinite=True)])
+    write(tmp_path / "s.x", h, precision=4)
+    assert np.isnan(read(tmp_path / "s.x", allow_nonfinite=True)[0].xyz).all()
+
+
+def test_long_tokens_are_converted_by_the_compiled_scanner():
+    # "%.24e" has 25 significant digits: past the 19 a uint64 holds; the first 19 decide the
+    # rounding except in rare halfway cases, which fall back to Python's float
+    rng = np.random.default_rng(4)
+    a = rng.standard_normal(2000) * 10.0 ** rng.integers(-300, 300, 2000)
+    data = " ".join("%.24e" % v for v in a.tolist()).encode()
+    buf = np.frombuffer(data, np.uint8)
+    out = np.empty(a.size)
+    hi, lo, exact10 = plot3d._decimal_tables()
+    fb = np.empty((3, a.size), np.int64)
+    k, nfb = plot3d._parse_decimals(buf, out, out.view(np.uint64), hi, lo, exact10, fb)
+    assert k == a.size and nfb < 10
+    assert np.array_equal(plot3d._parse_text(data, "t")[:], a)
+    # 1 + 2**-53 exactly, the halfway point between 1 and the next float64: decided by digit 54
+    halfway = "1.00000000000000011102230246251565404236316680908203125"
+    k, nfb = plot3d._parse_decimals(np.frombuffer(halfway.encode(), np.uint8), out, out.view(np.uint64),
+                                    hi, lo, exact10, fb)
+    assert nfb == 1 and _parse(halfway)[0] == float(halfway) == 1.0
+    assert _parse(halfway + "1")[0] == float(halfway + "1") == 1.0000000000000002

@@ -40,6 +40,12 @@ def face_index(face: str | int) -> int:
         raise GridValueError(f"unknown face {face!r}: expected one of {', '.join(FACES)}") from None
 
 
+def has_z(xyz: np.ndarray) -> bool:
+    """Whether any z coordinate of ``xyz`` (..., 3) is not zero (NaN counts; no FPU warning)."""
+    with np.errstate(invalid="ignore"):   # a signalling NaN raises "invalid" when tested
+        return bool(np.any(xyz[..., 2]))
+
+
 def _where(name: str | None) -> str:
     return f"block {name!r}" if name else "block"
 
@@ -206,7 +212,7 @@ class Grid:
             blist.append(b)
         if not blist:
             raise GridValueError("a grid needs at least one block")
-        flat2d = all(b.dims[2] == 1 and not np.any(b.xyz[..., 2]) for b in blist)
+        flat2d = all(b.dims[2] == 1 and not has_z(b.xyz) for b in blist)
         if ndim is None:
             ndim = 2 if flat2d else 3
         if ndim not in (2, 3):
@@ -215,7 +221,7 @@ class Grid:
             for n, b in enumerate(blist):
                 if b.dims[2] != 1:
                     raise GridValueError(f"block {n + 1}: a 2-D grid needs nk == 1, got nk = {b.dims[2]}")
-                if np.any(b.xyz[..., 2]):
+                if has_z(b.xyz):
                     raise GridValueError(f"block {n + 1}: a 2-D grid needs z == 0")
         self.blocks = blist
         self.ndim = int(ndim)

@@ -262,8 +262,75 @@ def _num(v) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def summary(grid: Grid, path) -> dict:
-    """Everything ``info`` reports, as a JSON-ready dict."""
+#: Plot3DFormat field -> the ``info`` option that sets it to a value
+_FIELD_OPTIONS = {
+    "encoding": lambda v: f"--encoding {v}",
+    "endian": lambda v: "--endian " + ("big" if v == ">" else "little"),
+    "precision": lambda v: "--precision " + ("single" if v == 4 else "double"),
+    "ndim": lambda v: f"--ndim {v}",
+    "multiblock": lambda v: "--multi-block" if v else "--single-block",
+    "iblank": lambda v: "--iblank" if v else "--no-iblank",
+    "records": lambda v: f"--records {v}",
+    "int_size": lambda v: f"--int-size {v}",
+    "marker_size": lambda v: f"--marker-size {v}",
+}
+
+
+#: IBLANK values beyond this size mark a variant as implausible (real ones are small:
+#: 1 field, 0 hole, 2 or -n fringe with donor grid n)
+IBLANK_PLAUSIBLE = 1 << 20
+
+
+def _plausible(path, variant) -> bool:
+    """Whether the file read as ``variant`` has plausible IBLANK values (or none)."""
+    from ..io.plot3d import read as read_plot3d
+    if not variant.iblank:
+        return True
+    try:
+        g = read_plot3d(path, format=variant, allow_nonfinite=True)
+    except TfiQuatError:
+        return False
+    return all(int(np.abs(b.iblank.astype(np.int64)).max()) <= IBLANK_PLAUSIBLE for b in g)
+
+
+def other_variants(args, path, grid: Grid) -> list[dict]:
+    """The other Plot3D variants the file fits, each with the options that read it so.
+
+    Empty for HDF5 files and for Plot3D files that fit one variant only.
+    Variants whose IBLANK values would be absurd (beyond ``IBLANK_PLAUSIBLE``
+    in size: coordinate bytes read as integers) are left out: a 2-D float64
+    file with one block fits, byte for byte, a 3-D single-block float32 file
+    with IBLANK and ``ni = 1``.
+    """
+    from ..io.plot3d import Plot3DFormat, detect_all
+    chosen = grid.source_format
+    if not isinstance(chosen, Plot3DFormat):
+        return []
+    fits = detect_all(path, **input_overrides(args))
+    out = []
+    for alt in fits:
+        if alt == chosen or not _plausible(path, alt):
+            continue
+        # the fields that differ from the chosen variant, plus any that tell ``alt``
+        # from a preferred fit sharing those
+        names = [n for n in _FIELD_OPTIONS if getattr(alt, n) != getattr(chosen, n)]
+        while True:
+            first = next(f for f in fits if all(getattr(f, n) == getattr(alt, n) for n in names))
+            if first == alt:
+                break
+            names.append(next(n for n in _FIELD_OPTIONS
+                              if n not in names and getattr(first, n) != getattr(alt, n)))
+        out.append({"variant": variant_dict(alt), "description": describe_variant(alt),
+                    "options": " ".join(_FIELD_OPTIONS[n](getattr(alt, n)) for n in names)})
+    return out
+
+
+def summary(grid: Grid, path, also_fits=()) -> dict:
+    """Everything ``info`` reports, as a JSON-ready dict.
+
+    ``also_fits``: the other variants the file fits (:func:`other_variants`);
+    listed under ``"also_fits"`` when there are any.
+    """
     lo, hi = grid.bbox()
     edges = edge_length_range(grid)
     variant = grid.source_format
@@ -280,7 +347,7 @@ def summary(grid: Grid, path) -> dict:
         "bbox": {"min": [_num(v) for v in lo], "max": [_num(v) for v in hi]},
         "edge_length": None if edges is None else {"min": _num(edges[0]), "max": _num(edges[1])},
         "iblank": grid.has_iblank,
-    }
+    } | ({"also_fits": list(also_fits)} if also_fits else {})
 
 
 def _g(v) -> str:
@@ -291,6 +358,8 @@ def format_text(s: dict) -> str:
     """The human-readable ``info`` report."""
     lines = [s["path"],
              f"  format      {s['description']}",
+             *(f"  also fits   {a['description']} (read it so with {a['options']})"
+               for a in s.get("also_fits", ())),
              f"  ndim        {s['ndim']}",
              f"  blocks      {s['nblocks']}"]
     wname = max((len(b["name"] or "") for b in s["blocks"]), default=0)
@@ -323,6 +392,6 @@ def add_args(parser: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     with one_line_errors():
         grid = read_input(args, args.grid)
-        s = summary(grid, args.grid)
+        s = summary(grid, args.grid, other_variants(args, args.grid, grid))
     print(json.dumps(s, indent=2) if args.json else format_text(s))
     return 0

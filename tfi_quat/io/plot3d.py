@@ -31,10 +31,13 @@ Detection (:func:`detect`) tries every variant left open by the caller's
 overrides: for binary files it parses the header, computes the exact file
 size each variant implies and, for Fortran files, checks every record
 marker; for text files it counts the values.  A variant fits only when the
-sizes add up exactly.  When several fit (possible for tiny grids), the
-preferred values above decide, deterministically; when none fits, the error
-lists what was tried and the closest misses (truncation, a bad record
-marker, a bad dimension), with the block and byte offset.
+sizes add up exactly.  When several fit (tiny grids; 2-D files with 8-byte
+integers), the preferred values above decide, deterministically, and
+:func:`detect_all` lists them all; when none fits, the error lists what was
+tried and the closest misses (truncation, a bad record marker, a bad
+dimension), with the block and byte offset.  A mostly-text file with a few
+bytes that are not printable ASCII that fits no binary variant gets the
+text reader's error, naming the line of the offending token.
 
 Binary reads move the file bytes straight into each block's final
 Fortran-order float64 array (``os.preadv`` in chunks, two threads for large
@@ -42,10 +45,11 @@ files); float32 values and the other byte order are converted chunk by
 chunk, so the peak memory stays at the grid's own size plus a few
 megabytes.  ASCII files are written with 17 significant digits and read by
 one compiled pass over the text that converts every plain decimal exactly
-(correctly rounded, Clinger's fast path and the Eisel-Lemire algorithm), so
-float64 values round-trip bit for bit; the rare other tokens (more than 19
-digits, subnormals, ``nan``) go through Python's ``float``, which also
-reports a non-numeric token with its line.
+(correctly rounded, Clinger's fast path and the Eisel-Lemire algorithm, also
+for tokens of more than 19 digits when the first 19 decide the rounding), so
+float64 values round-trip bit for bit; the rare other tokens (halfway cases
+past 19 digits, subnormals, ``nan``) go through Python's ``float``, which
+also reports a non-numeric token with its line.
 """
 
 from __future__ import annotations
@@ -61,12 +65,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GridFormatError, GridValueError
-from ..grid import Block, Grid
+from ..grid import Block, Grid, has_z
 from .._jit import jit
 from . import register
 from ._atomic import atomic_output, check_target
 
-__all__ = ["Plot3DFormat", "read", "write", "detect"]
+__all__ = ["Plot3DFormat", "read", "write", "detect", "detect_all"]
 
 #: allowed values of each field, the preferred (most common) value first
 _CHOICES = {
@@ -322,8 +326,10 @@ def _parse_header(fd, size: int, fmt: Plot3DFormat) -> list[tuple[int, int, int]
         if ms:
             # the first marker decides whether this framing is plausible at all
             first = _pread(fd, ms, 0)
-            if len(first) < ms or int(np.frombuffer(first, f"{fmt.endian}i{ms}")[0]) != isz:
-                raise _Miss(4, "first record marker does not frame a block count")
+            got = int(np.frombuffer(first, f"{fmt.endian}i{ms}")[0]) if len(first) == ms else None
+            if got != isz:
+                raise _Miss(4, f"header: the first record marker at byte offset 0 reads {got}, "
+                               f"expected {isz} (a record holding the block count)")
             _check_marker(fd, size, ms + isz, isz, ms, fmt.endian, "header", 1)
         nb = int(_read_ints(fd, size, off + ms, 1, it)[0])
         off += isz + 2 * ms
@@ -448,7 +454,10 @@ def _no_fit(path, size, tried, misses, what="") -> GridFormatError:
     misses = sorted(misses, key=lambda m: m[:4])
     if len(tried) == 1 and misses:
         return GridFormatError(f"{path}: not a {tried[0].describe()} Plot3D file: {misses[0][4]}")
-    shown = [f"  as {m[5].describe()}: {m[4]}" for m in misses if m[0] <= 2][:3]
+    # the plausible misses; when there are none (e.g. every framing fails at its first
+    # record marker), the first ones in preference order, so the message still says why
+    close = [m for m in misses if m[0] <= 2] or misses
+    shown = [f"  as {m[5].describe()}: {m[4]}" for m in close][:3]
     text = f"{path}: no Plot3D variant fits this {size}-byte file{what}; tried {_summary(tried)}"
     if shown:
         text += ". Closest:\n" + "\n".join(shown)
@@ -485,7 +494,7 @@ def _detect_binary(fd, size, path, fixed):
     if not fits:
         raise _no_fit(path, size, tried, misses)
     fits.sort(key=lambda t: t[0])
-    return fits[0][1:]
+    return fits
 
 
 # ---------------------------------------------------------------- binary read
@@ -528,7 +537,9 @@ def _read_task(fd, task):
         if dest.dtype.kind == "i" and (tmp.min() < -(1 << 31) or tmp.max() >= (1 << 31)):
             bad = int(np.argmax((tmp < -(1 << 31)) | (tmp >= (1 << 31))))
             return ("range", first + bad, int(tmp[bad]))
-        dest[...] = tmp
+        # a signalling NaN raises the "invalid" flag when widened; NaNs are reported below
+        with np.errstate(invalid="ignore"):
+            dest[...] = tmp
     if check:
         bad = _first_nonfinite(dest)
         if bad is not None:
@@ -617,10 +628,11 @@ def _token_position(data: bytes, index: int):
 def _parse_text(data: bytes, path) -> np.ndarray:
     """All whitespace-separated numbers of the file as float64, correctly rounded.
 
-    The compiled scanner converts every plain decimal token (up to 19
-    significant digits) exactly; the rare others (more digits, subnormal or
-    overflowing values, ``nan``, ``inf``, Fortran's ``1.0-100``) go through
-    Python's ``float``, which also finds the first non-numeric token.
+    The compiled scanner converts every plain decimal token exactly (more
+    than 19 significant digits too, unless the digits past the 19th decide
+    the rounding); the rare others (those, subnormal or overflowing values,
+    ``nan``, ``inf``, Fortran's ``1.0-100``) go through Python's ``float``,
+    which also finds the first non-numeric token.
     """
     buf = np.frombuffer(data, dtype=np.uint8)
     ntok = _count_tokens(buf)
@@ -840,6 +852,17 @@ def _parse_decimals(buf, out, bits, p5hi, p5lo, exact10, fallback):
                         ub |= _U(1) << _U(63)
                     bits[k] = ub
                     done = True
+        elif ok and i == end:
+            # more than 19 significant digits: the value lies in [w, w + 1) * 10**q, so
+            # when both ends round to the same float64, so does the value
+            q = adj + e
+            b = _eisel_lemire(w, q, p5hi, p5lo)
+            if b >= 0 and b == _eisel_lemire(w + _U(1), q, p5hi, p5lo):
+                ub = _U(b)
+                if neg:
+                    ub |= _U(1) << _U(63)
+                bits[k] = ub
+                done = True
         if not done:
             out[k] = np.nan
             if nfb < fallback.shape[1]:
@@ -974,8 +997,11 @@ def _ascii_header_error(data, vals, fmt) -> str:
             + (f", from line {line[0]}" if line else ""))
 
 
-def _read_ascii(path, fh, fixed, allow_nonfinite):
-    data = fh.read()
+def _detect_ascii(path, data: bytes, fixed):
+    """All numbers of a text file and the variants that fit them, preferred first.
+
+    Returns ``(values, [(key, fmt, (header_end, layout)), ...])``.
+    """
     vals = _parse_text(data, path)
     if vals.size == 0:
         raise GridFormatError(f"{path}: no numbers in the file")
@@ -996,9 +1022,14 @@ def _read_ascii(path, fh, fixed, allow_nonfinite):
                   for m in misses]
         raise _no_fit(path, len(data), cands, misses, f" ({len(vals)} values of text)")
     fits.sort(key=lambda t: t[0])
-    _, fmt, (hend, layout) = fits[0]
+    return vals, fits
+
+
+def _read_ascii(path, data: bytes, vals: np.ndarray, fmt, layout, allow_nonfinite) -> list[Block]:
+    """The blocks of a text file whose numbers ``vals`` fit ``fmt`` with this layout."""
     if fmt.precision == 4:
-        with np.errstate(over="ignore"):    # out-of-range values become inf: reported below
+        # out-of-range values become inf: reported below (as NaN payloads are)
+        with np.errstate(over="ignore", invalid="ignore"):
             vals = vals.astype(np.float32).astype(np.float64)
     nd = fmt.ndim
     blocks = []
@@ -1020,7 +1051,7 @@ def _read_ascii(path, fh, fixed, allow_nonfinite):
             raw = vals[start + nd * npts:start + (nd + 1) * npts]
             ib = raw.astype(np.int32).reshape(dims, order="F")
         blocks.append(Block(xyz, ib, name=f"block{n + 1}", allow_nonfinite=True))
-    return fmt, blocks
+    return blocks
 
 
 # ---------------------------------------------------------------- public read
@@ -1038,7 +1069,18 @@ def _fixed_fields(format, overrides) -> dict:
     return {k: getattr(probe, k) for k in overrides}
 
 
-def _open_and_dispatch(path, format, overrides, allow_nonfinite, load: bool):
+def _mostly_text(fd, size) -> bool:
+    """Nine in ten of the first 4 KiB are printable ASCII: text with a few stray bytes."""
+    head = _pread(fd, min(size, 4096), 0)
+    return len(head.translate(None, _TEXT_BYTES)) <= 0.1 * len(head)
+
+
+def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "read"):
+    """Detect (and read) a file.
+
+    ``mode``: ``"read"`` returns ``(fmt, blocks)``, ``"detect"`` ``(fmt, None)``,
+    ``"all"`` ``([every variant that fits, preferred first], None)``.
+    """
     path = Path(os.fspath(path))
     fixed = _fixed_fields(format, overrides)
     try:
@@ -1051,13 +1093,39 @@ def _open_and_dispatch(path, format, overrides, allow_nonfinite, load: bool):
         if size == 0:
             raise GridFormatError(f"{path}: the file is empty (0 bytes)")
         enc = fixed.get("encoding")
-        if enc == "ascii" or (enc is None and _looks_like_text(fd, size)):
-            fmt, blocks = _read_ascii(path, fh, fixed, allow_nonfinite)
-            return fmt.canonical(), blocks
-        fmt, dims, layout = _detect_binary(fd, size, path, fixed)
-        if not load:
-            return fmt.canonical(), None
-        return fmt.canonical(), _read_blocks(fd, path, fmt, layout, allow_nonfinite)
+        text = enc == "ascii" or (enc is None and _looks_like_text(fd, size))
+        if not text:
+            try:
+                fits = _detect_binary(fd, size, path, fixed)
+            except GridFormatError as exc:
+                if enc is not None or not _mostly_text(fd, size):
+                    raise
+                # a text file with a few bytes that are not printable ASCII (a non-ASCII
+                # comment, a DOS end-of-file mark): the text reader names their line
+                try:
+                    return _dispatch_ascii(path, fh, fixed, allow_nonfinite, mode)
+                except GridFormatError as texc:
+                    raise GridFormatError(f"{texc} (the file is mostly text, but not all of it is "
+                                          "printable ASCII; as binary no variant fits either)") from exc
+            if mode == "all":
+                return [f[1].canonical() for f in fits], None
+            fmt, dims, layout = fits[0][1:]
+            if mode == "detect":
+                return fmt.canonical(), None
+            return fmt.canonical(), _read_blocks(fd, path, fmt, layout, allow_nonfinite)
+        return _dispatch_ascii(path, fh, fixed, allow_nonfinite, mode)
+
+
+def _dispatch_ascii(path, fh, fixed, allow_nonfinite, mode):
+    fh.seek(0)
+    data = fh.read()
+    vals, fits = _detect_ascii(path, data, fixed)
+    if mode == "all":
+        return [f[1].canonical() for f in fits], None
+    _, fmt, (_, layout) = fits[0]
+    if mode == "detect":
+        return fmt.canonical(), None
+    return fmt.canonical(), _read_ascii(path, data, vals, fmt, layout, allow_nonfinite)
 
 
 def detect(path, **overrides) -> Plot3DFormat:
@@ -1083,7 +1151,34 @@ def detect(path, **overrides) -> Plot3DFormat:
         Empty file, or no variant fits: the message lists what was tried and
         the closest misses with block and byte offset.
     """
-    return _open_and_dispatch(path, None, overrides, True, load=False)[0]
+    return _open_and_dispatch(path, None, overrides, True, "detect")[0]
+
+
+def detect_all(path, **overrides) -> list[Plot3DFormat]:
+    """Every Plot3D variant the file fits, the one :func:`detect` picks first.
+
+    A file fits several variants when its sizes cannot tell them apart:
+    always for 2-D files with 8-byte integers (float64 without IBLANK and
+    float32 with 8-byte IBLANK both take 16 bytes a point), and for some tiny
+    grids.  ``tfi-quat info`` lists the others, so the choice is never silent.
+
+    Parameters
+    ----------
+    path : str or path-like
+    **overrides
+        :class:`Plot3DFormat` fields to take as given.
+
+    Returns
+    -------
+    list of Plot3DFormat
+        At least one; in preference order (see the module docstring).
+
+    Raises
+    ------
+    GridFormatError
+        As :func:`detect`.
+    """
+    return _open_and_dispatch(path, None, overrides, True, "all")[0]
 
 
 def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = False,
@@ -1117,7 +1212,7 @@ def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = Fa
         non-finite coordinates, or no variant fits; the message names the
         file, block and byte offset or line.
     """
-    fmt, blocks = _open_and_dispatch(path, format, overrides, allow_nonfinite, load=True)
+    fmt, blocks = _open_and_dispatch(path, format, overrides, allow_nonfinite, "read")
     return Grid(blocks, fmt.ndim, source_format=fmt, source_path=path)
 
 
@@ -1179,7 +1274,7 @@ def write(path, grid: Grid, *, like: Plot3DFormat | None = None, overwrite: bool
                               "(write with multiblock=True)")
     if fmt.ndim == 2:
         for n, b in enumerate(grid):
-            if b.dims[2] != 1 or np.any(b.xyz[..., 2]):
+            if b.dims[2] != 1 or has_z(b.xyz):
                 raise GridFormatError(f"{path}: block {n + 1} is 3-D (nk = {b.dims[2]}, or z != 0); "
                                       "it cannot be written as a 2-D Plot3D file")
     if fmt.encoding == "fortran":
@@ -1211,7 +1306,7 @@ def _write_array(fh, arr: np.ndarray, dtype: np.dtype, where: str = "") -> None:
 
 def _convert(chunk: np.ndarray, dtype: np.dtype, where: str) -> np.ndarray:
     """``chunk`` as ``dtype``; float values beyond the float32 range are an error, not inf."""
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):   # signalling NaNs stay NaN
         out = chunk.astype(dtype)
     if dtype.kind == "f" and dtype.itemsize == 4:
         lost = np.isinf(out) & np.isfinite(chunk)
@@ -1247,10 +1342,10 @@ def _write_binary(fh, grid: Grid, fmt: Plot3DFormat, path="Plot3D file") -> None
     for bn, b in enumerate(grid):
         n = b.npoints
         flat = b.xyz.reshape(-1, order="F")
-        if b.iblank is not None:
-            ib = b.iblank.reshape(-1, order="F")
-        else:
-            ib = np.ones(n, dtype=np.int32)
+        ib = None
+        if fmt.iblank:
+            # blocks without IBLANK are written as all 1 (only built when written)
+            ib = b.iblank.reshape(-1, order="F") if b.iblank is not None else np.ones(n, dtype=np.int32)
         if fmt.encoding == "fortran" and fmt.records == "coordinate":
             for c in range(nd):
                 marker(n * fmt.precision)
@@ -1298,7 +1393,8 @@ def _write_ascii(fh, grid: Grid, fmt: Plot3DFormat, path="Plot3D file") -> None:
             vals = flat[c * n:(c + 1) * n]
             if fmt.precision == 4:
                 single = _convert(vals, np.dtype(np.float32), f"{path}: block {bn + 1} of {len(grid)}")
-                _write_values_text(fh, single.astype(np.float64), "%.9g")
+                with np.errstate(invalid="ignore"):
+                    _write_values_text(fh, single.astype(np.float64), "%.9g")
             else:
                 _write_values_text(fh, vals, "%.17g")
         if fmt.iblank:
