@@ -12,7 +12,7 @@ import tfi_quat
 from tfi_quat import Grid, GridValueError
 from tfi_quat import generate as gen
 from tfi_quat.case import load_case
-from tfi_quat.generate import _cell_volumes
+from tfi_quat.generate import _cell_volumes, _corner_jacobians
 
 from conftest import sheared_box
 
@@ -30,15 +30,47 @@ def wall_normals_2d(w, closed):
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
+def deviations_2d(xy, lo, hi, closed, layers=10):
+    """Angles (deg, 0..180) between the j-line segments of the first ``layers``
+    layers and the outward wall normal, shape (hi - lo + 1, layers)."""
+    n = wall_normals_2d(xy[:, 0], closed)[lo:hi + 1]
+    d = xy[lo:hi + 1, 1:layers + 1] - xy[lo:hi + 1, :layers]
+    cross = n[:, None, 0] * d[..., 1] - n[:, None, 1] * d[..., 0]
+    dot = n[:, None, 0] * d[..., 0] + n[:, None, 1] * d[..., 1]
+    return np.degrees(np.arctan2(np.abs(cross), dot))
+
+
 def max_deviation_2d(xy, lo, hi, closed, layers=10):
     """Largest angle (deg) between the j-lines of the first ``layers`` layers and the wall normal."""
-    n = wall_normals_2d(xy[:, 0], closed)[lo:hi + 1]
-    worst = 0.0
-    for j in range(layers):
-        d = xy[lo:hi + 1, j + 1] - xy[lo:hi + 1, j]
-        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-        worst = max(worst, float(np.degrees(np.arccos(np.clip((d * n).sum(-1), -1, 1))).max()))
-    return worst
+    return float(deviations_2d(xy, lo, hi, closed, layers).max())
+
+
+def wing_wall_deviations(grid, n_wake=None, layers=10):
+    """Angles (deg) between the first ``layers`` j-line segments off the wing's
+    wall (blocks 1 and 2 joined along k) and the wall normal, shape
+    (wall points round the section, layers, span stations).
+
+    The normal is the cross product of central differences along i and k
+    over the joined wall, the root mirrored in the symmetry plane y = 0 and
+    one-sided at the cap's last (collapsed) station; it is computed here,
+    independently of the generator.
+    """
+    b1, b2 = grid[0].xyz, grid[1].xyz
+    x = np.concatenate([b1, b2[:, :, 1:]], axis=2)
+    lo, hi = gen.wing_wall_range(x.shape[0], n_wake)
+    w = x[:, 0]
+    ghost = w[:, 1].copy()
+    ghost[:, 1] *= -1.0
+    wk = np.concatenate([ghost[:, None], w], axis=1)
+    tk = np.concatenate([wk[:, 2:] - wk[:, :-2], (w[:, -1] - w[:, -2])[:, None]], axis=1)
+    ti = np.gradient(w, axis=0)
+    n = np.cross(tk, ti)
+    with np.errstate(invalid="ignore"):
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    e = x[lo:hi + 1, 1:layers + 1] - x[lo:hi + 1, :layers]
+    cr = np.linalg.norm(np.cross(n[lo:hi + 1, None], e), axis=-1)
+    dt = np.einsum("ikc,ijkc->ijk", n[lo:hi + 1], e)
+    return np.degrees(np.arctan2(cr, dt))
 
 
 def xy_of(grid, b=0):
@@ -95,12 +127,19 @@ def test_cell_volumes_exact_for_affine_grids():
 AIRFOIL_CASES = [
     ("0012", "C", 1e-5, False, 257, 65),
     ("0012", "C", 1e-6, False, 129, 49),
+    ("0012", "C", 1e-4, False, 257, 65),
     ("4412", "C", 1e-5, False, 129, 41),
+    ("4412", "C", 1e-4, False, 193, 65),
     ("2408", "C", 3e-5, False, 97, 33),
+    ("6409", "C", 1e-6, False, 257, 97),
+    ("0021", "C", 1e-4, False, 129, 49),
+    ("0006", "C", 1e-5, False, 193, 65),
     ("0012", "O", 1e-5, False, 129, 41),
     ("4412", "O", 1e-6, False, 257, 65),
+    ("6409", "O", 1e-4, False, 193, 65),
     ("0012", "O", 1e-5, True, 129, 41),
     ("4415", "O", 1e-4, True, 97, 33),
+    ("0006", "O", 1e-6, True, 257, 65),
 ]
 
 
@@ -111,6 +150,8 @@ def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
     xy = xy_of(g)
     area = _cell_volumes(g[0].xyz)
     assert area.min() > 0.0, f"{(area <= 0).sum()} non-positive cells"
+    # every quad convex and none degenerate: each corner angle in (5.7, 174.3) deg
+    assert _corner_jacobians(g[0].xyz).min() > 0.1
     lo, hi = gen.airfoil_wall_range(ni, topo)
     closed = topo == "O"
     assert max_deviation_2d(xy, lo, hi, closed) <= 0.5
@@ -131,24 +172,52 @@ def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
     assert ds[ile] < 0.5 * ds.mean() and min(ds[0], ds[-1]) < 0.5 * ds.mean()
 
 
-@pytest.mark.parametrize("naca,ni,nj,fs", [("0012", 257, 65, 1e-5), ("0024", 129, 49, 1e-5),
-                                           ("4412", 257, 65, 1e-6)])
-def test_blunt_c_grid(naca, ni, nj, fs):
-    nb = 4
-    g = gen.airfoil(naca, "C", ni=ni, nj=nj, first_spacing=fs, blunt_te=True, n_base=nb)
-    x = g[0].xyz
-    assert _cell_volumes(x).min() > 0.0
+@pytest.mark.parametrize("naca,nb", [("0012", 4), ("0024", 2), ("4412", 6)])
+def test_blunt_o_grid_base(naca, nb):
+    ni = 129
+    g = gen.airfoil(naca, "O", ni=ni, nj=41, first_spacing=1e-5, blunt_te=True, n_base=nb)
+    x = g[0].xyz[:, :, 0, :2]
+    # i = 1 is the middle of the base; the base runs down to the lower corner
+    # (i = 1 + nb) and back from the upper one (i = ni - nb), a straight segment
+    xu, yu, xl, yl = gen.naca4(naca, np.array([1.0]), blunt_te=True)
+    corner_l, corner_u = np.array([xl[0], yl[0]]), np.array([xu[0], yu[0]])
+    base = np.concatenate([x[ni - 1 - nb:-1, 0], x[:nb + 1, 0]])      # upper corner -> lower corner
+    assert np.allclose(base[0], corner_u, atol=1e-15) and np.allclose(base[-1], corner_l, atol=1e-15)
+    t = (base - corner_u) @ (corner_l - corner_u) / np.sum((corner_l - corner_u) ** 2)
+    assert np.allclose(base, corner_u + t[:, None] * (corner_l - corner_u), atol=1e-15)
+    assert np.allclose(np.diff(t), 1.0 / (2 * nb))                    # evenly spaced, going down
+    assert np.allclose(x[0, 0], 0.5 * (corner_u + corner_l), atol=1e-15)
+    assert np.linalg.norm(corner_u - corner_l) > 2e-3                 # really blunt
+    assert np.array_equal(x[0], x[-1])
+    # the base and its corners too leave the wall orthogonally
+    assert max_deviation_2d(x, 0, ni - 1, True) <= 0.5
+
+
+def test_blunt_c_grid_is_refused():
+    # a one-block C-grid's cut would meet the base in right-angle corners of the
+    # domain; the first version returned inside-out or arrowhead cells there
+    # for most parameters, so blunt trailing edges are O-grid only
+    with pytest.raises(GridValueError, match="blunt_te=True needs topology 'O'"):
+        gen.airfoil("0012", "C", blunt_te=True)
+
+
+@pytest.mark.parametrize("naca", ["4412", "6409"])
+def test_c_grid_trailing_edge_limit(naca):
+    # the documented limit of the straight near-wall layers: next to a
+    # C-grid's trailing edge (a concave corner of the wall curve) the lines
+    # from the surface and the wake converge; here (cambered, 257 x 65, first
+    # cell 1e-4, ten layers 2.3e-3 thick against a trailing-edge spacing of
+    # 6e-4) the two or so points next to the edge bend in the last layers;
+    # every other point stays orthogonal
+    ni = 257
+    g = gen.airfoil(naca, "C", ni=ni, nj=65, first_spacing=1e-4)
+    assert _corner_jacobians(g[0].xyz).min() > 0.1
     lo, hi = gen.airfoil_wall_range(ni, "C")
-    # the cut ends at the middle of the base, bit-identical on both sides
-    assert np.array_equal(x[:lo + 1, 0], x[hi:, 0][::-1])
-    base = x[lo:lo + nb + 1, 0, 0]
-    chord = base[-1, :2] - base[0, :2]                          # a straight base, going down
-    rel = base[:, :2] - base[0, :2]
-    assert np.allclose(chord[0] * rel[:, 1] - chord[1] * rel[:, 0], 0.0, atol=1e-15)
-    assert chord[1] < -5e-4
-    # orthogonal everywhere on the wall but on the base, whose ends meet the cut
-    # at concave right angles (no positive grid can leave those orthogonally)
-    assert max_deviation_2d(x[:, :, 0, :2], lo + nb, hi - nb, False) <= 0.5
+    dev = deviations_2d(g[0].xyz[:, :, 0, :2], lo, hi, False)
+    i_bad, layer_bad = np.nonzero(dev > 0.5)
+    assert i_bad.size > 0                                 # the limit is real
+    te_dist = np.minimum(i_bad, (hi - lo) - i_bad)        # intervals from the trailing edge
+    assert te_dist.max() <= 3 and layer_bad.min() >= 7
 
 
 def test_small_c_grids_do_not_fold():
@@ -156,6 +225,7 @@ def test_small_c_grids_do_not_fold():
     for ni, nj, fs in ((33, 9, 1e-5), (65, 17, 1e-4), (49, 13, 1e-3), (97, 25, 1e-3), (65, 17, 1e-3)):
         g = gen.airfoil("0012", "C", ni=ni, nj=nj, first_spacing=fs)
         assert _cell_volumes(g[0].xyz).min() > 0.0, (ni, nj, fs)
+        assert _corner_jacobians(g[0].xyz).min() > 0.0, (ni, nj, fs)
 
 
 def test_c_grid_wake_cut_is_bit_identical():
@@ -187,12 +257,32 @@ def test_folded_cells_are_reported_not_returned():
         gen._checked(Grid([xyz], ndim=2), "test")
 
 
+def test_corner_jacobians_catch_what_volumes_miss():
+    # an arrowhead quad: positive area (by its diagonals) but a reflex corner
+    q = np.zeros((2, 2, 1, 3), order="F")
+    q[0, 0, 0, :2], q[1, 0, 0, :2], q[0, 1, 0, :2], q[1, 1, 0, :2] = [0, 0], [2, 0], [0, 2], [0.4, 0.4]
+    assert _cell_volumes(q)[0, 0] > 0.0 and _corner_jacobians(q)[0, 0] < 0.0
+    with pytest.raises(GridValueError, match="1 folded or degenerate"):
+        gen._checked(Grid([q], ndim=2), "arrow")
+    # the unit square: every corner angle 90 deg
+    q[1, 1, 0, :2] = [2, 2]
+    assert _corner_jacobians(q)[0, 0] == pytest.approx(1.0)
+    # a hexahedron with one corner pushed through the opposite face: its
+    # tetrahedral volume stays positive, one corner Jacobian does not
+    i, j, k = np.meshgrid([0.0, 1.0], [0.0, 1.0], [0.0, 1.0], indexing="ij")
+    h = np.asfortranarray(np.stack([i, j, k], axis=-1))
+    assert _corner_jacobians(h)[0, 0, 0] == pytest.approx(1.0)
+    h[1, 1, 1] = [0.3, 0.3, 0.3]
+    assert _cell_volumes(h)[0, 0, 0] > 0.0 and _corner_jacobians(h)[0, 0, 0] < 0.0
+    with pytest.raises(GridValueError, match="hex: 1 folded"):
+        gen._checked(Grid([h], ndim=3), "hex")
+
+
 def test_small_wings_do_not_fold():
     # regression: coarse wings used to twist hexahedra near the tip (3-D normal correction
     # larger than the span spacing)
     for ni, nj, fs in ((33, 13, 1e-3), (49, 17, 1e-4), (33, 21, 1e-5)):
-        g = gen.wing(ni=ni, nj=nj, nk_wing=5, nk_cap=3, nk_out=4, first_spacing=fs)
-        assert min(_cell_volumes(b.xyz).min() for b in g) > 0.0
+        assert_wing_cells_valid(gen.wing(ni=ni, nj=nj, nk_wing=5, nk_cap=3, nk_out=4, first_spacing=fs))
 
 
 def test_airfoil_is_deterministic():
@@ -205,12 +295,26 @@ def test_airfoil_is_deterministic():
     (dict(topology="X"), "topology"),
     (dict(ni=128), "odd"),
     (dict(ni=5), ">= 9"),
+    (dict(ni=129.0), "ni must be an integer"),
+    (dict(nj=2), "nj must be >= 3"),
     (dict(first_spacing=0.1), "first_spacing"),
     (dict(first_spacing=-1.0), "first_spacing"),
+    (dict(first_spacing="small"), "first_spacing must be a number"),
     (dict(farfield=1.0), "farfield"),
+    (dict(farfield=float("nan")), "farfield"),
+    (dict(wake_length=0.0), "wake_length"),
     (dict(n_wake=63, ni=129), "even"),
+    (dict(n_wake=0), "n_wake must be >= 1"),
     (dict(naca="00120"), "naca"),
+    (dict(naca=12), "naca"),
+    (dict(naca="0000"), "thickness"),
     (dict(smoothing=0.9), "smoothing"),
+    (dict(smoothing="lots"), "smoothing must be a number"),
+    (dict(n_ortho=-1), "n_ortho"),
+    (dict(blunt_te="yes"), "blunt_te must be True or False"),
+    (dict(topology="O", blunt_te=True, n_base=0), "n_base"),
+    (dict(topology="O", n_wake=10), "n_wake applies to C-grids only"),
+    (dict(topology="O", wake_length=5.0), "wake_length applies to C-grids only"),
 ])
 def test_airfoil_rejects_bad_arguments(kw, match):
     with pytest.raises(GridValueError, match=match):
@@ -261,6 +365,26 @@ def test_two_block_interface(ni, nj):
     assert max_deviation_2d(xy_of(g, 0), 0, ni - 1, False, layers=min(10, nh - 1)) <= 0.5
 
 
+@pytest.mark.parametrize("fn,kw,match", [
+    (gen.cylinder, dict(ni=4), "ni must be >= 5"),
+    (gen.cylinder, dict(radius=0.0), "radius"),
+    (gen.cylinder, dict(farfield=0.4), "farfield"),
+    (gen.cylinder, dict(first_spacing=30.0), "first_spacing"),
+    (gen.channel, dict(nj=2), "nj"),
+    (gen.channel, dict(height=-1.0), "height"),
+    (gen.channel, dict(bump_height=0.5), "bump_height"),
+    (gen.channel, dict(bump_start="a"), "bump_start must be a number"),
+    (gen.channel, dict(bump_start=2.5), "bump_start < bump_end"),
+    (gen.channel, dict(first_spacing=0.6), "first_spacing"),
+    (gen.two_block, dict(nj=32), "nj must be odd"),
+    (gen.two_block, dict(bump_height=-0.1), "bump_height"),
+    (gen.two_block, dict(length=0.0), "length"),
+])
+def test_2d_generators_reject_bad_arguments(fn, kw, match):
+    with pytest.raises(GridValueError, match=match):
+        fn(**kw)
+
+
 def test_small_generators_are_deterministic():
     assert gen.cylinder(17, 9) == gen.cylinder(17, 9)
     assert gen.channel(17, 9) == gen.channel(17, 9)
@@ -279,12 +403,14 @@ def small_wing():
 def test_wing_blocks_and_volumes(small_wing):
     g = small_wing
     assert g.ndim == 3 and len(g) == 4
+    # walls on the wing and its cap only; the blocks beyond the tip have none
+    bp = gen.boundary_patches("wing", g)
+    assert sorted({p.block for p in bp["walls"]}) == [0, 1]
+    assert {p.block for p in bp["symmetry"]} == {0}
     ni, nj = SMALL_WING["ni"], SMALL_WING["nj"]
     nh = (ni + 1) // 2
     assert g.dims == [(ni, nj, 9), (ni, nj, 5), (nh, nj, 7), (7, nh, nj)]
-    for n, b in enumerate(g):
-        v = _cell_volumes(b.xyz)
-        assert v.min() > 0.0, f"block {n + 1}: {(v <= 0).sum()} non-positive cells"
+    assert_wing_cells_valid(g)
 
 
 def test_wing_interfaces_are_bit_identical(small_wing):
@@ -313,6 +439,27 @@ def test_wing_cuts_symmetry_and_tip(small_wing):
     assert 3.0 <= 4.0 * semispan / (1.0 + chord(semispan)) <= 6.0   # aspect ratio (2b)^2 / S
 
 
+def collapsed_edge_cells(grid):
+    """Per block, the 0-based cells touching the collapsed leading edge beyond
+    the wing (the cap's last station and the zero-thickness sheet)."""
+    (ni, _, _), (_, _, nkc), (_, _, nko), _ = grid.dims
+    ih = (ni - 1) // 2
+    return [set(),
+            {(ih - 1, 0, nkc - 2), (ih, 0, nkc - 2)},
+            {(ih - 1, 0, k) for k in range(nko - 1)},
+            {(k, 0, 0) for k in range(nko - 1)}]
+
+
+def assert_wing_cells_valid(grid):
+    # positive volumes; corner Jacobians positive except the exact 180-degree
+    # corners where the C wraps round the collapsed edge (zero to round-off)
+    for n, (b, edge) in enumerate(zip(grid, collapsed_edge_cells(grid))):
+        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+        cj = _corner_jacobians(b.xyz)
+        assert cj.min() >= -gen.CORNER_TOL, f"block {n + 1}"
+        assert {tuple(map(int, c)) for c in np.argwhere(cj <= 1e-6)} == edge, f"block {n + 1}"
+
+
 def test_wing_wall_orthogonality(small_wing):
     b1 = small_wing[0].xyz
     ni = b1.shape[0]
@@ -336,19 +483,21 @@ def test_wing_wall_orthogonality(small_wing):
 
 @pytest.mark.parametrize("kw", [dict(sweep=0.0, taper=1.0, aspect_ratio=3.0),
                                 dict(naca="4415", sweep=45.0, taper=0.3, aspect_ratio=6.0)])
-def test_wing_variants_have_positive_cells(kw):
-    g = gen.wing(**SMALL_WING, **kw)
-    for n, b in enumerate(g):
-        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+def test_wing_variants_have_valid_cells(kw):
+    assert_wing_cells_valid(gen.wing(**SMALL_WING, **kw))
 
 
 def test_wing_is_deterministic(small_wing):
     assert gen.wing(**SMALL_WING) == small_wing
 
 
-@pytest.mark.parametrize("kw,match", [(dict(ni=67), "multiple of 4"), (dict(sweep=80.0), "sweep"),
-                                      (dict(taper=0.0), "taper"), (dict(aspect_ratio=0.5), "aspect_ratio"),
-                                      (dict(nk_cap=1), "nk_cap")])
+@pytest.mark.parametrize("kw,match", [
+    (dict(ni=67), "multiple of 4"), (dict(sweep=80.0), "sweep"), (dict(sweep="a"), "sweep must be a number"),
+    (dict(taper=0.0), "taper"), (dict(aspect_ratio=0.5), "aspect_ratio"), (dict(nk_cap=1), "nk_cap"),
+    (dict(nj=4), "nj"), (dict(naca="0000"), "thickness"), (dict(first_spacing=0.1), "first_spacing"),
+    (dict(farfield=1.0), "farfield"), (dict(span_farfield=0.01), "span_farfield"),
+    (dict(wake_length=0.01), "wake_length"), (dict(n_wake=40, ni=65), "n_wake"),
+    (dict(smoothing=float("nan")), "smoothing")])
 def test_wing_rejects_bad_arguments(kw, match):
     with pytest.raises(GridValueError, match=match):
         gen.wing(**kw)
@@ -440,8 +589,7 @@ def test_shipped_wing_properties():
     nh = (ni + 1) // 2
     assert g.ndim == 3 and g.dims == [(ni, nj, 45), (ni, nj, 9), (nh, nj, 25), (25, nh, nj)]
     assert 0.4e6 < g.npoints < 2e6
-    for n, b in enumerate(g):
-        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+    assert_wing_cells_valid(g)
     b1, b2, b3, b4 = (b.xyz for b in g)
     ih = (ni - 1) // 2
     assert np.array_equal(b1[:, :, -1], b2[:, :, 0])
@@ -453,6 +601,8 @@ def test_shipped_wing_properties():
     assert case.walls[0].range == ((lo, hi), (0, 44))
     assert np.array_equal(b1[:lo + 1, 0], b1[hi:, 0][::-1])
     assert np.all(b1[:, :, 0, 1] == 0.0)
+    assert case.walls[1].range == ((lo, hi), (0, 8))
+    assert [(p.block, p.face) for p in case.symmetry] == [(0, "kmin")]
     # wall orthogonality of the first 10 layers (interior span stations)
     w = b1[:, 0]
     n = np.cross(np.gradient(w, axis=0), np.gradient(w, axis=1))
@@ -461,6 +611,10 @@ def test_shipped_wing_properties():
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     cos = np.abs(np.einsum("ijkc,ikc->ijk", d, n[lo:hi + 1]))[:, :, 1:-1]
     assert np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) <= 0.5
+    # the geometry the README states: aspect ratio 4, taper 0.5, 30 deg sweep
+    semispan, x_le, chord = gen.wing_geometry(4.0, 0.5, 30.0)
+    assert b1[lo, 0, -1, 1] == semispan and abs(chord(semispan) - 0.5) < 1e-15
+    assert 4.0 * semispan ** 2 / (semispan * (1.0 + chord(semispan))) == pytest.approx(4.0)
 
 
 # ----------------------------------------------------------------- CLI

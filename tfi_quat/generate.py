@@ -62,6 +62,25 @@ def _check_pos(name: str, value, hi: float | None = None) -> float:
     return v
 
 
+def _check_float(name: str, value, lo: float, hi: float, unit: str = "") -> float:
+    """``value`` as a float in ``[lo, hi]``, else a GridValueError naming ``name``."""
+    if isinstance(value, bool):
+        raise GridValueError(f"{name} must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise GridValueError(f"{name} must be a number, got {value!r}") from None
+    if not lo <= v <= hi:       # also rejects NaN
+        raise GridValueError(f"{name} must be in [{lo:g}, {hi:g}]{unit}, got {value!r}")
+    return v
+
+
+def _check_bool(name: str, value) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise GridValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def geometric_spacing(n: int, total: float, first: float) -> np.ndarray:
     """Cumulative distances of a geometric stretching.
 
@@ -171,14 +190,25 @@ def _limited(lap: np.ndarray, nrm: np.ndarray, eps: float, dh: float) -> np.ndar
     return lap * lim
 
 
-def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> np.ndarray:
+#: layers kept on straight wall-normal lines wherever those lines stay at
+#: least half their wall spacing apart (the orthogonality the tests require)
+N_STRAIGHT = 10
+
+
+def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> tuple[np.ndarray, np.ndarray]:
     """Per point: how far straight extrusion along the wall normal is safe.
 
-    A quarter of the distance at which the straight lines from a point and
-    a neighbour would cross (concave spots).  On open curves (C-grids,
-    whose wake junction is concave and whose wake spacing grows fast) also
-    at most twice the local point spacing, so that the points round the
-    junction switch to marching together.
+    Returns ``(soft, hard)``, arrays of shape ``wall.shape[:2]``.  ``soft``:
+    a quarter of the distance at which the straight lines from a point and a
+    neighbour would cross (concave spots); on open curves (C-grids, whose
+    wake junction is concave and whose wake spacing grows fast) also at most
+    twice the local point spacing, so that the points round the junction
+    switch to marching together.  ``hard``: half the crossing distance (the
+    lines have come to half their wall spacing), on open curves at most
+    eight local point spacings; the first :data:`N_STRAIGHT` layers stay
+    straight up to it.  Without it, the points next to a C-grid's trailing
+    edge would leave their straight lines after a few layers of a
+    first_spacing of 1e-4 (257 points round the C).
     """
     e = wall[:, 1:] - wall[:, :-1]
     dn = n0[:, 1:] - n0[:, :-1]
@@ -190,12 +220,12 @@ def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> np.ndarra
     out[:, 1:] = np.minimum(out[:, 1:], dstar)
     if closed:
         out[:, 0] = out[:, -1] = np.minimum(out[:, 0], out[:, -1])
-        return 0.25 * out
+        return 0.25 * out, 0.5 * out
     seg = np.sqrt(ll)
     loc = np.full(wall.shape[:2], np.inf)
     loc[:, :-1] = np.minimum(loc[:, :-1], seg)
     loc[:, 1:] = np.minimum(loc[:, 1:], seg)
-    return np.minimum(0.25 * out, 2.0 * loc)
+    return np.minimum(0.25 * out, 2.0 * loc), np.minimum(0.5 * out, 8.0 * loc)
 
 
 def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
@@ -203,11 +233,11 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
     """March curves outwards.
 
     Each point moves straight along its wall normal while the distance is
-    within the first ``n_ortho`` layers and well short of the distance at
-    which straight lines from neighbouring points would cross (concave
-    corners); otherwise along the normal of the current layer, in sub-steps
-    of at most half the smallest point spacing, with limited Laplacian
-    smoothing.
+    within the first ``n_ortho`` layers and short of the distance at which
+    straight lines from neighbouring points would cross (concave corners;
+    see :func:`_safe_extrusion`); otherwise along the normal of the current
+    layer, in sub-steps of at most half the smallest point spacing, with
+    limited Laplacian smoothing.
 
     Parameters
     ----------
@@ -245,11 +275,14 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
     if end_normals is not None:
         n0[:, 0] = end_normals[0]
         n0[:, -1] = end_normals[1]
-    dsafe = _safe_extrusion(wall, n0, closed)
+    dsafe, dhard = _safe_extrusion(wall, n0, closed)
     d_orth = dist[min(n_ortho, nj - 1)]
     p = wall.copy()
     for j in range(1, nj):
-        frozen = (dist[j] <= d_orth) & (dist[j] <= dsafe)
+        # once a point marches it never returns to its straight line: the
+        # conditions only get stricter as j grows
+        safe = (dist[j] <= dsafe) | ((j <= N_STRAIGHT) & (dist[j] <= dhard))
+        frozen = (dist[j] <= d_orth) & safe
         if frozen.all():
             p = wall + dist[j] * n0
             out[:, :, j] = p
@@ -353,11 +386,78 @@ def _cell_volumes(xyz: np.ndarray) -> np.ndarray:
     return vol / 6.0
 
 
+def _corner_jacobians(xyz: np.ndarray) -> np.ndarray:
+    """Smallest scaled corner Jacobian of every cell of one block.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (ni, nj, nk, 3)
+
+    Returns
+    -------
+    ndarray of float64, in [-1, 1]
+        ``(ni-1, nj-1)`` when ``nk == 1``: per quad, the smallest over its
+        four corners of ``(a x b) . e_z / (|a| |b|)``, ``a`` and ``b`` the
+        cell's edges along +i and +j at that corner (the sine of the corner
+        angle); positive for convex, positively oriented quads only.  Else
+        ``(ni-1, nj-1, nk-1)``: per hexahedron, the smallest over its eight
+        corners of ``det(a, b, c) / (|a| |b| |c|)``.  A cell of positive
+        volume (:func:`_cell_volumes`) may still have a negative corner here
+        (an arrowhead quad, a twisted hexahedron).  Zero-length edges give 0.
+    """
+    x = np.asarray(xyz, dtype=np.float64)
+
+    def unit(d):
+        n = np.linalg.norm(d, axis=-1, keepdims=True)
+        return d / np.where(n > 0.0, n, np.inf)
+
+    if x.shape[2] == 1:
+        p = x[:, :, 0, :2]
+        di = unit(p[1:] - p[:-1])                     # (ni-1, nj, 2)
+        dj = unit(p[:, 1:] - p[:, :-1])               # (ni, nj-1, 2)
+        out = None
+        for a in (0, 1):
+            for b in (0, 1):
+                u = di[:, b:b + dj.shape[1]]
+                v = dj[a:a + di.shape[0]]
+                c = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+                out = c if out is None else np.minimum(out, c)
+        return out
+    di = unit(x[1:] - x[:-1])
+    dj = unit(x[:, 1:] - x[:, :-1])
+    dk = unit(x[:, :, 1:] - x[:, :, :-1])
+    ni, nj, nk = x.shape[:3]
+    out = None
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                u = di[:, b:b + nj - 1, c:c + nk - 1]
+                v = dj[a:a + ni - 1, :, c:c + nk - 1]
+                w = dk[a:a + ni - 1, b:b + nj - 1]
+                d = np.einsum("...i,...i->...", np.cross(u, v), w)
+                out = d if out is None else np.minimum(out, d)
+    return out
+
+
+#: a hexahedron corner counts as inside out below this scaled Jacobian
+#: (round-off on the 180-degree corners of a wing's collapsed edges)
+CORNER_TOL = 1e-9
+
+
 def _checked(grid: Grid, what: str) -> Grid:
-    """Return ``grid`` if every cell is positive, else raise naming the first folded cell."""
+    """Return ``grid`` if every cell is valid, else raise naming the first bad cell.
+
+    Valid: positive area or volume (:func:`_cell_volumes`) and no negative
+    corner Jacobian (:func:`_corner_jacobians`); 2-D quads must be strictly
+    convex.  A hexahedron may have a zero corner (to :data:`CORNER_TOL`): on
+    a wing's collapsed edge (the leading edge of the zero-thickness sheet
+    beyond the tip cap) the C wraps round a line, and the grid lines meet
+    there at 180 degrees.
+    """
     for n, b in enumerate(grid):
         v = _cell_volumes(b.xyz)
-        bad = v <= 0.0
+        cj = _corner_jacobians(b.xyz)
+        bad = (v <= 0.0) | ((cj <= 0.0) if grid.ndim == 2 else (cj < -CORNER_TOL))
         if bad.any():
             idx = tuple(int(c) + 1 for c in np.argwhere(bad)[0])
             raise GridValueError(
@@ -480,14 +580,14 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
         ``farfield``).
     blunt_te : bool
         Blunt trailing edge (original NACA thickness polynomial, base closed
-        by a straight segment with ``2 * n_base`` intervals).  C-grid: the
-        wake cut starts at the middle of the base; the base points next to
-        it sit in concave right-angle corners and cannot leave the wall
-        orthogonally (every other wall point does).
+        by a straight segment with ``2 * n_base`` intervals).  O-grid only:
+        the wake cut of a one-block C-grid would meet the base in two
+        right-angle corners of the domain, where cells cannot be both valid
+        and wall-orthogonal.
     n_wake : int, optional
         C-grid: intervals along each side of the wake (default ``(ni-1)//4``).
     n_base : int
-        Intervals on each half of a blunt base.
+        Intervals on each half of a blunt base (O-grid).
     n_ortho : int
         Layers extruded straight along the wall normal (orthogonal lines).
     smoothing : float
@@ -503,20 +603,24 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
     topo = str(topology).upper()
     if topo not in ("C", "O"):
         raise GridValueError(f"topology must be 'C' or 'O', got {topology!r}")
+    _naca_digits(naca)
     ni = _check_int("ni", ni, 9, odd=True)
     nj = _check_int("nj", nj, 3)
-    first_spacing = _check_pos("first_spacing", first_spacing)
-    if not 1e-7 <= first_spacing <= 1e-2:
-        raise GridValueError(f"first_spacing must be in [1e-7, 1e-2] chords, got {first_spacing}")
-    farfield = _check_pos("farfield", farfield)
-    if farfield < 2.0:
-        raise GridValueError(f"farfield must be >= 2 chords, got {farfield}")
+    first_spacing = _check_float("first_spacing", first_spacing, 1e-7, 1e-2, " chords")
+    farfield = _check_float("farfield", farfield, 2.0, 1e4, " chords")
     n_ortho = _check_int("n_ortho", n_ortho, 0)
-    smoothing = float(smoothing)
-    if not 0.0 <= smoothing <= 0.5:
-        raise GridValueError(f"smoothing must be in [0, 0.5], got {smoothing}")
-    blunt = bool(blunt_te)
+    smoothing = _check_float("smoothing", smoothing, 0.0, 0.5)
+    blunt = _check_bool("blunt_te", blunt_te)
     nb = _check_int("n_base", n_base, 1) if blunt else 0
+    if topo == "O":
+        for name, value in (("wake_length", wake_length), ("n_wake", n_wake)):
+            if value is not None:
+                raise GridValueError(f"{name} applies to C-grids only (topology 'C'), got {name} = "
+                                     f"{value!r} with topology 'O'")
+    elif blunt:
+        raise GridValueError("blunt_te=True needs topology 'O': a one-block C-grid's wake cut would "
+                             "meet the blunt base in right-angle corners, where cells cannot be both "
+                             "valid and orthogonal to the wall")
     dist = geometric_spacing(nj - 1, farfield, first_spacing)
     if topo == "O":
         n_side, rem = divmod(ni - 1 - 2 * nb, 2)
@@ -526,13 +630,13 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
         xy = _march2d(curve[None], dist, True, n_ortho, smoothing)[0]
         xy[-1] = xy[0]
         return _checked(Grid([_block2d(xy, "airfoil_O")], ndim=2), f"airfoil {naca} O-grid")
-    wl = farfield if wake_length is None else _check_pos("wake_length", wake_length)
+    wl = farfield if wake_length is None else _check_float("wake_length", wake_length, 1.0, 1e4, " chords")
     nw = (ni - 1) // 4 if n_wake is None else _check_int("n_wake", n_wake, 1)
-    n_side2 = ni - 1 - 2 * nw - 2 * nb
+    n_side2 = ni - 1 - 2 * nw
     if n_side2 < 8 or n_side2 % 2:
-        raise GridValueError(f"ni = {ni}, n_wake = {nw}, n_base = {nb}: the airfoil needs an even "
-                             f"number >= 8 of intervals, got ni - 1 - 2*n_wake - 2*n_base = {n_side2}")
-    curve, ds_te = _section_curve(naca, n_side2 // 2, blunt, nb)
+        raise GridValueError(f"ni = {ni}, n_wake = {nw}: the airfoil needs an even number >= 8 of "
+                             f"intervals, got ni - 1 - 2*n_wake = {n_side2}")
+    curve, ds_te = _section_curve(naca, n_side2 // 2, False, 0)
     te = curve[0]
     s = geometric_spacing(nw, wl, min(ds_te, wl / nw))
     wake = np.stack([te[0] + s[1:], np.full(nw, te[1])], axis=-1)   # TE -> outflow
@@ -655,15 +759,16 @@ def channel(ni: int = 129, nj: int = 49, length: float = 3.0, height: float = 1.
     nj = _check_int("nj", nj, 3)
     length = _check_pos("length", length)
     height = _check_pos("height", height)
-    bump_height = float(bump_height)
-    if not 0.0 <= bump_height < 0.5 * height:
+    bump_height = _check_float("bump_height", bump_height, 0.0, 0.5 * height)
+    if bump_height == 0.5 * height:
         raise GridValueError(f"bump_height must be in [0, height/2), got {bump_height}")
-    if not 0.0 < float(bump_start) < float(bump_end) < length:
+    bump_start = _check_float("bump_start", bump_start, 0.0, length)
+    bump_end = _check_float("bump_end", bump_end, 0.0, length)
+    if not 0.0 < bump_start < bump_end < length:
         raise GridValueError(f"need 0 < bump_start < bump_end < length, "
                              f"got {bump_start}, {bump_end}, {length}")
     first_spacing = _check_pos("first_spacing", first_spacing, hi=0.5 * height)
-    xy = _channel_points(ni, nj, length, height, bump_height, float(bump_start), float(bump_end),
-                         first_spacing)
+    xy = _channel_points(ni, nj, length, height, bump_height, bump_start, bump_end, first_spacing)
     return _checked(Grid([_block2d(xy, "channel")], ndim=2), "channel")
 
 
@@ -696,8 +801,8 @@ def two_block(ni: int = 65, nj: int = 33, length: float = 3.0, height: float = 1
     nj = _check_int("nj", nj, 5, odd=True)
     length = _check_pos("length", length)
     height = _check_pos("height", height)
-    bump_height = float(bump_height)
-    if not 0.0 <= bump_height < 0.5 * height:
+    bump_height = _check_float("bump_height", bump_height, 0.0, 0.5 * height)
+    if bump_height == 0.5 * height:
         raise GridValueError(f"bump_height must be in [0, height/2), got {bump_height}")
     first_spacing = _check_pos("first_spacing", first_spacing, hi=0.5 * height)
     xy = _channel_points(ni, nj, length, height, bump_height, length / 3.0, 2.0 * length / 3.0,
@@ -843,25 +948,15 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     nk_wing = _check_int("nk_wing", nk_wing, 3)
     nk_cap = _check_int("nk_cap", nk_cap, 3)
     nk_out = _check_int("nk_out", nk_out, 3)
-    ar = _check_pos("aspect_ratio", aspect_ratio)
-    if not 1.0 <= ar <= 20.0:
-        raise GridValueError(f"aspect_ratio must be in [1, 20], got {ar}")
-    taper = _check_pos("taper", taper)
-    if not 0.1 <= taper <= 1.0:
-        raise GridValueError(f"taper must be in [0.1, 1], got {taper}")
-    sweep = float(sweep)
-    if not 0.0 <= sweep <= 60.0:
-        raise GridValueError(f"sweep must be in [0, 60] degrees, got {sweep}")
-    first_spacing = _check_pos("first_spacing", first_spacing)
-    if not 1e-7 <= first_spacing <= 1e-2:
-        raise GridValueError(f"first_spacing must be in [1e-7, 1e-2] chords, got {first_spacing}")
-    farfield = _check_pos("farfield", farfield)
-    span_farfield = _check_pos("span_farfield", span_farfield)
-    wake_length = _check_pos("wake_length", wake_length)
+    ar = _check_float("aspect_ratio", aspect_ratio, 1.0, 20.0)
+    taper = _check_float("taper", taper, 0.1, 1.0)
+    sweep = _check_float("sweep", sweep, 0.0, 60.0, " degrees")
+    first_spacing = _check_float("first_spacing", first_spacing, 1e-7, 1e-2, " root chords")
+    farfield = _check_float("farfield", farfield, 2.0, 1e4, " root chords")
+    span_farfield = _check_float("span_farfield", span_farfield, 1.0, 1e4, " root chords")
+    wake_length = _check_float("wake_length", wake_length, 1.0, 1e4, " root chords")
     n_ortho = _check_int("n_ortho", n_ortho, 0)
-    smoothing = float(smoothing)
-    if not 0.0 <= smoothing <= 0.5:
-        raise GridValueError(f"smoothing must be in [0, 0.5], got {smoothing}")
+    smoothing = _check_float("smoothing", smoothing, 0.0, 0.5)
     t = _naca_digits(naca)[2]
     nw = (ni - 1) // 4 if n_wake is None else _check_int("n_wake", n_wake, 1)
     n_side2 = ni - 1 - 2 * nw
