@@ -975,7 +975,9 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     y = np.concatenate([y_w, y_c[1:], y_o[1:]])
     kt, kc = nk_wing - 1, nk_wing + nk_cap - 2
     nk = y.size
-    ys = np.minimum(y, semispan)
+    # the cap continues the planform (sweep, taper), so the wall has no crease
+    # at the tip; beyond the cap the collapsed section stays as it ends
+    ys = np.minimum(y, semispan + r_cap)
     scale = np.ones(nk)
     scale[kt:kc + 1] = np.cos(0.5 * np.pi * (y[kt:kc + 1] - semispan) / r_cap)
     scale[kc:] = 0.0
@@ -1022,25 +1024,32 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     ok = cn[..., 0] > 1e-12 * np.max(cn)
     n3 = np.where(ok[..., None], c / np.where(cn > 0, cn, 1.0), n2)
     n3 = np.where((np.einsum("ikc,ikc->ik", n3, n2) < 0.0)[..., None], -n3, n3)
+    # where the wall has no tangent plane (the collapsed leading edge at the
+    # cap's last station) the line stays in the section plane, along the
+    # sheet: the grid lines meet there at 180 degrees, and any lean out of
+    # the sheet would turn one of the two cells there inside out
     n3[:, 0, 1] = 0.0                                 # root: in the symmetry plane
     n3[:, 0] = _unit(n3[:, 0])
-    wk = np.zeros(nk)
-    wk[:kt + 1] = 1.0
-    wk[kt:kc + 1] = scale[kt:kc + 1] ** 2
     jb = np.arange(nj)
     fade = np.clip((jb - n_ortho) / 8.0, 0.0, 1.0)
     bj = 0.5 * (1.0 + np.cos(np.pi * fade))
     # beyond n_ortho the correction never grows past its size at n_ortho
     bj = bj * np.minimum(1.0, dist[min(n_ortho, nj - 1)] / np.maximum(dist, 1e-300))
-    corr = (wk[None, None, :, None] * (bj * dist)[None, :, None, None]) * (n3 - n2)[:, None, :, :]
+    corr = (bj * dist)[None, :, None, None] * (n3 - n2)[:, None, :, :]
     corr[:, 0] = 0.0
-    # never shift a point by more than half the span spacing at its station,
-    # or neighbouring stations' hexahedra twist (only bites on coarse grids)
-    dy = np.diff(y)
-    dyk = np.minimum(np.concatenate([dy[:1], dy]), np.concatenate([dy, dy[-1:]]))
-    size = np.linalg.norm(corr, axis=-1, keepdims=True)
-    lim = 0.5 * dyk[None, None, :, None]
-    corr *= np.minimum(1.0, lim / np.maximum(size, 1e-300))
+    # beyond the cap (no wall) the correction of the collapsed edge fades
+    # out over four times its size, a change of at most a quarter of the
+    # span spacing per station
+    c_end = corr[:, :, kc]
+    reach = np.maximum(4.0 * np.linalg.norm(c_end, axis=-1), 1e-300)
+    corr[:, :, kc + 1:] = c_end[:, :, None, :] * np.clip(
+        1.0 - (y[kc + 1:] - y[kc])[None, None, :] / reach[..., None], 0.0, 1.0)[..., None]
+    # neighbouring stations' corrections never differ by more than half
+    # their span spacing, or hexahedra twist: where they would (first layers
+    # thick compared with the span spacing at the cap) the correction of the
+    # whole spanwise line is scaled down, at the cost of orthogonality there
+    dc = np.linalg.norm(np.diff(corr, axis=2), axis=-1) / (0.5 * np.diff(y))[None, None, :]
+    corr *= np.minimum(1.0, 1.0 / np.maximum(dc.max(axis=2), 1e-300))[:, :, None, None]
     g += corr
 
     ih = (ni - 1) // 2
