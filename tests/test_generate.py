@@ -660,11 +660,35 @@ def test_cli_refuses_to_overwrite_without_force(cli, tmp_path, capsys):
     assert tfi_quat.read(out) == gen.cylinder(9, 5)
 
 
-def test_cli_reports_bad_parameters(cli, tmp_path, capsys):
-    assert cli(["generate", "airfoil", "--ni", "128", "-o", str(tmp_path / "x.x")]) == 2
+@pytest.mark.parametrize("argv,match", [
+    (["airfoil", "--ni", "128"], "--ni must be odd, got 128"),
+    (["airfoil", "--blunt-te"], "--blunt-te=True needs --topology 'O'"),
+    (["airfoil", "--topology", "O", "--n-wake", "10"], "--n-wake applies to C-grids only"),
+    (["airfoil", "--naca", "0000"], "--naca '0000': thickness"),
+    (["channel", "--bump-height", "0.7"], "--bump-height must be in"),
+    (["cylinder", "--farfield", "0.2"], "--farfield (0.2) must exceed the --radius (0.5)"),
+    (["wing", "--sweep", "75"], "--sweep must be in [0, 60] degrees"),
+    (["two-block", "--nj", "32"], "--nj must be odd"),
+])
+def test_cli_reports_bad_parameters(cli, tmp_path, capsys, argv, match):
+    assert cli(["generate", *argv, "-o", str(tmp_path / "x.x")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "odd" in err
+    assert err.count("\n") == 1 and match in err
     assert not (tmp_path / "x.x").exists()
+
+
+def test_cli_wing_wake_options(cli, tmp_path, capsys):
+    out, case = tmp_path / "w.x", tmp_path / "w.toml"
+    argv = ["wing", "--ni", "65", "--nj", "25", "--nk-wing", "5", "--nk-cap", "3", "--nk-out", "4",
+            "--n-wake", "12", "--wake-length", "8"]
+    assert cli(["generate", *argv, "-o", str(out), "--case", str(case)]) == 0
+    g = tfi_quat.read(out)
+    assert g == gen.wing(ni=65, nj=25, nk_wing=5, nk_cap=3, nk_out=4, n_wake=12, wake_length=8.0)
+    assert [str(w) for w in load_case(case).walls] == ["1:jmin:13-53,1-5", "2:jmin:13-53,1-3"]
+    # the outflow plane is 8 root chords behind the last trailing edge
+    lo, _ = gen.wing_wall_range(65, 12)
+    te_x = max(g[0].xyz[lo, 0, :, 0].max(), g[1].xyz[lo, 0, :, 0].max())
+    assert np.allclose(g[0].xyz[0, 0, :, 0], te_x + 8.0, rtol=1e-14, atol=0.0)
 
 
 # ----------------------------------------------------------------- cross-check with connectivity
