@@ -285,6 +285,51 @@ def test_small_wings_do_not_fold():
         assert_wing_cells_valid(gen.wing(ni=ni, nj=nj, nk_wing=5, nk_cap=3, nk_out=4, first_spacing=fs))
 
 
+@pytest.mark.parametrize("kind,kw", [
+    ("airfoil", dict(naca="4412", topology="C", ni=97, nj=33, first_spacing=1e-4)),
+    ("airfoil", dict(naca="2415", topology="O", ni=97, nj=33, blunt_te=True)),
+    ("airfoil", dict(naca="0012", topology="C", ni=33, nj=9)),
+    ("wing", dict(ni=33, nj=21, nk_wing=5, nk_cap=3, nk_out=4, sweep=40.0)),
+])
+def test_compiled_marcher_is_the_numpy_one(monkeypatch, kind, kw):
+    # the compiled sub-step kernel repeats the numpy reference operation for
+    # operation: the grids are bit-identical
+    fast = gen.GENERATORS[kind](**kw)
+    monkeypatch.setattr(gen, "_COMPILED", False)
+    ref = gen.GENERATORS[kind](**kw)
+    assert all(a.xyz.tobytes() == b.xyz.tobytes() for a, b in zip(fast, ref))
+
+
+def _bad_reference(xyz, planar):
+    v, cj = _cell_volumes(xyz), _corner_jacobians(xyz)
+    bad = (v <= 0.0) | ((cj <= 0.0) if planar else (cj < -gen.CORNER_TOL))
+    first = tuple(int(c) for c in np.argwhere(bad)[0]) if bad.any() else None
+    return int(bad.sum()), first
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_bad_cell_kernel_agrees_with_the_reference(compiled):
+    kernel = gen._bad_cells if compiled else gen._bad_cells.py_func
+    rng = np.random.default_rng(3)
+    box = sheared_box(6, 5, 4) if compiled else sheared_box(4, 3, 3)
+    plane = np.asfortranarray(gen.channel(9, 7)[0].xyz)
+    for xyz, planar in ((box, False), (plane, True)):
+        scale = np.abs(np.diff(xyz, axis=0)).max()
+        for trial in range(6):
+            x = xyz.copy(order="F")
+            # perturb a few points hard enough to fold some cells
+            for _ in range(trial):
+                idx = tuple(int(rng.integers(0, n)) for n in x.shape[:3])
+                x[idx][:2 if planar else 3] += rng.normal(0.0, 1.5 * scale, 2 if planar else 3)
+            count, i, j, k = kernel(x, planar, gen.CORNER_TOL)
+            ref_count, ref_first = _bad_reference(x, planar)
+            assert count == ref_count
+            if ref_first is None:
+                assert (i, j, k) == (-1, -1, -1)
+            else:
+                assert (i, j) + (() if planar else (k,)) == ref_first
+
+
 def test_airfoil_is_deterministic():
     a = gen.airfoil("4412", "C", ni=97, nj=33)
     b = gen.airfoil("4412", "C", ni=97, nj=33)

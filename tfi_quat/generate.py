@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from ._jit import jit, pjit, prange
 from .errors import GridValueError
 from .grid import Block, Grid
 
@@ -119,10 +120,10 @@ def geometric_spacing(n: int, total: float, first: float) -> np.ndarray:
             hi *= 2.0
     for _ in range(200):
         mid = 0.5 * (lo + hi)
-        if length(mid) < target:
-            lo = mid
-        else:
-            hi = mid
+        new = (mid, hi) if length(mid) < target else (lo, mid)
+        if new == (lo, hi):             # converged: further steps change nothing
+            break
+        lo, hi = new
     r = 0.5 * (lo + hi)
     s = np.concatenate([[0.0], np.cumsum(first * r ** k)])
     s *= total / s[-1]
@@ -172,6 +173,9 @@ def _curve_normals(p: np.ndarray, closed: bool) -> np.ndarray:
 
 #: largest smoothing move per marching sub-step, as a fraction of the sub-step
 SMOOTH_CAP = 2.0
+
+#: march with the compiled sub-step kernel (False: the numpy reference form)
+_COMPILED = True
 
 
 def _limited(lap: np.ndarray, nrm: np.ndarray, eps: float, dh: float) -> np.ndarray:
@@ -226,6 +230,116 @@ def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> tuple[np.
     loc[:, :-1] = np.minimum(loc[:, :-1], seg)
     loc[:, 1:] = np.minimum(loc[:, 1:], seg)
     return np.minimum(0.25 * out, 2.0 * loc), np.minimum(0.5 * out, 8.0 * loc)
+
+
+@jit(inline="always")
+def _limited_1(l0, l1, n0, n1, eps, dh, cap):
+    """One point of :func:`_limited`; returns the smoothing move (x, y)."""
+    size = math.sqrt(l0 * l0 + l1 * l1)
+    s = max(size, 1e-300)
+    lim = eps
+    if l0 * n0 + l1 * n1 < 0.0:
+        lim = min(eps, 0.5 * dh / s)
+    lim = min(lim, cap * dh / s)
+    return l0 * lim, l1 * lim
+
+
+@jit
+def _march_substeps(p, n0, free, end0, end1, has_end, closed, m, dh, eps, keep, has_keep, cap):
+    """``m`` marching sub-steps of every curve of ``p`` (nb, n, 2), in place.
+
+    The compiled form of the sub-step loop of :func:`_march2d`, operation
+    for operation (the results are bit-identical to the numpy form): move
+    each free point along the normal of the current curve (frozen points
+    along ``n0``, open ends along ``end0``/``end1``), then smooth the free
+    points (:func:`_limited`; open curves blend in the spacing-keeping
+    smoothing with weight ``keep``).  Serial: it runs once per layer, too
+    short for threads to pay on a loaded machine.
+    """
+    nb, n, _ = p.shape
+    nrm = np.empty((n, 2))
+    lap = np.empty((n, 2))
+    for b in range(nb):
+        nq = n - 1 if closed else n
+        for _ in range(m):
+            scale = 0.0
+            for i in range(n - 1):
+                d0 = p[b, i + 1, 0] - p[b, i, 0]
+                d1 = p[b, i + 1, 1] - p[b, i, 1]
+                scale = max(scale, math.sqrt(d0 * d0 + d1 * d1))
+            thr = 1e-12 * max(scale, 1e-300)
+            for i in range(nq):
+                if closed:
+                    ip = i + 1 if i + 1 < nq else 0
+                    im = i - 1 if i > 0 else nq - 1
+                elif i == 0:
+                    ip, im = 1, 0
+                elif i == n - 1:
+                    ip, im = n - 1, n - 2
+                else:
+                    ip, im = i + 1, i - 1
+                t0 = p[b, ip, 0] - p[b, im, 0]
+                t1 = p[b, ip, 1] - p[b, im, 1]
+                tn = math.sqrt(t0 * t0 + t1 * t1)
+                if tn <= thr:
+                    if closed or 0 < i < n - 1:
+                        a0 = 2.0 * p[b, i, 0] - p[b, ip, 0] - p[b, im, 0]
+                        a1 = 2.0 * p[b, i, 1] - p[b, ip, 1] - p[b, im, 1]
+                    else:
+                        a0 = 0.0
+                        a1 = 0.0
+                    an = math.sqrt(a0 * a0 + a1 * a1)
+                    if not an > 0.0:
+                        an = 1.0
+                    nrm[i, 0] = a0 / an
+                    nrm[i, 1] = a1 / an
+                else:
+                    nrm[i, 0] = -t1 / tn
+                    nrm[i, 1] = t0 / tn
+            if closed:
+                nrm[n - 1, 0] = nrm[0, 0]
+                nrm[n - 1, 1] = nrm[0, 1]
+            for i in range(n):
+                if not free[b, i]:
+                    nrm[i, 0] = n0[b, i, 0]
+                    nrm[i, 1] = n0[b, i, 1]
+            if has_end:
+                nrm[0, 0], nrm[0, 1] = end0[0], end0[1]
+                nrm[n - 1, 0], nrm[n - 1, 1] = end1[0], end1[1]
+            for i in range(n):
+                p[b, i, 0] = p[b, i, 0] + dh * nrm[i, 0]
+                p[b, i, 1] = p[b, i, 1] + dh * nrm[i, 1]
+            if eps > 0.0:
+                lo, hi = (0, nq) if closed else (1, n - 1)
+                for i in range(lo, hi):
+                    if closed:
+                        ip = i + 1 if i + 1 < nq else 0
+                        im = i - 1 if i > 0 else nq - 1
+                    else:
+                        ip, im = i + 1, i - 1
+                    l0 = 0.5 * (p[b, im, 0] + p[b, ip, 0]) - p[b, i, 0]
+                    l1 = 0.5 * (p[b, im, 1] + p[b, ip, 1]) - p[b, i, 1]
+                    if has_keep and not closed:
+                        e0 = p[b, i, 0] - p[b, im, 0]
+                        e1 = p[b, i, 1] - p[b, im, 1]
+                        hl = math.sqrt(e0 * e0 + e1 * e1)
+                        e0 = p[b, ip, 0] - p[b, i, 0]
+                        e1 = p[b, ip, 1] - p[b, i, 1]
+                        hr = math.sqrt(e0 * e0 + e1 * e1)
+                        w = max(hl + hr, 1e-300)
+                        w0 = (hr * p[b, im, 0] + hl * p[b, ip, 0]) / w - p[b, i, 0]
+                        w1 = (hr * p[b, im, 1] + hl * p[b, ip, 1]) / w - p[b, i, 1]
+                        a = keep[b, i]
+                        l0 = (1.0 - a) * l0 + a * w0
+                        l1 = (1.0 - a) * l1 + a * w1
+                    lap[i, 0], lap[i, 1] = _limited_1(l0, l1, nrm[i, 0], nrm[i, 1], eps, dh, cap)
+                for i in range(lo, hi):
+                    f = 1.0 if free[b, i] else 0.0
+                    p[b, i, 0] = p[b, i, 0] + f * lap[i, 0]
+                    p[b, i, 1] = p[b, i, 1] + f * lap[i, 1]
+                if closed:
+                    p[b, n - 1, 0] = p[b, 0, 0]
+                    p[b, n - 1, 1] = p[b, 0, 1]
 
 
 def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
@@ -294,6 +408,17 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
         spacing = float(seg[seg > 0].min()) if np.any(seg > 0) else h
         m = int(min(400, max(1, math.ceil(h / (0.5 * spacing)))))
         dh = h / m
+        if _COMPILED:
+            p = np.ascontiguousarray(p)
+            ends = (np.zeros(2), np.zeros(2)) if end_normals is None else end_normals
+            keep = (np.zeros((nb, n)) if keep_spacing is None else
+                    np.array(np.broadcast_to(keep_spacing, (nb, n)), dtype=np.float64))
+            _march_substeps(p, n0, np.ascontiguousarray(free[..., 0]), np.asarray(ends[0], np.float64),
+                            np.asarray(ends[1], np.float64), end_normals is not None, closed, m, dh,
+                            float(eps), keep, keep_spacing is not None, SMOOTH_CAP)
+            p = np.where(free, p, wall + dist[j] * n0)
+            out[:, :, j] = p
+            continue
         for _ in range(m):
             nrm = _curve_normals(p, closed)
             nrm = np.where(free, nrm, n0)
@@ -444,6 +569,105 @@ def _corner_jacobians(xyz: np.ndarray) -> np.ndarray:
 CORNER_TOL = 1e-9
 
 
+@jit(inline="always")
+def _corner_sj(x, i0, j0, k0, a, b, c):
+    """Scaled Jacobian at corner (a, b, c) of hexahedron (i0, j0, k0); 0 on zero edges."""
+    i, j, k = i0 + a, j0 + b, k0 + c
+    u0 = x[i0 + 1, j, k, 0] - x[i0, j, k, 0]
+    u1 = x[i0 + 1, j, k, 1] - x[i0, j, k, 1]
+    u2 = x[i0 + 1, j, k, 2] - x[i0, j, k, 2]
+    v0 = x[i, j0 + 1, k, 0] - x[i, j0, k, 0]
+    v1 = x[i, j0 + 1, k, 1] - x[i, j0, k, 1]
+    v2 = x[i, j0 + 1, k, 2] - x[i, j0, k, 2]
+    w0 = x[i, j, k0 + 1, 0] - x[i, j, k0, 0]
+    w1 = x[i, j, k0 + 1, 1] - x[i, j, k0, 1]
+    w2 = x[i, j, k0 + 1, 2] - x[i, j, k0, 2]
+    lu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    lv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    lw = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    if lu == 0.0 or lv == 0.0 or lw == 0.0:
+        return 0.0
+    d = (u1 * v2 - u2 * v1) * w0 + (u2 * v0 - u0 * v2) * w1 + (u0 * v1 - u1 * v0) * w2
+    return d / (lu * lv * lw)
+
+
+@jit(inline="always")
+def _tet6(x, i, j, k, a0, a1, a2, b0, b1, b2):
+    """6 x volume of the tetrahedron p000, p_a, p_b, p111 of hexahedron (i, j, k)."""
+    p0, p1, p2 = x[i, j, k, 0], x[i, j, k, 1], x[i, j, k, 2]
+    u0 = x[i + a0, j + a1, k + a2, 0] - p0
+    u1 = x[i + a0, j + a1, k + a2, 1] - p1
+    u2 = x[i + a0, j + a1, k + a2, 2] - p2
+    v0 = x[i + b0, j + b1, k + b2, 0] - p0
+    v1 = x[i + b0, j + b1, k + b2, 1] - p1
+    v2 = x[i + b0, j + b1, k + b2, 2] - p2
+    w0 = x[i + 1, j + 1, k + 1, 0] - p0
+    w1 = x[i + 1, j + 1, k + 1, 1] - p1
+    w2 = x[i + 1, j + 1, k + 1, 2] - p2
+    return (u1 * v2 - u2 * v1) * w0 + (u2 * v0 - u0 * v2) * w1 + (u0 * v1 - u1 * v0) * w2
+
+
+@pjit
+def _bad_cells(x, planar, tol):
+    """Count the invalid cells of one block and find the first (C order of (i, j, k)).
+
+    The compiled form of the test in :func:`_checked` (no temporaries the
+    size of the block): a cell is bad when its area or volume
+    (:func:`_cell_volumes`) is not positive, or a scaled corner Jacobian
+    (:func:`_corner_jacobians`) is not positive (``planar``: 2-D grids) or
+    below ``-tol``.  Returns ``(count, i, j, k)``, ``(0, -1, -1, -1)`` when
+    every cell is valid.
+    """
+    ni, nj, nk = x.shape[0], x.shape[1], x.shape[2]
+    nkc = 1 if planar else nk - 1
+    count = np.zeros(nkc, np.int64)
+    first = np.full(nkc, -1, np.int64)
+    for k in prange(nkc):
+        for j in range(nj - 1):
+            for i in range(ni - 1):
+                bad = False
+                if planar:
+                    d10 = x[i + 1, j + 1, 0, 0] - x[i, j, 0, 0]
+                    d11 = x[i + 1, j + 1, 0, 1] - x[i, j, 0, 1]
+                    d20 = x[i, j + 1, 0, 0] - x[i + 1, j, 0, 0]
+                    d21 = x[i, j + 1, 0, 1] - x[i + 1, j, 0, 1]
+                    bad = not 0.5 * (d10 * d21 - d11 * d20) > 0.0
+                    for a in range(2):
+                        for b in range(2):
+                            u0 = x[i + 1, j + b, 0, 0] - x[i, j + b, 0, 0]
+                            u1 = x[i + 1, j + b, 0, 1] - x[i, j + b, 0, 1]
+                            v0 = x[i + a, j + 1, 0, 0] - x[i + a, j, 0, 0]
+                            v1 = x[i + a, j + 1, 0, 1] - x[i + a, j, 0, 1]
+                            lu = math.sqrt(u0 * u0 + u1 * u1)
+                            lv = math.sqrt(v0 * v0 + v1 * v1)
+                            if not (lu > 0.0 and lv > 0.0 and (u0 * v1 - u1 * v0) / (lu * lv) > 0.0):
+                                bad = True
+                else:
+                    vol = (_tet6(x, i, j, k, 1, 0, 0, 1, 1, 0) + _tet6(x, i, j, k, 0, 1, 0, 0, 1, 1)
+                           + _tet6(x, i, j, k, 0, 0, 1, 1, 0, 1) - _tet6(x, i, j, k, 1, 0, 0, 1, 0, 1)
+                           - _tet6(x, i, j, k, 0, 0, 1, 0, 1, 1) - _tet6(x, i, j, k, 0, 1, 0, 1, 1, 0))
+                    bad = not vol > 0.0
+                    for a in range(2):
+                        for b in range(2):
+                            for c in range(2):
+                                if not _corner_sj(x, i, j, k, a, b, c) >= -tol:
+                                    bad = True
+                if bad:
+                    count[k] += 1
+                    flat = (i * (nj - 1) + j) * nkc + k
+                    if first[k] < 0 or flat < first[k]:
+                        first[k] = flat
+    total = 0
+    best = -1
+    for k in range(nkc):
+        total += count[k]
+        if first[k] >= 0 and (best < 0 or first[k] < best):
+            best = first[k]
+    if best < 0:
+        return total, -1, -1, -1
+    return total, best // ((nj - 1) * nkc), (best // nkc) % (nj - 1), best % nkc
+
+
 def _checked(grid: Grid, what: str) -> Grid:
     """Return ``grid`` if every cell is valid, else raise naming the first bad cell.
 
@@ -455,13 +679,11 @@ def _checked(grid: Grid, what: str) -> Grid:
     there at 180 degrees.
     """
     for n, b in enumerate(grid):
-        v = _cell_volumes(b.xyz)
-        cj = _corner_jacobians(b.xyz)
-        bad = (v <= 0.0) | ((cj <= 0.0) if grid.ndim == 2 else (cj < -CORNER_TOL))
-        if bad.any():
-            idx = tuple(int(c) + 1 for c in np.argwhere(bad)[0])
+        count, i, j, k = _bad_cells(b.xyz, grid.ndim == 2, CORNER_TOL)
+        if count:
+            idx = (i + 1, j + 1) if grid.ndim == 2 else (i + 1, j + 1, k + 1)
             raise GridValueError(
-                f"{what}: {int(bad.sum())} folded or degenerate cell(s) in block {n + 1}, first at "
+                f"{what}: {int(count)} folded or degenerate cell(s) in block {n + 1}, first at "
                 f"cell {idx} (1-based); the parameters ask too much of the marcher: use more points "
                 "(ni, nj) or a gentler wall-normal stretching")
     return grid
