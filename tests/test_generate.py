@@ -91,6 +91,21 @@ def test_geometric_spacing():
         gen.geometric_spacing(4, 1.0, 2.0)
 
 
+@pytest.mark.parametrize("n,total,first", [(64, 20.0, 1e-5), (64, 20.0, 1e-7), (48, 15.0, 1e-4), (8, 1.0, 0.05)])
+def test_tanh_spacing(n, total, first):
+    s = gen.tanh_spacing(n, total, first)
+    assert s.shape == (n + 1,) and s[0] == 0.0 and s[-1] == total
+    d = np.diff(s)
+    assert d[0] == pytest.approx(first, rel=1e-12)
+    ratio = d[1:] / d[:-1]
+    # smooth: the ratio is largest at the wall and falls towards 1
+    assert np.all(ratio > 1.0) and np.all(np.diff(ratio) < 0) and ratio[-1] < 1.0 + 4.0 / n
+    g = np.diff(gen.geometric_spacing(n, total, first))
+    assert ratio[0] > g[1] / g[0] and d[-1] < g[-1]
+    with pytest.raises(GridValueError, match="below the mean spacing"):
+        gen.tanh_spacing(10, 1.0, 0.1)
+
+
 def test_naca4_sections():
     x = np.linspace(0.0, 1.0, 201)
     xu, yu, xl, yl = gen.naca4("0012", x)
@@ -170,6 +185,23 @@ def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
     ds = np.linalg.norm(np.diff(w, axis=0), axis=-1)
     ile = np.argmin(w[:, 0])
     assert ds[ile] < 0.5 * ds.mean() and min(ds[0], ds[-1]) < 0.5 * ds.mean()
+
+
+@pytest.mark.parametrize("naca,topo,fs,blunt", [("0012", "C", 1e-6, False), ("4412", "C", 1e-4, False),
+                                               ("2415", "O", 1e-5, True), ("6409", "O", 1e-6, False)])
+def test_tanh_stretched_airfoils(naca, topo, fs, blunt):
+    ni, nj = 193, 65
+    g = gen.airfoil(naca, topo, ni=ni, nj=nj, first_spacing=fs, blunt_te=blunt, stretching="tanh")
+    x = g[0].xyz[:, :, 0, :2]
+    assert _corner_jacobians(g[0].xyz).min() > 0.1
+    lo, hi = gen.airfoil_wall_range(ni, topo)
+    assert max_deviation_2d(x, lo, hi, topo == "O") <= 0.5
+    # the wall-normal distribution is the tanh one (straight lines near the wall)
+    dist = gen.tanh_spacing(nj - 1, 20.0, fs)
+    h = np.linalg.norm(x[lo + 5, 1:11] - x[lo + 5, 0], axis=-1)
+    assert np.allclose(h, dist[1:11], rtol=1e-9)
+    with pytest.raises(GridValueError, match="stretching must be one of 'geometric', 'tanh'"):
+        gen.airfoil(naca, topo, stretching="cosine")
 
 
 @pytest.mark.parametrize("naca,nb", [("0012", 4), ("0024", 2), ("4412", 6)])
@@ -509,7 +541,8 @@ def assert_wing_cells_valid(grid):
 #: (nj = 41: ratio about 1.4 from first_spacing 1e-5 to 15 chords)
 ORTHO_WINGS = [dict(), dict(sweep=0.0, taper=1.0, aspect_ratio=3.0),
                dict(naca="4415", sweep=45.0, taper=0.3, aspect_ratio=6.0),
-               dict(first_spacing=1e-6), dict(naca="2412", first_spacing=1e-4, sweep=15.0, aspect_ratio=5.0)]
+               dict(first_spacing=1e-6), dict(naca="2412", first_spacing=1e-4, sweep=15.0, aspect_ratio=5.0),
+               dict(stretching="tanh", first_spacing=1e-6)]
 
 
 @pytest.mark.parametrize("kw", ORTHO_WINGS)
@@ -683,6 +716,7 @@ def test_cli_generate_airfoil_with_case(cli, tmp_path, capsys):
     (["channel", "--ni", "17", "--nj", "9"], [(17, 9, 1)]),
     (["two-block", "--ni", "17", "--nj", "9"], [(17, 5, 1), (5, 17, 1)]),
     (["airfoil", "--topology", "o", "--ni", "65", "--nj", "25", "--blunt-te"], [(65, 25, 1)]),
+    (["airfoil", "--ni", "65", "--nj", "25", "--stretching", "tanh"], [(65, 25, 1)]),
     (["wing", "--ni", "65", "--nj", "25", "--nk-wing", "5", "--nk-cap", "3", "--nk-out", "4"],
      [(65, 25, 5), (65, 25, 3), (33, 25, 4), (4, 33, 25)]),
 ])

@@ -16,6 +16,11 @@ DESCRIPTION = ("Generate a grid and write it; --case also writes a TOML case fil
                "its walls, symmetry planes and fixed boundaries (1-based ranges).")
 
 
+def _stretching(p):
+    p.add_argument("--stretching", choices=("geometric", "tanh"), default="geometric",
+                   help="wall-normal distribution (default geometric)")
+
+
 def _common(p, ni, nj, first_spacing, farfield=None):
     p.add_argument("--ni", type=int, default=ni, help=f"points in i (default {ni})")
     p.add_argument("--nj", type=int, default=nj, help=f"points in j (default {nj})")
@@ -43,6 +48,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     a.add_argument("--blunt-te", action="store_true", help="blunt trailing edge (O-grid only)")
     a.add_argument("--n-base", type=int, default=4,
                    help="intervals on each half of a blunt base (default 4)")
+    _stretching(a)
 
     c = kind("cylinder", "analytic O-grid round a circular cylinder (2-D)")
     _common(c, 129, 65, 1e-4, 20.0)
@@ -70,6 +76,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     w.add_argument("--wake-length", type=float, default=15.0,
                    help="outflow plane behind the last trailing edge (default 15)")
     w.add_argument("--n-wake", type=int, default=None, help="intervals per wake side (default (ni-1)/4)")
+    _stretching(w)
 
     for p in (a, c, kinds.choices["channel"], kinds.choices["two-block"], w):
         p.add_argument("-o", "--output", required=True, help="grid file to write (.x, .h5, ...)")
@@ -79,12 +86,12 @@ def add_args(parser: argparse.ArgumentParser) -> None:
 
 _PARAMS = {
     "airfoil": ("naca", "topology", "ni", "nj", "first_spacing", "farfield", "wake_length",
-                "n_wake", "blunt_te", "n_base"),
+                "n_wake", "blunt_te", "n_base", "stretching"),
     "cylinder": ("ni", "nj", "first_spacing", "farfield", "radius"),
     "channel": ("ni", "nj", "first_spacing", "length", "height", "bump_height"),
     "two-block": ("ni", "nj", "first_spacing", "length", "height", "bump_height"),
     "wing": ("naca", "ni", "nj", "first_spacing", "farfield", "nk_wing", "nk_cap", "nk_out",
-             "aspect_ratio", "taper", "sweep", "span_farfield", "wake_length", "n_wake"),
+             "aspect_ratio", "taper", "sweep", "span_farfield", "wake_length", "n_wake", "stretching"),
 }
 
 
