@@ -1,11 +1,13 @@
-"""Regenerate the sample grids and their case files in this folder.
+"""Regenerate the sample grids and their case files in this folder, or check them.
 
-    python grids/make_grids.py [NAME ...]
+    python grids/make_grids.py [NAME ...]           # rewrite the grids, case files, SHA256SUMS
+    python grids/make_grids.py --check [NAME ...]   # regenerate in memory and compare
 
 Each entry of :data:`SAMPLES` records the generator, its parameters, the
 motion written to the case file and a one-line purpose; ``tests/test_generate.py``
 regenerates the small grids from these records and compares them with the
-shipped files.
+shipped files (the wing, ~2 s to generate, is checked there for its stated
+properties; ``--check`` compares it too).
 """
 
 from __future__ import annotations
@@ -70,10 +72,48 @@ def sha256(path) -> str:
     return h.hexdigest()
 
 
+def check(names) -> int:
+    """Compare the shipped files with freshly generated ones; 0 when all agree.
+
+    Coordinates must agree to 1e-12 of the largest coordinate (other CPUs
+    may differ in the last bits of sin/cos), the case files' patches and
+    motion exactly, and every file its line in ``SHA256SUMS``.
+    """
+    import numpy as np
+
+    import tfi_quat
+    from tfi_quat.case import load_case
+
+    sums = dict(reversed(line.split()) for line in (HERE / "SHA256SUMS").read_text().splitlines())
+    bad = 0
+    for name in names or SAMPLES:
+        grid, case = build(name)
+        shipped = tfi_quat.read(HERE / f"{name}.x")
+        problems = []
+        if shipped.ndim != grid.ndim or shipped.dims != grid.dims:
+            problems.append(f"dims {shipped.dims} != {grid.dims}")
+        else:
+            scale = max(float(np.abs(b.xyz).max()) for b in grid)
+            diff = max(float(np.abs(a.xyz - b.xyz).max()) for a, b in zip(shipped, grid))
+            if diff > 1e-12 * scale:
+                problems.append(f"coordinates differ by {diff:.3g}")
+        loaded = load_case(HERE / f"{name}.toml")
+        if (loaded.walls, loaded.symmetry, loaded.fixed, loaded.motion) != \
+                (case.walls, case.symmetry, case.fixed, case.motion):
+            problems.append("case file differs")
+        if sums.get(f"{name}.x") != sha256(HERE / f"{name}.x"):
+            problems.append("SHA256SUMS differs")
+        print(f"{name}: {'ok' if not problems else '; '.join(problems)}")
+        bad += bool(problems)
+    return 1 if bad else 0
+
+
 def main(names) -> int:
     import tfi_quat
     from tfi_quat.case import save_case
 
+    if names and names[0] == "--check":
+        return check(names[1:])
     for name in names or SAMPLES:
         grid, case = build(name)
         tfi_quat.write(HERE / f"{name}.x", grid, overwrite=True)

@@ -12,7 +12,7 @@ import tfi_quat
 from tfi_quat import Grid, GridValueError
 from tfi_quat import generate as gen
 from tfi_quat.case import load_case
-from tfi_quat.generate import _cell_volumes
+from tfi_quat.generate import _cell_volumes, _corner_jacobians
 
 from conftest import sheared_box
 
@@ -30,15 +30,47 @@ def wall_normals_2d(w, closed):
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
+def deviations_2d(xy, lo, hi, closed, layers=10):
+    """Angles (deg, 0..180) between the j-line segments of the first ``layers``
+    layers and the outward wall normal, shape (hi - lo + 1, layers)."""
+    n = wall_normals_2d(xy[:, 0], closed)[lo:hi + 1]
+    d = xy[lo:hi + 1, 1:layers + 1] - xy[lo:hi + 1, :layers]
+    cross = n[:, None, 0] * d[..., 1] - n[:, None, 1] * d[..., 0]
+    dot = n[:, None, 0] * d[..., 0] + n[:, None, 1] * d[..., 1]
+    return np.degrees(np.arctan2(np.abs(cross), dot))
+
+
 def max_deviation_2d(xy, lo, hi, closed, layers=10):
     """Largest angle (deg) between the j-lines of the first ``layers`` layers and the wall normal."""
-    n = wall_normals_2d(xy[:, 0], closed)[lo:hi + 1]
-    worst = 0.0
-    for j in range(layers):
-        d = xy[lo:hi + 1, j + 1] - xy[lo:hi + 1, j]
-        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-        worst = max(worst, float(np.degrees(np.arccos(np.clip((d * n).sum(-1), -1, 1))).max()))
-    return worst
+    return float(deviations_2d(xy, lo, hi, closed, layers).max())
+
+
+def wing_wall_deviations(grid, n_wake=None, layers=10):
+    """Angles (deg) between the first ``layers`` j-line segments off the wing's
+    wall (blocks 1 and 2 joined along k) and the wall normal, shape
+    (wall points round the section, layers, span stations).
+
+    The normal is the cross product of central differences along i and k
+    over the joined wall, the root mirrored in the symmetry plane y = 0 and
+    one-sided at the cap's last (collapsed) station; it is computed here,
+    independently of the generator.
+    """
+    b1, b2 = grid[0].xyz, grid[1].xyz
+    x = np.concatenate([b1, b2[:, :, 1:]], axis=2)
+    lo, hi = gen.wing_wall_range(x.shape[0], n_wake)
+    w = x[:, 0]
+    ghost = w[:, 1].copy()
+    ghost[:, 1] *= -1.0
+    wk = np.concatenate([ghost[:, None], w], axis=1)
+    tk = np.concatenate([wk[:, 2:] - wk[:, :-2], (w[:, -1] - w[:, -2])[:, None]], axis=1)
+    ti = np.gradient(w, axis=0)
+    n = np.cross(tk, ti)
+    with np.errstate(invalid="ignore"):
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    e = x[lo:hi + 1, 1:layers + 1] - x[lo:hi + 1, :layers]
+    cr = np.linalg.norm(np.cross(n[lo:hi + 1, None], e), axis=-1)
+    dt = np.einsum("ikc,ijkc->ijk", n[lo:hi + 1], e)
+    return np.degrees(np.arctan2(cr, dt))
 
 
 def xy_of(grid, b=0):
@@ -57,6 +89,21 @@ def test_geometric_spacing():
     assert shrink[0] == pytest.approx(0.3) and np.all(np.diff(shrink) < 0)
     with pytest.raises(GridValueError, match="first spacing"):
         gen.geometric_spacing(4, 1.0, 2.0)
+
+
+@pytest.mark.parametrize("n,total,first", [(64, 20.0, 1e-5), (64, 20.0, 1e-7), (48, 15.0, 1e-4), (8, 1.0, 0.05)])
+def test_tanh_spacing(n, total, first):
+    s = gen.tanh_spacing(n, total, first)
+    assert s.shape == (n + 1,) and s[0] == 0.0 and s[-1] == total
+    d = np.diff(s)
+    assert d[0] == pytest.approx(first, rel=1e-12)
+    ratio = d[1:] / d[:-1]
+    # smooth: the ratio is largest at the wall and falls towards 1
+    assert np.all(ratio > 1.0) and np.all(np.diff(ratio) < 0) and ratio[-1] < 1.0 + 4.0 / n
+    g = np.diff(gen.geometric_spacing(n, total, first))
+    assert ratio[0] > g[1] / g[0] and d[-1] < g[-1]
+    with pytest.raises(GridValueError, match="below the mean spacing"):
+        gen.tanh_spacing(10, 1.0, 0.1)
 
 
 def test_naca4_sections():
@@ -95,12 +142,19 @@ def test_cell_volumes_exact_for_affine_grids():
 AIRFOIL_CASES = [
     ("0012", "C", 1e-5, False, 257, 65),
     ("0012", "C", 1e-6, False, 129, 49),
+    ("0012", "C", 1e-4, False, 257, 65),
     ("4412", "C", 1e-5, False, 129, 41),
+    ("4412", "C", 1e-4, False, 193, 65),
     ("2408", "C", 3e-5, False, 97, 33),
+    ("6409", "C", 1e-6, False, 257, 97),
+    ("0021", "C", 1e-4, False, 129, 49),
+    ("0006", "C", 1e-5, False, 193, 65),
     ("0012", "O", 1e-5, False, 129, 41),
     ("4412", "O", 1e-6, False, 257, 65),
+    ("6409", "O", 1e-4, False, 193, 65),
     ("0012", "O", 1e-5, True, 129, 41),
     ("4415", "O", 1e-4, True, 97, 33),
+    ("0006", "O", 1e-6, True, 257, 65),
 ]
 
 
@@ -111,6 +165,8 @@ def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
     xy = xy_of(g)
     area = _cell_volumes(g[0].xyz)
     assert area.min() > 0.0, f"{(area <= 0).sum()} non-positive cells"
+    # every quad convex and none degenerate: each corner angle in (5.7, 174.3) deg
+    assert _corner_jacobians(g[0].xyz).min() > 0.1
     lo, hi = gen.airfoil_wall_range(ni, topo)
     closed = topo == "O"
     assert max_deviation_2d(xy, lo, hi, closed) <= 0.5
@@ -131,24 +187,69 @@ def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
     assert ds[ile] < 0.5 * ds.mean() and min(ds[0], ds[-1]) < 0.5 * ds.mean()
 
 
-@pytest.mark.parametrize("naca,ni,nj,fs", [("0012", 257, 65, 1e-5), ("0024", 129, 49, 1e-5),
-                                           ("4412", 257, 65, 1e-6)])
-def test_blunt_c_grid(naca, ni, nj, fs):
-    nb = 4
-    g = gen.airfoil(naca, "C", ni=ni, nj=nj, first_spacing=fs, blunt_te=True, n_base=nb)
-    x = g[0].xyz
-    assert _cell_volumes(x).min() > 0.0
+@pytest.mark.parametrize("naca,topo,fs,blunt", [("0012", "C", 1e-6, False), ("4412", "C", 1e-4, False),
+                                               ("2415", "O", 1e-5, True), ("6409", "O", 1e-6, False)])
+def test_tanh_stretched_airfoils(naca, topo, fs, blunt):
+    ni, nj = 193, 65
+    g = gen.airfoil(naca, topo, ni=ni, nj=nj, first_spacing=fs, blunt_te=blunt, stretching="tanh")
+    x = g[0].xyz[:, :, 0, :2]
+    assert _corner_jacobians(g[0].xyz).min() > 0.1
+    lo, hi = gen.airfoil_wall_range(ni, topo)
+    assert max_deviation_2d(x, lo, hi, topo == "O") <= 0.5
+    # the wall-normal distribution is the tanh one (straight lines near the wall)
+    dist = gen.tanh_spacing(nj - 1, 20.0, fs)
+    h = np.linalg.norm(x[lo + 5, 1:11] - x[lo + 5, 0], axis=-1)
+    assert np.allclose(h, dist[1:11], rtol=1e-9)
+    with pytest.raises(GridValueError, match="stretching must be one of 'geometric', 'tanh'"):
+        gen.airfoil(naca, topo, stretching="cosine")
+
+
+@pytest.mark.parametrize("naca,nb", [("0012", 4), ("0024", 2), ("4412", 6)])
+def test_blunt_o_grid_base(naca, nb):
+    ni = 129
+    g = gen.airfoil(naca, "O", ni=ni, nj=41, first_spacing=1e-5, blunt_te=True, n_base=nb)
+    x = g[0].xyz[:, :, 0, :2]
+    # i = 1 is the middle of the base; the base runs down to the lower corner
+    # (i = 1 + nb) and back from the upper one (i = ni - nb), a straight segment
+    xu, yu, xl, yl = gen.naca4(naca, np.array([1.0]), blunt_te=True)
+    corner_l, corner_u = np.array([xl[0], yl[0]]), np.array([xu[0], yu[0]])
+    base = np.concatenate([x[ni - 1 - nb:-1, 0], x[:nb + 1, 0]])      # upper corner -> lower corner
+    assert np.allclose(base[0], corner_u, atol=1e-15) and np.allclose(base[-1], corner_l, atol=1e-15)
+    t = (base - corner_u) @ (corner_l - corner_u) / np.sum((corner_l - corner_u) ** 2)
+    assert np.allclose(base, corner_u + t[:, None] * (corner_l - corner_u), atol=1e-15)
+    assert np.allclose(np.diff(t), 1.0 / (2 * nb))                    # evenly spaced, going down
+    assert np.allclose(x[0, 0], 0.5 * (corner_u + corner_l), atol=1e-15)
+    assert np.linalg.norm(corner_u - corner_l) > 2e-3                 # really blunt
+    assert np.array_equal(x[0], x[-1])
+    # the base and its corners too leave the wall orthogonally
+    assert max_deviation_2d(x, 0, ni - 1, True) <= 0.5
+
+
+def test_blunt_c_grid_is_refused():
+    # a one-block C-grid's cut would meet the base in right-angle corners of the
+    # domain; the first version returned inside-out or arrowhead cells there
+    # for most parameters, so blunt trailing edges are O-grid only
+    with pytest.raises(GridValueError, match="blunt_te=True needs topology 'O'"):
+        gen.airfoil("0012", "C", blunt_te=True)
+
+
+@pytest.mark.parametrize("naca", ["4412", "6409"])
+def test_c_grid_trailing_edge_limit(naca):
+    # the documented limit of the straight near-wall layers: next to a
+    # C-grid's trailing edge (a concave corner of the wall curve) the lines
+    # from the surface and the wake converge; here (cambered, 257 x 65, first
+    # cell 1e-4, ten layers 2.3e-3 thick against a trailing-edge spacing of
+    # 6e-4) the two or so points next to the edge bend in the last layers;
+    # every other point stays orthogonal
+    ni = 257
+    g = gen.airfoil(naca, "C", ni=ni, nj=65, first_spacing=1e-4)
+    assert _corner_jacobians(g[0].xyz).min() > 0.1
     lo, hi = gen.airfoil_wall_range(ni, "C")
-    # the cut ends at the middle of the base, bit-identical on both sides
-    assert np.array_equal(x[:lo + 1, 0], x[hi:, 0][::-1])
-    base = x[lo:lo + nb + 1, 0, 0]
-    chord = base[-1, :2] - base[0, :2]                          # a straight base, going down
-    rel = base[:, :2] - base[0, :2]
-    assert np.allclose(chord[0] * rel[:, 1] - chord[1] * rel[:, 0], 0.0, atol=1e-15)
-    assert chord[1] < -5e-4
-    # orthogonal everywhere on the wall but on the base, whose ends meet the cut
-    # at concave right angles (no positive grid can leave those orthogonally)
-    assert max_deviation_2d(x[:, :, 0, :2], lo + nb, hi - nb, False) <= 0.5
+    dev = deviations_2d(g[0].xyz[:, :, 0, :2], lo, hi, False)
+    i_bad, layer_bad = np.nonzero(dev > 0.5)
+    assert i_bad.size > 0                                 # the limit is real
+    te_dist = np.minimum(i_bad, (hi - lo) - i_bad)        # intervals from the trailing edge
+    assert te_dist.max() <= 3 and layer_bad.min() >= 7
 
 
 def test_small_c_grids_do_not_fold():
@@ -156,6 +257,7 @@ def test_small_c_grids_do_not_fold():
     for ni, nj, fs in ((33, 9, 1e-5), (65, 17, 1e-4), (49, 13, 1e-3), (97, 25, 1e-3), (65, 17, 1e-3)):
         g = gen.airfoil("0012", "C", ni=ni, nj=nj, first_spacing=fs)
         assert _cell_volumes(g[0].xyz).min() > 0.0, (ni, nj, fs)
+        assert _corner_jacobians(g[0].xyz).min() > 0.0, (ni, nj, fs)
 
 
 def test_c_grid_wake_cut_is_bit_identical():
@@ -187,12 +289,77 @@ def test_folded_cells_are_reported_not_returned():
         gen._checked(Grid([xyz], ndim=2), "test")
 
 
+def test_corner_jacobians_catch_what_volumes_miss():
+    # an arrowhead quad: positive area (by its diagonals) but a reflex corner
+    q = np.zeros((2, 2, 1, 3), order="F")
+    q[0, 0, 0, :2], q[1, 0, 0, :2], q[0, 1, 0, :2], q[1, 1, 0, :2] = [0, 0], [2, 0], [0, 2], [0.4, 0.4]
+    assert _cell_volumes(q)[0, 0] > 0.0 and _corner_jacobians(q)[0, 0] < 0.0
+    with pytest.raises(GridValueError, match="1 folded or degenerate"):
+        gen._checked(Grid([q], ndim=2), "arrow")
+    # the unit square: every corner angle 90 deg
+    q[1, 1, 0, :2] = [2, 2]
+    assert _corner_jacobians(q)[0, 0] == pytest.approx(1.0)
+    # a hexahedron with one corner pushed through the opposite face: its
+    # tetrahedral volume stays positive, one corner Jacobian does not
+    i, j, k = np.meshgrid([0.0, 1.0], [0.0, 1.0], [0.0, 1.0], indexing="ij")
+    h = np.asfortranarray(np.stack([i, j, k], axis=-1))
+    assert _corner_jacobians(h)[0, 0, 0] == pytest.approx(1.0)
+    h[1, 1, 1] = [0.3, 0.3, 0.3]
+    assert _cell_volumes(h)[0, 0, 0] > 0.0 and _corner_jacobians(h)[0, 0, 0] < 0.0
+    with pytest.raises(GridValueError, match="hex: 1 folded"):
+        gen._checked(Grid([h], ndim=3), "hex")
+
+
 def test_small_wings_do_not_fold():
     # regression: coarse wings used to twist hexahedra near the tip (3-D normal correction
     # larger than the span spacing)
     for ni, nj, fs in ((33, 13, 1e-3), (49, 17, 1e-4), (33, 21, 1e-5)):
-        g = gen.wing(ni=ni, nj=nj, nk_wing=5, nk_cap=3, nk_out=4, first_spacing=fs)
-        assert min(_cell_volumes(b.xyz).min() for b in g) > 0.0
+        assert_wing_cells_valid(gen.wing(ni=ni, nj=nj, nk_wing=5, nk_cap=3, nk_out=4, first_spacing=fs))
+
+
+@pytest.mark.parametrize("kind,kw", [
+    ("airfoil", dict(naca="4412", topology="C", ni=97, nj=33, first_spacing=1e-4)),
+    ("airfoil", dict(naca="2415", topology="O", ni=97, nj=33, blunt_te=True)),
+    ("airfoil", dict(naca="0012", topology="C", ni=33, nj=9)),
+    ("wing", dict(ni=33, nj=21, nk_wing=5, nk_cap=3, nk_out=4, sweep=40.0)),
+])
+def test_compiled_marcher_is_the_numpy_one(monkeypatch, kind, kw):
+    # the compiled sub-step kernel repeats the numpy reference operation for
+    # operation: the grids are bit-identical
+    fast = gen.GENERATORS[kind](**kw)
+    monkeypatch.setattr(gen, "_COMPILED", False)
+    ref = gen.GENERATORS[kind](**kw)
+    assert all(a.xyz.tobytes() == b.xyz.tobytes() for a, b in zip(fast, ref))
+
+
+def _bad_reference(xyz, planar):
+    v, cj = _cell_volumes(xyz), _corner_jacobians(xyz)
+    bad = (v <= 0.0) | ((cj <= 0.0) if planar else (cj < -gen.CORNER_TOL))
+    first = tuple(int(c) for c in np.argwhere(bad)[0]) if bad.any() else None
+    return int(bad.sum()), first
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_bad_cell_kernel_agrees_with_the_reference(compiled):
+    kernel = gen._bad_cells if compiled else gen._bad_cells.py_func
+    rng = np.random.default_rng(3)
+    box = sheared_box(6, 5, 4) if compiled else sheared_box(4, 3, 3)
+    plane = np.asfortranarray(gen.channel(9, 7)[0].xyz)
+    for xyz, planar in ((box, False), (plane, True)):
+        scale = np.abs(np.diff(xyz, axis=0)).max()
+        for trial in range(6):
+            x = xyz.copy(order="F")
+            # perturb a few points hard enough to fold some cells
+            for _ in range(trial):
+                idx = tuple(int(rng.integers(0, n)) for n in x.shape[:3])
+                x[idx][:2 if planar else 3] += rng.normal(0.0, 1.5 * scale, 2 if planar else 3)
+            count, i, j, k = kernel(x, planar, gen.CORNER_TOL)
+            ref_count, ref_first = _bad_reference(x, planar)
+            assert count == ref_count
+            if ref_first is None:
+                assert (i, j, k) == (-1, -1, -1)
+            else:
+                assert (i, j) + (() if planar else (k,)) == ref_first
 
 
 def test_airfoil_is_deterministic():
@@ -205,12 +372,26 @@ def test_airfoil_is_deterministic():
     (dict(topology="X"), "topology"),
     (dict(ni=128), "odd"),
     (dict(ni=5), ">= 9"),
+    (dict(ni=129.0), "ni must be an integer"),
+    (dict(nj=2), "nj must be >= 3"),
     (dict(first_spacing=0.1), "first_spacing"),
     (dict(first_spacing=-1.0), "first_spacing"),
+    (dict(first_spacing="small"), "first_spacing must be a number"),
     (dict(farfield=1.0), "farfield"),
+    (dict(farfield=float("nan")), "farfield"),
+    (dict(wake_length=0.0), "wake_length"),
     (dict(n_wake=63, ni=129), "even"),
+    (dict(n_wake=0), "n_wake must be >= 1"),
     (dict(naca="00120"), "naca"),
+    (dict(naca=12), "naca"),
+    (dict(naca="0000"), "thickness"),
     (dict(smoothing=0.9), "smoothing"),
+    (dict(smoothing="lots"), "smoothing must be a number"),
+    (dict(n_ortho=-1), "n_ortho"),
+    (dict(blunt_te="yes"), "blunt_te must be True or False"),
+    (dict(topology="O", blunt_te=True, n_base=0), "n_base"),
+    (dict(topology="O", n_wake=10), "n_wake applies to C-grids only"),
+    (dict(topology="O", wake_length=5.0), "wake_length applies to C-grids only"),
 ])
 def test_airfoil_rejects_bad_arguments(kw, match):
     with pytest.raises(GridValueError, match=match):
@@ -261,6 +442,26 @@ def test_two_block_interface(ni, nj):
     assert max_deviation_2d(xy_of(g, 0), 0, ni - 1, False, layers=min(10, nh - 1)) <= 0.5
 
 
+@pytest.mark.parametrize("fn,kw,match", [
+    (gen.cylinder, dict(ni=4), "ni must be >= 5"),
+    (gen.cylinder, dict(radius=0.0), "radius"),
+    (gen.cylinder, dict(farfield=0.4), "farfield"),
+    (gen.cylinder, dict(first_spacing=30.0), "first_spacing"),
+    (gen.channel, dict(nj=2), "nj"),
+    (gen.channel, dict(height=-1.0), "height"),
+    (gen.channel, dict(bump_height=0.5), "bump_height"),
+    (gen.channel, dict(bump_start="a"), "bump_start must be a number"),
+    (gen.channel, dict(bump_start=2.5), "bump_start < bump_end"),
+    (gen.channel, dict(first_spacing=0.6), "first_spacing"),
+    (gen.two_block, dict(nj=32), "nj must be odd"),
+    (gen.two_block, dict(bump_height=-0.1), "bump_height"),
+    (gen.two_block, dict(length=0.0), "length"),
+])
+def test_2d_generators_reject_bad_arguments(fn, kw, match):
+    with pytest.raises(GridValueError, match=match):
+        fn(**kw)
+
+
 def test_small_generators_are_deterministic():
     assert gen.cylinder(17, 9) == gen.cylinder(17, 9)
     assert gen.channel(17, 9) == gen.channel(17, 9)
@@ -279,12 +480,14 @@ def small_wing():
 def test_wing_blocks_and_volumes(small_wing):
     g = small_wing
     assert g.ndim == 3 and len(g) == 4
+    # walls on the wing and its cap only; the blocks beyond the tip have none
+    bp = gen.boundary_patches("wing", g)
+    assert sorted({p.block for p in bp["walls"]}) == [0, 1]
+    assert {p.block for p in bp["symmetry"]} == {0}
     ni, nj = SMALL_WING["ni"], SMALL_WING["nj"]
     nh = (ni + 1) // 2
     assert g.dims == [(ni, nj, 9), (ni, nj, 5), (nh, nj, 7), (7, nh, nj)]
-    for n, b in enumerate(g):
-        v = _cell_volumes(b.xyz)
-        assert v.min() > 0.0, f"block {n + 1}: {(v <= 0).sum()} non-positive cells"
+    assert_wing_cells_valid(g)
 
 
 def test_wing_interfaces_are_bit_identical(small_wing):
@@ -313,42 +516,63 @@ def test_wing_cuts_symmetry_and_tip(small_wing):
     assert 3.0 <= 4.0 * semispan / (1.0 + chord(semispan)) <= 6.0   # aspect ratio (2b)^2 / S
 
 
-def test_wing_wall_orthogonality(small_wing):
-    b1 = small_wing[0].xyz
-    ni = b1.shape[0]
-    lo, hi = gen.wing_wall_range(ni)
-    w = b1[:, 0]
-    ti = np.gradient(w, axis=0)
-    tk = np.gradient(w, axis=1)
-    n = np.cross(ti, tk)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    worst = 0.0
-    for j in range(10):
-        d = b1[:, j + 1] - b1[:, j]
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        cos = np.abs(np.einsum("ikc,ikc->ik", d, n))[lo:hi + 1, 1:-1]
-        worst = max(worst, float(np.degrees(np.arccos(np.clip(cos, -1, 1))).max()))
-    assert worst <= 0.5
-    # and the first layer leaves the wall outwards, at first_spacing
-    h = np.linalg.norm(b1[lo:hi + 1, 1] - b1[lo:hi + 1, 0], axis=-1)
-    assert np.allclose(h, SMALL_WING["first_spacing"], rtol=1e-9)
+def collapsed_edge_cells(grid):
+    """Per block, the 0-based cells touching the collapsed leading edge beyond
+    the wing (the cap's last station and the zero-thickness sheet)."""
+    (ni, _, _), (_, _, nkc), (_, _, nko), _ = grid.dims
+    ih = (ni - 1) // 2
+    return [set(),
+            {(ih - 1, 0, nkc - 2), (ih, 0, nkc - 2)},
+            {(ih - 1, 0, k) for k in range(nko - 1)},
+            {(k, 0, 0) for k in range(nko - 1)}]
 
 
-@pytest.mark.parametrize("kw", [dict(sweep=0.0, taper=1.0, aspect_ratio=3.0),
-                                dict(naca="4415", sweep=45.0, taper=0.3, aspect_ratio=6.0)])
-def test_wing_variants_have_positive_cells(kw):
-    g = gen.wing(**SMALL_WING, **kw)
-    for n, b in enumerate(g):
+def assert_wing_cells_valid(grid):
+    # positive volumes; corner Jacobians positive except the exact 180-degree
+    # corners where the C wraps round the collapsed edge (zero to round-off)
+    for n, (b, edge) in enumerate(zip(grid, collapsed_edge_cells(grid))):
         assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+        cj = _corner_jacobians(b.xyz)
+        assert cj.min() >= -gen.CORNER_TOL, f"block {n + 1}"
+        assert {tuple(map(int, c)) for c in np.argwhere(cj <= 1e-6)} == edge, f"block {n + 1}"
+
+
+#: wings over the parameter range, with a realistic wall-normal stretching
+#: (nj = 41: ratio about 1.4 from first_spacing 1e-5 to 15 chords)
+ORTHO_WINGS = [dict(), dict(sweep=0.0, taper=1.0, aspect_ratio=3.0),
+               dict(naca="4415", sweep=45.0, taper=0.3, aspect_ratio=6.0),
+               dict(first_spacing=1e-6), dict(naca="2412", first_spacing=1e-4, sweep=15.0, aspect_ratio=5.0),
+               dict(stretching="tanh", first_spacing=1e-6)]
+
+
+@pytest.mark.parametrize("kw", ORTHO_WINGS)
+def test_wing_wall_orthogonality_and_cells(kw):
+    params = {**SMALL_WING, "nj": 41, **kw}
+    g = gen.wing(**params)
+    assert_wing_cells_valid(g)
+    dev = wing_wall_deviations(g)
+    # every wall point of the wing and its cap (root and tip stations included),
+    # all but the cap's last station, the collapsed edge where the wall has no normal
+    assert dev.shape[2] == params["nk_wing"] + params["nk_cap"] - 1
+    assert np.isfinite(dev[:, :, :-1]).all() and dev[:, :, :-1].max() <= 0.5
+    # the first layer leaves the wall outwards at first_spacing
+    b1 = g[0].xyz
+    lo, hi = gen.wing_wall_range(params["ni"])
+    h = np.linalg.norm(b1[lo:hi + 1, 1] - b1[lo:hi + 1, 0], axis=-1)
+    assert np.allclose(h, params["first_spacing"], rtol=1e-9)
 
 
 def test_wing_is_deterministic(small_wing):
     assert gen.wing(**SMALL_WING) == small_wing
 
 
-@pytest.mark.parametrize("kw,match", [(dict(ni=67), "multiple of 4"), (dict(sweep=80.0), "sweep"),
-                                      (dict(taper=0.0), "taper"), (dict(aspect_ratio=0.5), "aspect_ratio"),
-                                      (dict(nk_cap=1), "nk_cap")])
+@pytest.mark.parametrize("kw,match", [
+    (dict(ni=67), "multiple of 4"), (dict(sweep=80.0), "sweep"), (dict(sweep="a"), "sweep must be a number"),
+    (dict(taper=0.0), "taper"), (dict(aspect_ratio=0.5), "aspect_ratio"), (dict(nk_cap=1), "nk_cap"),
+    (dict(nj=4), "nj"), (dict(naca="0000"), "thickness"), (dict(first_spacing=0.1), "first_spacing"),
+    (dict(farfield=1.0), "farfield"), (dict(span_farfield=0.01), "span_farfield"),
+    (dict(wake_length=0.01), "wake_length"), (dict(n_wake=40, ni=65), "n_wake"),
+    (dict(smoothing=float("nan")), "smoothing")])
 def test_wing_rejects_bad_arguments(kw, match):
     with pytest.raises(GridValueError, match=match):
         gen.wing(**kw)
@@ -440,8 +664,7 @@ def test_shipped_wing_properties():
     nh = (ni + 1) // 2
     assert g.ndim == 3 and g.dims == [(ni, nj, 45), (ni, nj, 9), (nh, nj, 25), (25, nh, nj)]
     assert 0.4e6 < g.npoints < 2e6
-    for n, b in enumerate(g):
-        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+    assert_wing_cells_valid(g)
     b1, b2, b3, b4 = (b.xyz for b in g)
     ih = (ni - 1) // 2
     assert np.array_equal(b1[:, :, -1], b2[:, :, 0])
@@ -453,14 +676,16 @@ def test_shipped_wing_properties():
     assert case.walls[0].range == ((lo, hi), (0, 44))
     assert np.array_equal(b1[:lo + 1, 0], b1[hi:, 0][::-1])
     assert np.all(b1[:, :, 0, 1] == 0.0)
-    # wall orthogonality of the first 10 layers (interior span stations)
-    w = b1[:, 0]
-    n = np.cross(np.gradient(w, axis=0), np.gradient(w, axis=1))
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    d = b1[lo:hi + 1, 1:11] - b1[lo:hi + 1, :10]
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    cos = np.abs(np.einsum("ijkc,ikc->ijk", d, n[lo:hi + 1]))[:, :, 1:-1]
-    assert np.degrees(np.arccos(np.clip(cos.min(), -1, 1))) <= 0.5
+    assert case.walls[1].range == ((lo, hi), (0, 8))
+    assert [(p.block, p.face) for p in case.symmetry] == [(0, "kmin")]
+    # wall orthogonality of the first 10 layers: wing and cap, root to the
+    # cap's last station (the collapsed edge)
+    dev = wing_wall_deviations(g)
+    assert dev[:, :, :-1].max() <= 0.5
+    # the geometry the README states: aspect ratio 4, taper 0.5, 30 deg sweep
+    semispan, x_le, chord = gen.wing_geometry(4.0, 0.5, 30.0)
+    assert b1[lo, 0, -1, 1] == semispan and abs(chord(semispan) - 0.5) < 1e-15
+    assert 4.0 * semispan ** 2 / (semispan * (1.0 + chord(semispan))) == pytest.approx(4.0)
 
 
 # ----------------------------------------------------------------- CLI
@@ -491,6 +716,7 @@ def test_cli_generate_airfoil_with_case(cli, tmp_path, capsys):
     (["channel", "--ni", "17", "--nj", "9"], [(17, 9, 1)]),
     (["two-block", "--ni", "17", "--nj", "9"], [(17, 5, 1), (5, 17, 1)]),
     (["airfoil", "--topology", "o", "--ni", "65", "--nj", "25", "--blunt-te"], [(65, 25, 1)]),
+    (["airfoil", "--ni", "65", "--nj", "25", "--stretching", "tanh"], [(65, 25, 1)]),
     (["wing", "--ni", "65", "--nj", "25", "--nk-wing", "5", "--nk-cap", "3", "--nk-out", "4"],
      [(65, 25, 5), (65, 25, 3), (33, 25, 4), (4, 33, 25)]),
 ])
@@ -513,11 +739,35 @@ def test_cli_refuses_to_overwrite_without_force(cli, tmp_path, capsys):
     assert tfi_quat.read(out) == gen.cylinder(9, 5)
 
 
-def test_cli_reports_bad_parameters(cli, tmp_path, capsys):
-    assert cli(["generate", "airfoil", "--ni", "128", "-o", str(tmp_path / "x.x")]) == 2
+@pytest.mark.parametrize("argv,match", [
+    (["airfoil", "--ni", "128"], "--ni must be odd, got 128"),
+    (["airfoil", "--blunt-te"], "--blunt-te=True needs --topology 'O'"),
+    (["airfoil", "--topology", "O", "--n-wake", "10"], "--n-wake applies to C-grids only"),
+    (["airfoil", "--naca", "0000"], "--naca '0000': thickness"),
+    (["channel", "--bump-height", "0.7"], "--bump-height must be in"),
+    (["cylinder", "--farfield", "0.2"], "--farfield (0.2) must exceed the --radius (0.5)"),
+    (["wing", "--sweep", "75"], "--sweep must be in [0, 60] degrees"),
+    (["two-block", "--nj", "32"], "--nj must be odd"),
+])
+def test_cli_reports_bad_parameters(cli, tmp_path, capsys, argv, match):
+    assert cli(["generate", *argv, "-o", str(tmp_path / "x.x")]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "odd" in err
+    assert err.count("\n") == 1 and match in err
     assert not (tmp_path / "x.x").exists()
+
+
+def test_cli_wing_wake_options(cli, tmp_path, capsys):
+    out, case = tmp_path / "w.x", tmp_path / "w.toml"
+    argv = ["wing", "--ni", "65", "--nj", "25", "--nk-wing", "5", "--nk-cap", "3", "--nk-out", "4",
+            "--n-wake", "12", "--wake-length", "8"]
+    assert cli(["generate", *argv, "-o", str(out), "--case", str(case)]) == 0
+    g = tfi_quat.read(out)
+    assert g == gen.wing(ni=65, nj=25, nk_wing=5, nk_cap=3, nk_out=4, n_wake=12, wake_length=8.0)
+    assert [str(w) for w in load_case(case).walls] == ["1:jmin:13-53,1-5", "2:jmin:13-53,1-3"]
+    # the outflow plane is 8 root chords behind the last trailing edge
+    lo, _ = gen.wing_wall_range(65, 12)
+    te_x = max(g[0].xyz[lo, 0, :, 0].max(), g[1].xyz[lo, 0, :, 0].max())
+    assert np.allclose(g[0].xyz[0, 0, :, 0], te_x + 8.0, rtol=1e-14, atol=0.0)
 
 
 # ----------------------------------------------------------------- cross-check with connectivity

@@ -2,27 +2,31 @@
 
 Every generator is deterministic and returns a :class:`tfi_quat.Grid`.  2-D
 grids have ``ndim == 2``, blocks ``(ni, nj, 1, 3)`` with z = 0, ``j = 0`` on
-the wall and cells of positive area (``(d/di x d/dj) . e_z > 0``).  3-D grids
-are right-handed (positive hexahedron volumes).
+the wall and convex cells of positive area (``(d/di x d/dj) . e_z > 0``).
+3-D grids are right-handed (positive hexahedron volumes and corners).
 
 Viscous grids (airfoil, wing) are built in two layers:
 
 1. the first ``n_ortho`` layers are extruded straight along the discrete wall
    normal (central differences of the wall points; 3-D: the cross product of
    the central-difference surface tangents), so grid lines leave the wall
-   orthogonally by construction;
-2. further out the grid is marched outwards layer by layer along the normal of
-   the current layer, in sub-steps no longer than half the local point
-   spacing, with Laplacian smoothing of the layer that grows from zero to
-   ``smoothing`` over ten layers (an explicit, dissipative variant of
-   hyperbolic grid marching).  The marching distances follow a geometric
-   stretching from ``first_spacing`` to ``farfield``.
+   orthogonally by construction, except where straight lines from
+   neighbouring points would converge too far (concave corners: the first
+   :data:`N_STRAIGHT` layers stay straight until the lines have come to half
+   their wall spacing);
+2. further out the grid is marched outwards layer by layer along the normal
+   of the current layer, in sub-steps no longer than half the smallest
+   point spacing, with limited Laplacian smoothing (an explicit, dissipative
+   variant of hyperbolic grid marching; the sub-steps run in a compiled
+   kernel, bit-identical to the numpy reference form).  The marching
+   distances follow a geometric or a one-sided tanh stretching from
+   ``first_spacing`` to ``farfield``.
 
 C-grid wake cuts and O-grid seams share their wall points by copy, so the two
 sides of a cut are bit-identical; multiblock grids are cut out of one global
 point array, so block interfaces are bit-identical too.  Every generator
-checks its cells and raises :class:`~tfi_quat.errors.GridValueError` rather
-than return a folded grid.
+checks its cells (volumes and corner Jacobians) and raises
+:class:`~tfi_quat.errors.GridValueError` rather than return a folded grid.
 """
 
 from __future__ import annotations
@@ -31,11 +35,13 @@ import math
 
 import numpy as np
 
+from ._jit import jit, pjit, prange
 from .errors import GridValueError
 from .grid import Block, Grid
 
 __all__ = ["naca4", "airfoil", "airfoil_wall_range", "cylinder", "channel", "two_block", "wing",
-           "wing_geometry", "wing_wall_range", "geometric_spacing", "boundary_patches", "GENERATORS"]
+           "wing_geometry", "wing_wall_range", "geometric_spacing", "tanh_spacing", "STRETCHINGS",
+           "boundary_patches", "GENERATORS"]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -60,6 +66,25 @@ def _check_pos(name: str, value, hi: float | None = None) -> float:
     if hi is not None and v >= hi:
         raise GridValueError(f"{name} must be < {hi}, got {v}")
     return v
+
+
+def _check_float(name: str, value, lo: float, hi: float, unit: str = "") -> float:
+    """``value`` as a float in ``[lo, hi]``, else a GridValueError naming ``name``."""
+    if isinstance(value, bool):
+        raise GridValueError(f"{name} must be a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise GridValueError(f"{name} must be a number, got {value!r}") from None
+    if not lo <= v <= hi:       # also rejects NaN
+        raise GridValueError(f"{name} must be in [{lo:g}, {hi:g}]{unit}, got {value!r}")
+    return v
+
+
+def _check_bool(name: str, value) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise GridValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
 
 
 def geometric_spacing(n: int, total: float, first: float) -> np.ndarray:
@@ -100,15 +125,78 @@ def geometric_spacing(n: int, total: float, first: float) -> np.ndarray:
             hi *= 2.0
     for _ in range(200):
         mid = 0.5 * (lo + hi)
-        if length(mid) < target:
-            lo = mid
-        else:
-            hi = mid
+        new = (mid, hi) if length(mid) < target else (lo, mid)
+        if new == (lo, hi):             # converged: further steps change nothing
+            break
+        lo, hi = new
     r = 0.5 * (lo + hi)
     s = np.concatenate([[0.0], np.cumsum(first * r ** k)])
     s *= total / s[-1]
     s[-1] = total
     return s
+
+
+def tanh_spacing(n: int, total: float, first: float) -> np.ndarray:
+    """Cumulative distances of a one-sided hyperbolic-tangent stretching.
+
+    ``s(x) = total (1 + tanh(d (x - 1)) / tanh(d))`` at ``x = i / n``
+    (Vinokur's one-sided form), evaluated as ``total sinh(d x) / (sinh(d)
+    cosh(d (x - 1)))`` (no cancellation near the wall), with ``d`` chosen
+    so that the first interval is ``first``.  The ratio of successive
+    intervals is largest at the wall (a little above the geometric one) and
+    falls smoothly towards 1 at the far end, so the outer cells come out
+    smaller than a geometric stretching's (65 points, first 1e-5, total 20:
+    last interval 2.1 instead of 3.7).
+
+    Parameters
+    ----------
+    n : int
+        Number of intervals (>= 2).
+    total : float
+        Total length.
+    first : float
+        Length of the first interval; below the mean ``total / n`` (the
+        distribution clusters at ``s = 0``).
+
+    Returns
+    -------
+    ndarray of float64, shape (n + 1,)
+        ``0 = s[0] < ... < s[n] = total``, ``s[1] = first`` to 1e-12.
+    """
+    n = _check_int("n", n, 2)
+    total = _check_pos("total", total)
+    first = _check_pos("first", first)
+    if not first < 0.999 * total / n:
+        raise GridValueError(f"first spacing {first} must be below the mean spacing {total / n:g} "
+                             "for a tanh stretching")
+    x = np.arange(n + 1) / n
+
+    def first_of(d):
+        return total * math.sinh(d / n) / (math.sinh(d) * math.cosh(d * (1.0 / n - 1.0)))
+
+    lo, hi = 1e-8, 1.0
+    while first_of(hi) > first:         # first_of decreases from total / n towards 0
+        lo, hi = hi, 2.0 * hi
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        new = (mid, hi) if first_of(mid) > first else (lo, mid)
+        if new == (lo, hi):
+            break
+        lo, hi = new
+    d = 0.5 * (lo + hi)
+    s = total * np.sinh(d * x) / (math.sinh(d) * np.cosh(d * (x - 1.0)))
+    s[0], s[-1] = 0.0, total
+    return s
+
+
+#: wall-normal distributions of :func:`airfoil` and :func:`wing`
+STRETCHINGS = {"geometric": geometric_spacing, "tanh": tanh_spacing}
+
+
+def _stretching(name, n: int, total: float, first: float) -> np.ndarray:
+    if name not in STRETCHINGS:
+        raise GridValueError(f"stretching must be one of {', '.join(map(repr, STRETCHINGS))}, got {name!r}")
+    return STRETCHINGS[name](n, total, first)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -154,6 +242,9 @@ def _curve_normals(p: np.ndarray, closed: bool) -> np.ndarray:
 #: largest smoothing move per marching sub-step, as a fraction of the sub-step
 SMOOTH_CAP = 2.0
 
+#: march with the compiled sub-step kernel (False: the numpy reference form)
+_COMPILED = True
+
 
 def _limited(lap: np.ndarray, nrm: np.ndarray, eps: float, dh: float) -> np.ndarray:
     """Smoothing displacement ``eps * lap``.
@@ -171,14 +262,25 @@ def _limited(lap: np.ndarray, nrm: np.ndarray, eps: float, dh: float) -> np.ndar
     return lap * lim
 
 
-def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> np.ndarray:
+#: layers kept on straight wall-normal lines wherever those lines stay at
+#: least half their wall spacing apart (the orthogonality the tests require)
+N_STRAIGHT = 10
+
+
+def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> tuple[np.ndarray, np.ndarray]:
     """Per point: how far straight extrusion along the wall normal is safe.
 
-    A quarter of the distance at which the straight lines from a point and
-    a neighbour would cross (concave spots).  On open curves (C-grids,
-    whose wake junction is concave and whose wake spacing grows fast) also
-    at most twice the local point spacing, so that the points round the
-    junction switch to marching together.
+    Returns ``(soft, hard)``, arrays of shape ``wall.shape[:2]``.  ``soft``:
+    a quarter of the distance at which the straight lines from a point and a
+    neighbour would cross (concave spots); on open curves (C-grids, whose
+    wake junction is concave and whose wake spacing grows fast) also at most
+    twice the local point spacing, so that the points round the junction
+    switch to marching together.  ``hard``: half the crossing distance (the
+    lines have come to half their wall spacing), on open curves at most
+    eight local point spacings; the first :data:`N_STRAIGHT` layers stay
+    straight up to it.  Without it, the points next to a C-grid's trailing
+    edge would leave their straight lines after a few layers of a
+    first_spacing of 1e-4 (257 points round the C).
     """
     e = wall[:, 1:] - wall[:, :-1]
     dn = n0[:, 1:] - n0[:, :-1]
@@ -190,12 +292,122 @@ def _safe_extrusion(wall: np.ndarray, n0: np.ndarray, closed: bool) -> np.ndarra
     out[:, 1:] = np.minimum(out[:, 1:], dstar)
     if closed:
         out[:, 0] = out[:, -1] = np.minimum(out[:, 0], out[:, -1])
-        return 0.25 * out
+        return 0.25 * out, 0.5 * out
     seg = np.sqrt(ll)
     loc = np.full(wall.shape[:2], np.inf)
     loc[:, :-1] = np.minimum(loc[:, :-1], seg)
     loc[:, 1:] = np.minimum(loc[:, 1:], seg)
-    return np.minimum(0.25 * out, 2.0 * loc)
+    return np.minimum(0.25 * out, 2.0 * loc), np.minimum(0.5 * out, 8.0 * loc)
+
+
+@jit(inline="always")
+def _limited_1(l0, l1, n0, n1, eps, dh, cap):
+    """One point of :func:`_limited`; returns the smoothing move (x, y)."""
+    size = math.sqrt(l0 * l0 + l1 * l1)
+    s = max(size, 1e-300)
+    lim = eps
+    if l0 * n0 + l1 * n1 < 0.0:
+        lim = min(eps, 0.5 * dh / s)
+    lim = min(lim, cap * dh / s)
+    return l0 * lim, l1 * lim
+
+
+@jit
+def _march_substeps(p, n0, free, end0, end1, has_end, closed, m, dh, eps, keep, has_keep, cap):
+    """``m`` marching sub-steps of every curve of ``p`` (nb, n, 2), in place.
+
+    The compiled form of the sub-step loop of :func:`_march2d`, operation
+    for operation (the results are bit-identical to the numpy form): move
+    each free point along the normal of the current curve (frozen points
+    along ``n0``, open ends along ``end0``/``end1``), then smooth the free
+    points (:func:`_limited`; open curves blend in the spacing-keeping
+    smoothing with weight ``keep``).  Serial: it runs once per layer, too
+    short for threads to pay on a loaded machine.
+    """
+    nb, n, _ = p.shape
+    nrm = np.empty((n, 2))
+    lap = np.empty((n, 2))
+    for b in range(nb):
+        nq = n - 1 if closed else n
+        for _ in range(m):
+            scale = 0.0
+            for i in range(n - 1):
+                d0 = p[b, i + 1, 0] - p[b, i, 0]
+                d1 = p[b, i + 1, 1] - p[b, i, 1]
+                scale = max(scale, math.sqrt(d0 * d0 + d1 * d1))
+            thr = 1e-12 * max(scale, 1e-300)
+            for i in range(nq):
+                if closed:
+                    ip = i + 1 if i + 1 < nq else 0
+                    im = i - 1 if i > 0 else nq - 1
+                elif i == 0:
+                    ip, im = 1, 0
+                elif i == n - 1:
+                    ip, im = n - 1, n - 2
+                else:
+                    ip, im = i + 1, i - 1
+                t0 = p[b, ip, 0] - p[b, im, 0]
+                t1 = p[b, ip, 1] - p[b, im, 1]
+                tn = math.sqrt(t0 * t0 + t1 * t1)
+                if tn <= thr:
+                    if closed or 0 < i < n - 1:
+                        a0 = 2.0 * p[b, i, 0] - p[b, ip, 0] - p[b, im, 0]
+                        a1 = 2.0 * p[b, i, 1] - p[b, ip, 1] - p[b, im, 1]
+                    else:
+                        a0 = 0.0
+                        a1 = 0.0
+                    an = math.sqrt(a0 * a0 + a1 * a1)
+                    if not an > 0.0:
+                        an = 1.0
+                    nrm[i, 0] = a0 / an
+                    nrm[i, 1] = a1 / an
+                else:
+                    nrm[i, 0] = -t1 / tn
+                    nrm[i, 1] = t0 / tn
+            if closed:
+                nrm[n - 1, 0] = nrm[0, 0]
+                nrm[n - 1, 1] = nrm[0, 1]
+            for i in range(n):
+                if not free[b, i]:
+                    nrm[i, 0] = n0[b, i, 0]
+                    nrm[i, 1] = n0[b, i, 1]
+            if has_end:
+                nrm[0, 0], nrm[0, 1] = end0[0], end0[1]
+                nrm[n - 1, 0], nrm[n - 1, 1] = end1[0], end1[1]
+            for i in range(n):
+                p[b, i, 0] = p[b, i, 0] + dh * nrm[i, 0]
+                p[b, i, 1] = p[b, i, 1] + dh * nrm[i, 1]
+            if eps > 0.0:
+                lo, hi = (0, nq) if closed else (1, n - 1)
+                for i in range(lo, hi):
+                    if closed:
+                        ip = i + 1 if i + 1 < nq else 0
+                        im = i - 1 if i > 0 else nq - 1
+                    else:
+                        ip, im = i + 1, i - 1
+                    l0 = 0.5 * (p[b, im, 0] + p[b, ip, 0]) - p[b, i, 0]
+                    l1 = 0.5 * (p[b, im, 1] + p[b, ip, 1]) - p[b, i, 1]
+                    if has_keep and not closed:
+                        e0 = p[b, i, 0] - p[b, im, 0]
+                        e1 = p[b, i, 1] - p[b, im, 1]
+                        hl = math.sqrt(e0 * e0 + e1 * e1)
+                        e0 = p[b, ip, 0] - p[b, i, 0]
+                        e1 = p[b, ip, 1] - p[b, i, 1]
+                        hr = math.sqrt(e0 * e0 + e1 * e1)
+                        w = max(hl + hr, 1e-300)
+                        w0 = (hr * p[b, im, 0] + hl * p[b, ip, 0]) / w - p[b, i, 0]
+                        w1 = (hr * p[b, im, 1] + hl * p[b, ip, 1]) / w - p[b, i, 1]
+                        a = keep[b, i]
+                        l0 = (1.0 - a) * l0 + a * w0
+                        l1 = (1.0 - a) * l1 + a * w1
+                    lap[i, 0], lap[i, 1] = _limited_1(l0, l1, nrm[i, 0], nrm[i, 1], eps, dh, cap)
+                for i in range(lo, hi):
+                    f = 1.0 if free[b, i] else 0.0
+                    p[b, i, 0] = p[b, i, 0] + f * lap[i, 0]
+                    p[b, i, 1] = p[b, i, 1] + f * lap[i, 1]
+                if closed:
+                    p[b, n - 1, 0] = p[b, 0, 0]
+                    p[b, n - 1, 1] = p[b, 0, 1]
 
 
 def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
@@ -203,11 +415,11 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
     """March curves outwards.
 
     Each point moves straight along its wall normal while the distance is
-    within the first ``n_ortho`` layers and well short of the distance at
-    which straight lines from neighbouring points would cross (concave
-    corners); otherwise along the normal of the current layer, in sub-steps
-    of at most half the smallest point spacing, with limited Laplacian
-    smoothing.
+    within the first ``n_ortho`` layers and short of the distance at which
+    straight lines from neighbouring points would cross (concave corners;
+    see :func:`_safe_extrusion`); otherwise along the normal of the current
+    layer, in sub-steps of at most half the smallest point spacing, with
+    limited Laplacian smoothing.
 
     Parameters
     ----------
@@ -245,11 +457,14 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
     if end_normals is not None:
         n0[:, 0] = end_normals[0]
         n0[:, -1] = end_normals[1]
-    dsafe = _safe_extrusion(wall, n0, closed)
+    dsafe, dhard = _safe_extrusion(wall, n0, closed)
     d_orth = dist[min(n_ortho, nj - 1)]
     p = wall.copy()
     for j in range(1, nj):
-        frozen = (dist[j] <= d_orth) & (dist[j] <= dsafe)
+        # once a point marches it never returns to its straight line: the
+        # conditions only get stricter as j grows
+        safe = (dist[j] <= dsafe) | ((j <= N_STRAIGHT) & (dist[j] <= dhard))
+        frozen = (dist[j] <= d_orth) & safe
         if frozen.all():
             p = wall + dist[j] * n0
             out[:, :, j] = p
@@ -261,6 +476,17 @@ def _march2d(wall: np.ndarray, dist: np.ndarray, closed: bool, n_ortho: int,
         spacing = float(seg[seg > 0].min()) if np.any(seg > 0) else h
         m = int(min(400, max(1, math.ceil(h / (0.5 * spacing)))))
         dh = h / m
+        if _COMPILED:
+            p = np.ascontiguousarray(p)
+            ends = (np.zeros(2), np.zeros(2)) if end_normals is None else end_normals
+            keep = (np.zeros((nb, n)) if keep_spacing is None else
+                    np.array(np.broadcast_to(keep_spacing, (nb, n)), dtype=np.float64))
+            _march_substeps(p, n0, np.ascontiguousarray(free[..., 0]), np.asarray(ends[0], np.float64),
+                            np.asarray(ends[1], np.float64), end_normals is not None, closed, m, dh,
+                            float(eps), keep, keep_spacing is not None, SMOOTH_CAP)
+            p = np.where(free, p, wall + dist[j] * n0)
+            out[:, :, j] = p
+            continue
         for _ in range(m):
             nrm = _curve_normals(p, closed)
             nrm = np.where(free, nrm, n0)
@@ -353,15 +579,179 @@ def _cell_volumes(xyz: np.ndarray) -> np.ndarray:
     return vol / 6.0
 
 
+def _corner_jacobians(xyz: np.ndarray) -> np.ndarray:
+    """Smallest scaled corner Jacobian of every cell of one block.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (ni, nj, nk, 3)
+
+    Returns
+    -------
+    ndarray of float64, in [-1, 1]
+        ``(ni-1, nj-1)`` when ``nk == 1``: per quad, the smallest over its
+        four corners of ``(a x b) . e_z / (|a| |b|)``, ``a`` and ``b`` the
+        cell's edges along +i and +j at that corner (the sine of the corner
+        angle); positive for convex, positively oriented quads only.  Else
+        ``(ni-1, nj-1, nk-1)``: per hexahedron, the smallest over its eight
+        corners of ``det(a, b, c) / (|a| |b| |c|)``.  A cell of positive
+        volume (:func:`_cell_volumes`) may still have a negative corner here
+        (an arrowhead quad, a twisted hexahedron).  Zero-length edges give 0.
+    """
+    x = np.asarray(xyz, dtype=np.float64)
+
+    def unit(d):
+        n = np.linalg.norm(d, axis=-1, keepdims=True)
+        return d / np.where(n > 0.0, n, np.inf)
+
+    if x.shape[2] == 1:
+        p = x[:, :, 0, :2]
+        di = unit(p[1:] - p[:-1])                     # (ni-1, nj, 2)
+        dj = unit(p[:, 1:] - p[:, :-1])               # (ni, nj-1, 2)
+        out = None
+        for a in (0, 1):
+            for b in (0, 1):
+                u = di[:, b:b + dj.shape[1]]
+                v = dj[a:a + di.shape[0]]
+                c = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+                out = c if out is None else np.minimum(out, c)
+        return out
+    di = unit(x[1:] - x[:-1])
+    dj = unit(x[:, 1:] - x[:, :-1])
+    dk = unit(x[:, :, 1:] - x[:, :, :-1])
+    ni, nj, nk = x.shape[:3]
+    out = None
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                u = di[:, b:b + nj - 1, c:c + nk - 1]
+                v = dj[a:a + ni - 1, :, c:c + nk - 1]
+                w = dk[a:a + ni - 1, b:b + nj - 1]
+                d = np.einsum("...i,...i->...", np.cross(u, v), w)
+                out = d if out is None else np.minimum(out, d)
+    return out
+
+
+#: a hexahedron corner counts as inside out below this scaled Jacobian
+#: (round-off on the 180-degree corners of a wing's collapsed edges)
+CORNER_TOL = 1e-9
+
+
+@jit(inline="always")
+def _corner_sj(x, i0, j0, k0, a, b, c):
+    """Scaled Jacobian at corner (a, b, c) of hexahedron (i0, j0, k0); 0 on zero edges."""
+    i, j, k = i0 + a, j0 + b, k0 + c
+    u0 = x[i0 + 1, j, k, 0] - x[i0, j, k, 0]
+    u1 = x[i0 + 1, j, k, 1] - x[i0, j, k, 1]
+    u2 = x[i0 + 1, j, k, 2] - x[i0, j, k, 2]
+    v0 = x[i, j0 + 1, k, 0] - x[i, j0, k, 0]
+    v1 = x[i, j0 + 1, k, 1] - x[i, j0, k, 1]
+    v2 = x[i, j0 + 1, k, 2] - x[i, j0, k, 2]
+    w0 = x[i, j, k0 + 1, 0] - x[i, j, k0, 0]
+    w1 = x[i, j, k0 + 1, 1] - x[i, j, k0, 1]
+    w2 = x[i, j, k0 + 1, 2] - x[i, j, k0, 2]
+    lu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    lv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    lw = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    if lu == 0.0 or lv == 0.0 or lw == 0.0:
+        return 0.0
+    d = (u1 * v2 - u2 * v1) * w0 + (u2 * v0 - u0 * v2) * w1 + (u0 * v1 - u1 * v0) * w2
+    return d / (lu * lv * lw)
+
+
+@jit(inline="always")
+def _tet6(x, i, j, k, a0, a1, a2, b0, b1, b2):
+    """6 x volume of the tetrahedron p000, p_a, p_b, p111 of hexahedron (i, j, k)."""
+    p0, p1, p2 = x[i, j, k, 0], x[i, j, k, 1], x[i, j, k, 2]
+    u0 = x[i + a0, j + a1, k + a2, 0] - p0
+    u1 = x[i + a0, j + a1, k + a2, 1] - p1
+    u2 = x[i + a0, j + a1, k + a2, 2] - p2
+    v0 = x[i + b0, j + b1, k + b2, 0] - p0
+    v1 = x[i + b0, j + b1, k + b2, 1] - p1
+    v2 = x[i + b0, j + b1, k + b2, 2] - p2
+    w0 = x[i + 1, j + 1, k + 1, 0] - p0
+    w1 = x[i + 1, j + 1, k + 1, 1] - p1
+    w2 = x[i + 1, j + 1, k + 1, 2] - p2
+    return (u1 * v2 - u2 * v1) * w0 + (u2 * v0 - u0 * v2) * w1 + (u0 * v1 - u1 * v0) * w2
+
+
+@pjit
+def _bad_cells(x, planar, tol):
+    """Count the invalid cells of one block and find the first (C order of (i, j, k)).
+
+    The compiled form of the test in :func:`_checked` (no temporaries the
+    size of the block): a cell is bad when its area or volume
+    (:func:`_cell_volumes`) is not positive, or a scaled corner Jacobian
+    (:func:`_corner_jacobians`) is not positive (``planar``: 2-D grids) or
+    below ``-tol``.  Returns ``(count, i, j, k)``, ``(0, -1, -1, -1)`` when
+    every cell is valid.
+    """
+    ni, nj, nk = x.shape[0], x.shape[1], x.shape[2]
+    nkc = 1 if planar else nk - 1
+    count = np.zeros(nkc, np.int64)
+    first = np.full(nkc, -1, np.int64)
+    for k in prange(nkc):
+        for j in range(nj - 1):
+            for i in range(ni - 1):
+                bad = False
+                if planar:
+                    d10 = x[i + 1, j + 1, 0, 0] - x[i, j, 0, 0]
+                    d11 = x[i + 1, j + 1, 0, 1] - x[i, j, 0, 1]
+                    d20 = x[i, j + 1, 0, 0] - x[i + 1, j, 0, 0]
+                    d21 = x[i, j + 1, 0, 1] - x[i + 1, j, 0, 1]
+                    bad = not 0.5 * (d10 * d21 - d11 * d20) > 0.0
+                    for a in range(2):
+                        for b in range(2):
+                            u0 = x[i + 1, j + b, 0, 0] - x[i, j + b, 0, 0]
+                            u1 = x[i + 1, j + b, 0, 1] - x[i, j + b, 0, 1]
+                            v0 = x[i + a, j + 1, 0, 0] - x[i + a, j, 0, 0]
+                            v1 = x[i + a, j + 1, 0, 1] - x[i + a, j, 0, 1]
+                            lu = math.sqrt(u0 * u0 + u1 * u1)
+                            lv = math.sqrt(v0 * v0 + v1 * v1)
+                            if not (lu > 0.0 and lv > 0.0 and (u0 * v1 - u1 * v0) / (lu * lv) > 0.0):
+                                bad = True
+                else:
+                    vol = (_tet6(x, i, j, k, 1, 0, 0, 1, 1, 0) + _tet6(x, i, j, k, 0, 1, 0, 0, 1, 1)
+                           + _tet6(x, i, j, k, 0, 0, 1, 1, 0, 1) - _tet6(x, i, j, k, 1, 0, 0, 1, 0, 1)
+                           - _tet6(x, i, j, k, 0, 0, 1, 0, 1, 1) - _tet6(x, i, j, k, 0, 1, 0, 1, 1, 0))
+                    bad = not vol > 0.0
+                    for a in range(2):
+                        for b in range(2):
+                            for c in range(2):
+                                if not _corner_sj(x, i, j, k, a, b, c) >= -tol:
+                                    bad = True
+                if bad:
+                    count[k] += 1
+                    flat = (i * (nj - 1) + j) * nkc + k
+                    if first[k] < 0 or flat < first[k]:
+                        first[k] = flat
+    total = 0
+    best = -1
+    for k in range(nkc):
+        total += count[k]
+        if first[k] >= 0 and (best < 0 or first[k] < best):
+            best = first[k]
+    if best < 0:
+        return total, -1, -1, -1
+    return total, best // ((nj - 1) * nkc), (best // nkc) % (nj - 1), best % nkc
+
+
 def _checked(grid: Grid, what: str) -> Grid:
-    """Return ``grid`` if every cell is positive, else raise naming the first folded cell."""
+    """Return ``grid`` if every cell is valid, else raise naming the first bad cell.
+
+    Valid: positive area or volume (:func:`_cell_volumes`) and no negative
+    corner Jacobian (:func:`_corner_jacobians`); 2-D quads must be strictly
+    convex.  A hexahedron may have a zero corner (to :data:`CORNER_TOL`): on
+    a wing's collapsed edge (the leading edge of the zero-thickness sheet
+    beyond the tip cap) the C wraps round a line, and the grid lines meet
+    there at 180 degrees.
+    """
     for n, b in enumerate(grid):
-        v = _cell_volumes(b.xyz)
-        bad = v <= 0.0
-        if bad.any():
-            idx = tuple(int(c) + 1 for c in np.argwhere(bad)[0])
+        count, i, j, k = _bad_cells(b.xyz, grid.ndim == 2, CORNER_TOL)
+        if count:
+            idx = (i + 1, j + 1) if grid.ndim == 2 else (i + 1, j + 1, k + 1)
             raise GridValueError(
-                f"{what}: {int(bad.sum())} folded or degenerate cell(s) in block {n + 1}, first at "
+                f"{what}: {int(count)} folded or degenerate cell(s) in block {n + 1}, first at "
                 f"cell {idx} (1-based); the parameters ask too much of the marcher: use more points "
                 "(ni, nj) or a gentler wall-normal stretching")
     return grid
@@ -456,7 +846,7 @@ def _section_curve(naca, n_side, blunt_te, n_base, thickness_scale=1.0):
 def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacing: float = 1e-5,
             farfield: float = 20.0, wake_length: float | None = None, blunt_te: bool = False,
             n_wake: int | None = None, n_base: int = 4, n_ortho: int = 12,
-            smoothing: float = 0.3) -> Grid:
+            smoothing: float = 0.3, stretching: str = "geometric") -> Grid:
     """Viscous 2-D grid around a NACA 4-digit airfoil (unit chord, LE at the origin).
 
     Parameters
@@ -480,18 +870,23 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
         ``farfield``).
     blunt_te : bool
         Blunt trailing edge (original NACA thickness polynomial, base closed
-        by a straight segment with ``2 * n_base`` intervals).  C-grid: the
-        wake cut starts at the middle of the base; the base points next to
-        it sit in concave right-angle corners and cannot leave the wall
-        orthogonally (every other wall point does).
+        by a straight segment with ``2 * n_base`` intervals).  O-grid only:
+        the wake cut of a one-block C-grid would meet the base in two
+        right-angle corners of the domain, where cells cannot be both valid
+        and wall-orthogonal.
     n_wake : int, optional
         C-grid: intervals along each side of the wake (default ``(ni-1)//4``).
     n_base : int
-        Intervals on each half of a blunt base.
+        Intervals on each half of a blunt base (O-grid).
     n_ortho : int
         Layers extruded straight along the wall normal (orthogonal lines).
     smoothing : float
         Laplacian smoothing of the outer marching, 0 .. 0.5.
+    stretching : {"geometric", "tanh"}
+        Wall-normal distribution from ``first_spacing`` to ``farfield``:
+        constant ratio (:func:`geometric_spacing`) or one-sided tanh
+        (:func:`tanh_spacing`: the ratio falls off away from the wall, the
+        outer cells are smaller).
 
     Returns
     -------
@@ -503,21 +898,25 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
     topo = str(topology).upper()
     if topo not in ("C", "O"):
         raise GridValueError(f"topology must be 'C' or 'O', got {topology!r}")
+    _naca_digits(naca)
     ni = _check_int("ni", ni, 9, odd=True)
     nj = _check_int("nj", nj, 3)
-    first_spacing = _check_pos("first_spacing", first_spacing)
-    if not 1e-7 <= first_spacing <= 1e-2:
-        raise GridValueError(f"first_spacing must be in [1e-7, 1e-2] chords, got {first_spacing}")
-    farfield = _check_pos("farfield", farfield)
-    if farfield < 2.0:
-        raise GridValueError(f"farfield must be >= 2 chords, got {farfield}")
+    first_spacing = _check_float("first_spacing", first_spacing, 1e-7, 1e-2, " chords")
+    farfield = _check_float("farfield", farfield, 2.0, 1e4, " chords")
     n_ortho = _check_int("n_ortho", n_ortho, 0)
-    smoothing = float(smoothing)
-    if not 0.0 <= smoothing <= 0.5:
-        raise GridValueError(f"smoothing must be in [0, 0.5], got {smoothing}")
-    blunt = bool(blunt_te)
+    smoothing = _check_float("smoothing", smoothing, 0.0, 0.5)
+    blunt = _check_bool("blunt_te", blunt_te)
     nb = _check_int("n_base", n_base, 1) if blunt else 0
-    dist = geometric_spacing(nj - 1, farfield, first_spacing)
+    if topo == "O":
+        for name, value in (("wake_length", wake_length), ("n_wake", n_wake)):
+            if value is not None:
+                raise GridValueError(f"{name} applies to C-grids only (topology 'C'), got {name} = "
+                                     f"{value!r} with topology 'O'")
+    elif blunt:
+        raise GridValueError("blunt_te=True needs topology 'O': a one-block C-grid's wake cut would "
+                             "meet the blunt base in right-angle corners, where cells cannot be both "
+                             "valid and orthogonal to the wall")
+    dist = _stretching(stretching, nj - 1, farfield, first_spacing)
     if topo == "O":
         n_side, rem = divmod(ni - 1 - 2 * nb, 2)
         if n_side < 4:
@@ -526,13 +925,13 @@ def airfoil(naca="0012", topology="C", ni: int = 257, nj: int = 65, first_spacin
         xy = _march2d(curve[None], dist, True, n_ortho, smoothing)[0]
         xy[-1] = xy[0]
         return _checked(Grid([_block2d(xy, "airfoil_O")], ndim=2), f"airfoil {naca} O-grid")
-    wl = farfield if wake_length is None else _check_pos("wake_length", wake_length)
+    wl = farfield if wake_length is None else _check_float("wake_length", wake_length, 1.0, 1e4, " chords")
     nw = (ni - 1) // 4 if n_wake is None else _check_int("n_wake", n_wake, 1)
-    n_side2 = ni - 1 - 2 * nw - 2 * nb
+    n_side2 = ni - 1 - 2 * nw
     if n_side2 < 8 or n_side2 % 2:
-        raise GridValueError(f"ni = {ni}, n_wake = {nw}, n_base = {nb}: the airfoil needs an even "
-                             f"number >= 8 of intervals, got ni - 1 - 2*n_wake - 2*n_base = {n_side2}")
-    curve, ds_te = _section_curve(naca, n_side2 // 2, blunt, nb)
+        raise GridValueError(f"ni = {ni}, n_wake = {nw}: the airfoil needs an even number >= 8 of "
+                             f"intervals, got ni - 1 - 2*n_wake = {n_side2}")
+    curve, ds_te = _section_curve(naca, n_side2 // 2, False, 0)
     te = curve[0]
     s = geometric_spacing(nw, wl, min(ds_te, wl / nw))
     wake = np.stack([te[0] + s[1:], np.full(nw, te[1])], axis=-1)   # TE -> outflow
@@ -655,15 +1054,16 @@ def channel(ni: int = 129, nj: int = 49, length: float = 3.0, height: float = 1.
     nj = _check_int("nj", nj, 3)
     length = _check_pos("length", length)
     height = _check_pos("height", height)
-    bump_height = float(bump_height)
-    if not 0.0 <= bump_height < 0.5 * height:
+    bump_height = _check_float("bump_height", bump_height, 0.0, 0.5 * height)
+    if bump_height == 0.5 * height:
         raise GridValueError(f"bump_height must be in [0, height/2), got {bump_height}")
-    if not 0.0 < float(bump_start) < float(bump_end) < length:
+    bump_start = _check_float("bump_start", bump_start, 0.0, length)
+    bump_end = _check_float("bump_end", bump_end, 0.0, length)
+    if not 0.0 < bump_start < bump_end < length:
         raise GridValueError(f"need 0 < bump_start < bump_end < length, "
                              f"got {bump_start}, {bump_end}, {length}")
     first_spacing = _check_pos("first_spacing", first_spacing, hi=0.5 * height)
-    xy = _channel_points(ni, nj, length, height, bump_height, float(bump_start), float(bump_end),
-                         first_spacing)
+    xy = _channel_points(ni, nj, length, height, bump_height, bump_start, bump_end, first_spacing)
     return _checked(Grid([_block2d(xy, "channel")], ndim=2), "channel")
 
 
@@ -696,8 +1096,8 @@ def two_block(ni: int = 65, nj: int = 33, length: float = 3.0, height: float = 1
     nj = _check_int("nj", nj, 5, odd=True)
     length = _check_pos("length", length)
     height = _check_pos("height", height)
-    bump_height = float(bump_height)
-    if not 0.0 <= bump_height < 0.5 * height:
+    bump_height = _check_float("bump_height", bump_height, 0.0, 0.5 * height)
+    if bump_height == 0.5 * height:
         raise GridValueError(f"bump_height must be in [0, height/2), got {bump_height}")
     first_spacing = _check_pos("first_spacing", first_spacing, hi=0.5 * height)
     xy = _channel_points(ni, nj, length, height, bump_height, length / 3.0, 2.0 * length / 3.0,
@@ -769,7 +1169,7 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
          ni: int = 129, nj: int = 49, nk_wing: int = 45, nk_cap: int = 9, nk_out: int = 25,
          first_spacing: float = 2e-5, farfield: float = 15.0, span_farfield: float = 10.0,
          wake_length: float = 15.0, n_wake: int | None = None, n_ortho: int = 12,
-         smoothing: float = 0.3) -> Grid:
+         smoothing: float = 0.3, stretching: str = "geometric") -> Grid:
     """3-D C-H multiblock grid around a swept, tapered half wing (root chord 1).
 
     x runs downstream, y along the span (the root, ``y = 0``, is a symmetry
@@ -830,6 +1230,8 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
         Layers extruded along the 3-D wall normal.
     smoothing : float
         Laplacian smoothing of the outer marching.
+    stretching : {"geometric", "tanh"}
+        Wall-normal distribution, as in :func:`airfoil`.
 
     Returns
     -------
@@ -843,25 +1245,15 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     nk_wing = _check_int("nk_wing", nk_wing, 3)
     nk_cap = _check_int("nk_cap", nk_cap, 3)
     nk_out = _check_int("nk_out", nk_out, 3)
-    ar = _check_pos("aspect_ratio", aspect_ratio)
-    if not 1.0 <= ar <= 20.0:
-        raise GridValueError(f"aspect_ratio must be in [1, 20], got {ar}")
-    taper = _check_pos("taper", taper)
-    if not 0.1 <= taper <= 1.0:
-        raise GridValueError(f"taper must be in [0.1, 1], got {taper}")
-    sweep = float(sweep)
-    if not 0.0 <= sweep <= 60.0:
-        raise GridValueError(f"sweep must be in [0, 60] degrees, got {sweep}")
-    first_spacing = _check_pos("first_spacing", first_spacing)
-    if not 1e-7 <= first_spacing <= 1e-2:
-        raise GridValueError(f"first_spacing must be in [1e-7, 1e-2] chords, got {first_spacing}")
-    farfield = _check_pos("farfield", farfield)
-    span_farfield = _check_pos("span_farfield", span_farfield)
-    wake_length = _check_pos("wake_length", wake_length)
+    ar = _check_float("aspect_ratio", aspect_ratio, 1.0, 20.0)
+    taper = _check_float("taper", taper, 0.1, 1.0)
+    sweep = _check_float("sweep", sweep, 0.0, 60.0, " degrees")
+    first_spacing = _check_float("first_spacing", first_spacing, 1e-7, 1e-2, " root chords")
+    farfield = _check_float("farfield", farfield, 2.0, 1e4, " root chords")
+    span_farfield = _check_float("span_farfield", span_farfield, 1.0, 1e4, " root chords")
+    wake_length = _check_float("wake_length", wake_length, 1.0, 1e4, " root chords")
     n_ortho = _check_int("n_ortho", n_ortho, 0)
-    smoothing = float(smoothing)
-    if not 0.0 <= smoothing <= 0.5:
-        raise GridValueError(f"smoothing must be in [0, 0.5], got {smoothing}")
+    smoothing = _check_float("smoothing", smoothing, 0.0, 0.5)
     t = _naca_digits(naca)[2]
     nw = (ni - 1) // 4 if n_wake is None else _check_int("n_wake", n_wake, 1)
     n_side2 = ni - 1 - 2 * nw
@@ -880,7 +1272,9 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     y = np.concatenate([y_w, y_c[1:], y_o[1:]])
     kt, kc = nk_wing - 1, nk_wing + nk_cap - 2
     nk = y.size
-    ys = np.minimum(y, semispan)
+    # the cap continues the planform (sweep, taper), so the wall has no crease
+    # at the tip; beyond the cap the collapsed section stays as it ends
+    ys = np.minimum(y, semispan + r_cap)
     scale = np.ones(nk)
     scale[kt:kc + 1] = np.cos(0.5 * np.pi * (y[kt:kc + 1] - semispan) / r_cap)
     scale[kc:] = 0.0
@@ -900,7 +1294,7 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
         wake[-1, 0] = x_out
         curves[k] = np.concatenate([wake[::-1], sec, wake])
         keep[k] = _wake_keep_spacing(s[1:] / ch[k], ni)
-    dist = geometric_spacing(nj - 1, farfield, first_spacing)
+    dist = _stretching(stretching, nj - 1, farfield, first_spacing)
     sec2d = _march2d(curves, dist, False, n_ortho, smoothing,
                      end_normals=(np.array([0.0, -1.0]), np.array([0.0, 1.0])), keep_spacing=keep)
     # global array (i, j, k, xyz); i reversed so that (i, j, k) is right-handed
@@ -927,25 +1321,32 @@ def wing(naca="0012", aspect_ratio: float = 4.0, taper: float = 0.5, sweep: floa
     ok = cn[..., 0] > 1e-12 * np.max(cn)
     n3 = np.where(ok[..., None], c / np.where(cn > 0, cn, 1.0), n2)
     n3 = np.where((np.einsum("ikc,ikc->ik", n3, n2) < 0.0)[..., None], -n3, n3)
+    # where the wall has no tangent plane (the collapsed leading edge at the
+    # cap's last station) the line stays in the section plane, along the
+    # sheet: the grid lines meet there at 180 degrees, and any lean out of
+    # the sheet would turn one of the two cells there inside out
     n3[:, 0, 1] = 0.0                                 # root: in the symmetry plane
     n3[:, 0] = _unit(n3[:, 0])
-    wk = np.zeros(nk)
-    wk[:kt + 1] = 1.0
-    wk[kt:kc + 1] = scale[kt:kc + 1] ** 2
     jb = np.arange(nj)
     fade = np.clip((jb - n_ortho) / 8.0, 0.0, 1.0)
     bj = 0.5 * (1.0 + np.cos(np.pi * fade))
     # beyond n_ortho the correction never grows past its size at n_ortho
     bj = bj * np.minimum(1.0, dist[min(n_ortho, nj - 1)] / np.maximum(dist, 1e-300))
-    corr = (wk[None, None, :, None] * (bj * dist)[None, :, None, None]) * (n3 - n2)[:, None, :, :]
+    corr = (bj * dist)[None, :, None, None] * (n3 - n2)[:, None, :, :]
     corr[:, 0] = 0.0
-    # never shift a point by more than half the span spacing at its station,
-    # or neighbouring stations' hexahedra twist (only bites on coarse grids)
-    dy = np.diff(y)
-    dyk = np.minimum(np.concatenate([dy[:1], dy]), np.concatenate([dy, dy[-1:]]))
-    size = np.linalg.norm(corr, axis=-1, keepdims=True)
-    lim = 0.5 * dyk[None, None, :, None]
-    corr *= np.minimum(1.0, lim / np.maximum(size, 1e-300))
+    # beyond the cap (no wall) the correction of the collapsed edge fades
+    # out over four times its size, a change of at most a quarter of the
+    # span spacing per station
+    c_end = corr[:, :, kc]
+    reach = np.maximum(4.0 * np.linalg.norm(c_end, axis=-1), 1e-300)
+    corr[:, :, kc + 1:] = c_end[:, :, None, :] * np.clip(
+        1.0 - (y[kc + 1:] - y[kc])[None, None, :] / reach[..., None], 0.0, 1.0)[..., None]
+    # neighbouring stations' corrections never differ by more than half
+    # their span spacing, or hexahedra twist: where they would (first layers
+    # thick compared with the span spacing at the cap) the correction of the
+    # whole spanwise line is scaled down, at the cost of orthogonality there
+    dc = np.linalg.norm(np.diff(corr, axis=2), axis=-1) / (0.5 * np.diff(y))[None, None, :]
+    corr *= np.minimum(1.0, 1.0 / np.maximum(dc.max(axis=2), 1e-300))[:, :, None, None]
     g += corr
 
     ih = (ni - 1) // 2

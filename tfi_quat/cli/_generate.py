@@ -8,11 +8,17 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from pathlib import Path
 
 HELP = "generate a sample grid (airfoil, cylinder, channel, two-block, wing)"
 DESCRIPTION = ("Generate a grid and write it; --case also writes a TOML case file describing "
                "its walls, symmetry planes and fixed boundaries (1-based ranges).")
+
+
+def _stretching(p):
+    p.add_argument("--stretching", choices=("geometric", "tanh"), default="geometric",
+                   help="wall-normal distribution (default geometric)")
 
 
 def _common(p, ni, nj, first_spacing, farfield=None):
@@ -39,7 +45,10 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     a.add_argument("--wake-length", type=float, default=None,
                    help="C-grid wake length behind the trailing edge (default: farfield)")
     a.add_argument("--n-wake", type=int, default=None, help="C-grid intervals per wake side")
-    a.add_argument("--blunt-te", action="store_true", help="blunt trailing edge (O-grid)")
+    a.add_argument("--blunt-te", action="store_true", help="blunt trailing edge (O-grid only)")
+    a.add_argument("--n-base", type=int, default=4,
+                   help="intervals on each half of a blunt base (default 4)")
+    _stretching(a)
 
     c = kind("cylinder", "analytic O-grid round a circular cylinder (2-D)")
     _common(c, 129, 65, 1e-4, 20.0)
@@ -62,7 +71,12 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     w.add_argument("--aspect-ratio", type=float, default=4.0)
     w.add_argument("--taper", type=float, default=0.5)
     w.add_argument("--sweep", type=float, default=30.0, help="leading-edge sweep, degrees")
-    w.add_argument("--span-farfield", type=float, default=10.0)
+    w.add_argument("--span-farfield", type=float, default=10.0,
+                   help="spanwise far field beyond the tip (default 10)")
+    w.add_argument("--wake-length", type=float, default=15.0,
+                   help="outflow plane behind the last trailing edge (default 15)")
+    w.add_argument("--n-wake", type=int, default=None, help="intervals per wake side (default (ni-1)/4)")
+    _stretching(w)
 
     for p in (a, c, kinds.choices["channel"], kinds.choices["two-block"], w):
         p.add_argument("-o", "--output", required=True, help="grid file to write (.x, .h5, ...)")
@@ -72,19 +86,27 @@ def add_args(parser: argparse.ArgumentParser) -> None:
 
 _PARAMS = {
     "airfoil": ("naca", "topology", "ni", "nj", "first_spacing", "farfield", "wake_length",
-                "n_wake", "blunt_te"),
+                "n_wake", "blunt_te", "n_base", "stretching"),
     "cylinder": ("ni", "nj", "first_spacing", "farfield", "radius"),
     "channel": ("ni", "nj", "first_spacing", "length", "height", "bump_height"),
     "two-block": ("ni", "nj", "first_spacing", "length", "height", "bump_height"),
     "wing": ("naca", "ni", "nj", "first_spacing", "farfield", "nk_wing", "nk_cap", "nk_out",
-             "aspect_ratio", "taper", "sweep", "span_farfield"),
+             "aspect_ratio", "taper", "sweep", "span_farfield", "wake_length", "n_wake", "stretching"),
 }
+
+
+def _as_options(message: str, names) -> str:
+    """``message`` with the generator's argument names as the CLI spells them
+    (``bump_height`` -> ``--bump-height``)."""
+    for name in sorted(names, key=len, reverse=True):
+        message = re.sub(rf"(?<![\w-]){name}\b", "--" + name.replace("_", "-"), message)
+    return message
 
 
 def run(args) -> int:
     from .. import generate as gen
     from ..case import Case, save_case
-    from ..errors import OverwriteError
+    from ..errors import GridValueError, OverwriteError
     from ..io import write
 
     out = Path(args.output)
@@ -93,7 +115,10 @@ def run(args) -> int:
         if t.exists() and not args.force:
             raise OverwriteError(f"{t}: exists (pass --force to overwrite)")
     params = {k: getattr(args, k) for k in _PARAMS[args.kind]}
-    grid = gen.GENERATORS[args.kind](**params)
+    try:
+        grid = gen.GENERATORS[args.kind](**params)
+    except GridValueError as exc:
+        raise GridValueError(_as_options(str(exc), params)) from None
     write(out, grid, overwrite=True)
     msg = f"wrote {out}: {args.kind}, {len(grid)} block(s) " + \
         ", ".join("x".join(map(str, d)) for d in grid.dims) + f", {grid.npoints} points"
