@@ -196,3 +196,23 @@ def test_bad_arguments(naca, moved):
         P.plot_compare({"x": moved}, ref=Grid([Block(g[0].xyz[:-1])], ndim=2))
     with pytest.raises(CaseError, match="100 x 100"):
         P.grid_figure(g, size=(50, 40))
+
+
+def test_inverted_cells_stand_out_in_the_volume_ratio_colours():
+    i, j = np.meshgrid(np.arange(5.0), np.arange(4.0), indexing="ij")
+    ref = np.zeros((5, 4, 1, 3), order="F")
+    ref[..., 0, 0], ref[..., 0, 1] = i, j
+    x = ref.copy(order="F")
+    x[2, 1, 0, :2] = (3.6, 2.7)               # folds the cells around point (2, 1)
+    g, gr = Grid([Block(x)], ndim=2), Grid([Block(ref)], ndim=2)
+    fig = Figure()
+    ax = fig.add_subplot()
+    (mesh,), cb = P.plot_metric_2d(ax, g, "volume_ratio", ref=gr)
+    ratio = cell_metrics(x, ref=ref)["volume_ratio"][:, :, 0]
+    assert (ratio <= 0).any()
+    arr = mesh.get_array()
+    np.testing.assert_array_equal(np.asarray(arr).reshape(ratio.shape), ratio)
+    rgba = mesh.to_rgba(arr).reshape(ratio.shape + (4,))
+    np.testing.assert_array_equal(rgba[ratio <= 0], [[0.0, 1.0, 0.0, 1.0]] * int((ratio <= 0).sum()))
+    assert not np.any(np.all(rgba[ratio > 0] == (0.0, 1.0, 0.0, 1.0), axis=-1))
+    assert "inverted" in cb.ax.get_ylabel()

@@ -42,6 +42,8 @@ _CMAPS = {"volume_ratio": "RdBu", "skewness": "magma_r", "orthogonality": "magma
           "orthogonality_change": "magma_r", "scaled_jacobian": "viridis"}
 
 REF_COLOR = "0.78"        # the reference grid, under the deformed one
+INVERTED_COLOR = "lime"   # cells with a volume ratio <= 0
+RATIO_SPAN = 10.0         # volume-ratio colours span at most 1/10 .. 10
 GRID_COLOR = "k"
 WALL_COLOR = "tab:red"
 
@@ -52,7 +54,7 @@ NEAR_PAD = 0.35
 
 
 # ------------------------------------------------------------------ data
-def cell_values(grid: Grid, metric: str, ref: Grid | None = None, walls=None, layers: int = 5) -> list:
+def cell_values(grid: Grid, metric: str, ref: Grid | None = None, walls=None, layers: int | None = None) -> list:
     """Per-cell values of a metric, one array per block (shaped as
     :func:`tfi_quat.quality.cell_volumes`).
 
@@ -68,7 +70,9 @@ def cell_values(grid: Grid, metric: str, ref: Grid | None = None, walls=None, la
         Needed by ``volume_ratio`` and ``orthogonality_change``.
     walls : patch specs, optional
         Needed by ``orthogonality`` and ``orthogonality_change``.
-    layers : int
+    layers : int, optional
+        Layers off the wall of the orthogonality metrics (default: every
+        layer, so the picture shows how far from the wall the lines turn).
 
     Raises
     ------
@@ -84,6 +88,8 @@ def cell_values(grid: Grid, metric: str, ref: Grid | None = None, walls=None, la
     if metric.startswith("orthogonality"):
         if not walls:
             raise CaseError(f"metric {metric!r} needs wall patches (--walls or --case)")
+        if layers is None:
+            layers = max(max(b.dims) for b in grid) - 1
         return cell_orthogonality(grid, walls, layers, ref=ref if metric == "orthogonality_change" else None)
     _check_ref(grid, ref)
     return [cell_metrics(b, grid.ndim, ref=None if ref is None else ref[n])[metric] for n, b in enumerate(grid)]
@@ -247,9 +253,40 @@ def plot_walls_2d(ax, grid: Grid, walls, *, color=WALL_COLOR, linewidth: float =
     return out
 
 
+def _log_or_nan(x):
+    """log(x) where x > 0, NaN elsewhere (no warning)."""
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(x > 0.0, np.log(np.where(x > 0.0, x, 1.0)), np.nan)
+
+
+def _cmap(metric: str | None):
+    """The colour map of a metric; volume ratio: inverted cells (ratio <= 0) in bright green."""
+    import matplotlib
+
+    cm = matplotlib.colormaps[_CMAPS.get(metric, "viridis")]
+    return cm.with_extremes(bad=INVERTED_COLOR) if metric == "volume_ratio" else cm
+
+
+def _colorbar(fig, mappable, metric: str, **kw):
+    """A colour bar labelled with the metric (volume ratio: log ticks, arrows beyond the range)."""
+    if metric == "volume_ratio":
+        kw["extend"] = "both"
+    cb = fig.colorbar(mappable, **kw)
+    label = _LABELS[metric]
+    if metric == "volume_ratio":
+        lo, hi = mappable.norm.vmin, mappable.norm.vmax
+        ticks = [t for t in (0.1, 0.2, 0.5, 0.8, 1.0, 1.25, 2.0, 5.0, 10.0) if lo <= t <= hi] or [1.0]
+        cb.set_ticks(ticks, labels=[f"{t:g}" for t in ticks])
+        label += "; green: <= 0 (inverted)"
+    cb.set_label(label, fontsize=8)
+    cb.ax.tick_params(labelsize=7)
+    return cb
+
+
 def _norm(metric: str, values: list, vmin=None, vmax=None):
     """A colour normalisation shared by every panel showing ``metric``."""
-    from matplotlib.colors import LogNorm, Normalize, TwoSlopeNorm
+    from matplotlib.colors import FuncNorm, LogNorm, Normalize
 
     finite = [v[np.isfinite(v)] for v in values]
     allv = np.concatenate(finite) if finite else np.zeros(0)
@@ -257,8 +294,14 @@ def _norm(metric: str, values: list, vmin=None, vmax=None):
         return Normalize(0.0, 1.0)
     lo = float(allv.min()) if vmin is None else float(vmin)
     hi = float(allv.max()) if vmax is None else float(vmax)
-    if metric == "volume_ratio" and lo < 1.0 < hi:
-        return TwoSlopeNorm(vcenter=1.0, vmin=lo, vmax=hi)
+    if metric == "volume_ratio":
+        # log scale symmetric about 1, at most 10x either way; ratios <= 0 (inverted
+        # cells) have no logarithm and take the colour map's "bad" colour
+        pos = allv[allv > 0.0]
+        if pos.size == 0:
+            return Normalize(lo, hi)
+        span = min(max(float(np.abs(np.log(pos)).max()), math.log(1.05)), math.log(RATIO_SPAN))
+        return FuncNorm((_log_or_nan, np.exp), vmin=math.exp(-span), vmax=math.exp(span))
     if metric in ("aspect_ratio", "volume", "jacobian") and lo > 0.0 and hi / lo > 100.0:
         return LogNorm(lo, hi)
     if metric in ("skewness", "orthogonality", "orthogonality_change") and vmin is None:
@@ -303,7 +346,7 @@ def plot_cells_2d(ax, grid: Grid, values: list, *, cmap="viridis", norm=None, wi
     return out
 
 
-def plot_metric_2d(ax, grid: Grid, metric: str, *, ref: Grid | None = None, walls=None, layers: int = 5,
+def plot_metric_2d(ax, grid: Grid, metric: str, *, ref: Grid | None = None, walls=None, layers: int | None = None,
                    window=None, cmap=None, norm=None, lines: bool = True, colorbar: bool = True):
     """Cells of a 2-D grid coloured by a quality metric, grid lines on top, a colour bar.
 
@@ -313,22 +356,17 @@ def plot_metric_2d(ax, grid: Grid, metric: str, *, ref: Grid | None = None, wall
     """
     values = cell_values(grid, metric, ref=ref, walls=walls, layers=layers)
     norm = norm or _norm(metric, values)
-    meshes = plot_cells_2d(ax, grid, values, cmap=cmap or _CMAPS.get(metric, "viridis"), norm=norm,
-                           window=window)
+    meshes = plot_cells_2d(ax, grid, values, cmap=cmap or _cmap(metric), norm=norm, window=window)
     if lines:
-        plot_grid_2d(ax, grid, window=window, color="k", linewidth=0.25)
-    cb = None
-    if colorbar:
-        cb = ax.figure.colorbar(meshes[0], ax=ax, shrink=0.85)
-        cb.set_label(_LABELS[metric], fontsize=8)
-        cb.ax.tick_params(labelsize=7)
+        plot_grid_2d(ax, grid, window=window, color="0.15", linewidth=0.25)
+    cb = _colorbar(ax.figure, meshes[0], metric, ax=ax, shrink=0.85) if colorbar else None
     return meshes, cb
 
 
 def _windows(grid: Grid, walls, windows):
     """[(name, window or None)] from "auto", a list of names/tuples, or one tuple."""
     if windows is None or windows == "auto":
-        windows = ["near field", "leading edge", "trailing edge"] if walls else ["all"]
+        windows = _auto_windows(grid, walls)
     elif isinstance(windows, tuple) or (isinstance(windows, list) and windows and
                                         all(isinstance(v, (int, float)) for v in windows)):
         windows = [tuple(windows)]
@@ -352,6 +390,28 @@ def _windows(grid: Grid, walls, windows):
     return out
 
 
+def _auto_windows(grid: Grid, walls) -> list:
+    """near, le, te for an airfoil wall (closed and thin); else the whole grid, and the
+    near field too when the walls are small in it."""
+    if not walls:
+        return ["all"]
+    pts = wall_points(grid, walls)
+    w = pts[0].reshape(-1, 3)[:, :2]
+    te = 0.5 * (w[0] + w[-1])
+    d = np.linalg.norm(w - te, axis=1)
+    chord = float(d.max())
+    if chord > 0.0 and np.linalg.norm(w[0] - w[-1]) <= 1e-2 * chord:
+        u = (w[int(np.argmax(d))] - te) / chord
+        thickness = float(np.ptp((w - te) @ np.array([-u[1], u[0]])))
+        if thickness <= 0.4 * chord:
+            return ["near field", "leading edge", "trailing edge"]
+    allw = np.concatenate([p.reshape(-1, 3)[:, :2] for p in pts])
+    x0, x1, y0, y1 = _bounds(grid)
+    if float(np.max(np.ptp(allw, axis=0))) < 0.3 * max(x1 - x0, y1 - y0):
+        return ["all", "near field"]
+    return ["all"]
+
+
 def _pad(window, f):
     x0, x1, y0, y1 = window
     p = f * max(x1 - x0, y1 - y0)
@@ -359,7 +419,7 @@ def _pad(window, f):
 
 
 def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, layout: str = "overlay",
-                 color: str | None = None, layers: int = 5, subtitles: dict | None = None,
+                 color: str | None = None, layers: int | None = None, subtitles: dict | None = None,
                  suptitle: str | None = None, figsize=None, transpose: bool | None = None):
     """The memo's figure 4 layout: one column per grid, one row per zoom window.
 
@@ -370,7 +430,8 @@ def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, 
         left to right; all 2-D with the same blocks.
     ref : Grid, optional
         The reference grid.  ``layout="overlay"``: drawn in light grey under
-        every grid; ``"side"``: in its own first column.
+        every grid (not under cells coloured by a metric); ``"side"``: in its
+        own first column.
     walls : patch specs, optional
         Drawn in red; the zoom windows follow each column's own wall.
     windows : "auto", list, or (x0, x1, y0, y1)
@@ -382,8 +443,8 @@ def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, 
     color : str, optional
         A metric of :data:`COLOR_METRICS` to colour the cells by, one colour
         scale over every panel, with a colour bar.
-    layers : int
-        Layers of the orthogonality metrics.
+    layers : int, optional
+        Layers of the orthogonality metrics (default: every layer).
     subtitles : dict of label -> str, optional
         Extra text under the first row's title of that column.
     suptitle : str, optional
@@ -431,20 +492,34 @@ def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, 
     if transpose is None:
         transpose = ncol == 1 and nrow > 1
     shape = (ncol, nrow) if transpose else (nrow, ncol)
+    # 5 inches per panel across (8 for a single panel), the height from the window's shape
+    pw = 8.0 if nrow * ncol == 1 else 5.0
+
+    def tall(win):
+        # the axes box is ~0.7 in narrower than the panel (tick labels); title and x label ~0.75 in
+        return (pw - 0.7) * min(1.6, max(0.3, (win[3] - win[2]) / (win[1] - win[0]))) + 0.75
+    heights = [max(tall(rows[label][r][1]) for label in rows) for r in range(nrow)]
     if figsize is None:
-        figsize = (5.0 * shape[1] + (1.0 if color else 0.0), 4.4 * shape[0] + 0.6)
+        if transpose:
+            figsize = (pw * nrow, max(heights) * ncol + 0.5 + (0.8 if color else 0.0))
+        else:
+            figsize = (pw * ncol + (1.0 if color else 0.0), sum(heights) + 0.5)
     fig = Figure(figsize=figsize, layout="constrained")
-    axes = fig.subplots(*shape, squeeze=False)
+    axes = fig.subplots(*shape, squeeze=False,
+                        gridspec_kw=None if transpose else {"height_ratios": heights})
     mesh = None
     for c, (label, g) in enumerate(columns.items()):
         for r, (where, win) in enumerate(rows[label]):
             ax = axes[c, r] if transpose else axes[r, c]
             if label in values:
-                m = plot_cells_2d(ax, g, values[label], cmap=_CMAPS.get(color, "viridis"), norm=norm, window=win)
+                m = plot_cells_2d(ax, g, values[label], cmap=_cmap(color), norm=norm, window=win)
                 mesh = mesh or m[0]
-            if ref is not None and layout == "overlay" and g is not ref:
+            if ref is not None and layout == "overlay" and g is not ref and label not in values:
                 plot_grid_2d(ax, ref, window=win, color=REF_COLOR, linewidth=0.5, zorder=1.5)
-            plot_grid_2d(ax, g, window=win, color=GRID_COLOR, linewidth=0.45 if color is None else 0.3)
+            if color is None:
+                plot_grid_2d(ax, g, window=win, color=GRID_COLOR, linewidth=0.45)
+            else:
+                plot_grid_2d(ax, g, window=win, color="0.15", linewidth=0.25)
             if walls:
                 plot_walls_2d(ax, g, walls)
             _style(ax)
@@ -453,10 +528,8 @@ def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, 
                 title += "\n" + subtitles[label]
             ax.set_title(title, fontsize=9)
     if mesh is not None:
-        cb = fig.colorbar(mesh, ax=axes.ravel().tolist(), shrink=0.6, aspect=40,
-                          location="bottom" if transpose else "right")
-        cb.set_label(_LABELS[color], fontsize=8)
-        cb.ax.tick_params(labelsize=7)
+        _colorbar(fig, mesh, color, ax=axes.ravel().tolist(), shrink=0.6, aspect=40,
+                  location="bottom" if transpose else "right")
     if suptitle:
         fig.suptitle(suptitle, fontsize=9)
     return fig
@@ -515,7 +588,7 @@ def plot_cut(ax, grid: Grid, cut: Cut, *, ref: Grid | None = None, values: list 
     ----------
     cut : Cut
     ref : Grid, optional
-        Its same plane drawn in light grey underneath.
+        Its same plane drawn in light grey underneath (not under coloured cells).
     values : list of ndarray, optional
         Per-cell values of the whole grid (:func:`cell_values`); the cells
         of the layer on the plane's upper side (lower side for the last
@@ -544,7 +617,7 @@ def plot_cut(ax, grid: Grid, cut: Cut, *, ref: Grid | None = None, values: list 
         idx[d] = c
         mesh = ax.pcolormesh(p[..., u], p[..., v], np.ma.masked_invalid(vals[tuple(idx)]), cmap=cmap, norm=norm,
                              shading="flat", zorder=1, rasterized=True)
-    if ref is not None:
+    if ref is not None and values is None:
         pr = _plane(ref, cut)
         ax.add_collection(LineCollection(_lines_in(pr[..., [u, v]], window, 1), colors=REF_COLOR,
                                          linewidths=linewidth + 0.1, zorder=1.5))
@@ -670,7 +743,7 @@ def plot_wall_3d(ax, grid: Grid, walls, *, values: list | None = None, cmap="vir
 
 # ------------------------------------------------------------------ whole figures
 def grid_figure(grid: Grid, ref: Grid | None = None, walls=None, *, zoom="auto", color: str | None = None,
-                layout: str = "overlay", cuts=None, layers: int = 5, size=None, dpi: int = 100,
+                layout: str = "overlay", cuts=None, layers: int | None = None, size=None, dpi: int = 100,
                 title: str | None = None):
     """The figure of ``tfi-quat plot``: a 2-D grid in zoom windows, or a 3-D grid's
     wall surface and cuts.
@@ -726,19 +799,18 @@ def grid_figure(grid: Grid, ref: Grid | None = None, walls=None, *, zoom="auto",
         win = _check_window(zoom, "zoom")
     values = cell_values(grid, color, ref=ref, walls=walls, layers=layers) if color else None
     norm = _norm(color, values) if color else None
-    cmap = _CMAPS.get(color, "viridis")
+    cmap = _cmap(color)
     has_wall = bool(walls)
     ncut = len(cuts)
+    # the wall in perspective on the left, spanning the rows; the cuts stacked on the right
     if figsize is None:
-        figsize = (4.6 * ncut + (6.0 if has_wall else 0.0) + (1.0 if color else 0.0), 5.2)
+        figsize = ((6.5 if has_wall else 0.0) + 6.5, max(5.0, 2.9 * ncut) + (0.8 if color else 0.0) + 0.4)
     fig = Figure(figsize=figsize, layout="constrained")
-    ncol = ncut + (1 if has_wall else 0)
-    ratios = ([1.4] if has_wall else []) + [1.0] * ncut
-    gs = fig.add_gridspec(1, ncol, width_ratios=ratios)
+    gs = fig.add_gridspec(ncut, 2 if has_wall else 1)
     mappable = None
     axes = []
     if has_wall:
-        ax3 = fig.add_subplot(gs[0, 0], projection="3d")
+        ax3 = fig.add_subplot(gs[:, 0], projection="3d")
         colls = plot_wall_3d(ax3, grid, walls, values=values, cmap=cmap, norm=norm)
         ax3.set_title("wall surface" + (f" (coloured by the {color.replace('_', ' ')} of the wall cells)"
                                         if color else ""), fontsize=9)
@@ -746,7 +818,7 @@ def grid_figure(grid: Grid, ref: Grid | None = None, walls=None, *, zoom="auto",
             mappable = colls[0]
         axes.append(ax3)
     for n, c in enumerate(cuts):
-        ax = fig.add_subplot(gs[0, n + (1 if has_wall else 0)])
+        ax = fig.add_subplot(gs[n, 1 if has_wall else 0])
         cwin, coords = win, None
         w = _wall_in_cut(grid, walls, c)
         if w is not None:
@@ -764,9 +836,7 @@ def grid_figure(grid: Grid, ref: Grid | None = None, walls=None, *, zoom="auto",
         ax.set_title(f"cut: block {c.block + 1}, {c.axis} = {c.index + 1}", fontsize=9)
         axes.append(ax)
     if mappable is not None:
-        cb = fig.colorbar(mappable, ax=axes, shrink=0.5, aspect=40, location="bottom")
-        cb.set_label(_LABELS[color], fontsize=8)
-        cb.ax.tick_params(labelsize=7)
+        _colorbar(fig, mappable, color, ax=axes, shrink=0.5, aspect=40, location="bottom")
     if title:
         fig.suptitle(title, fontsize=9)
     return fig

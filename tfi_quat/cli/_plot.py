@@ -60,7 +60,8 @@ def add_args(p: argparse.ArgumentParser) -> None:
                    help="reference under the grid (overlay, default) or in its own column (side)")
     p.add_argument("--cut", action="append", default=[], metavar="B:AXIS=N",
                    help="3-D: constant-index plane, e.g. 1:k=23 (1-based, repeatable)")
-    p.add_argument("--layers", type=int, default=5, metavar="K", help="layers of the orthogonality metrics")
+    p.add_argument("--layers", type=int, default=None, metavar="K",
+                   help="layers off the wall coloured by the orthogonality metrics (default: every layer)")
     p.add_argument("--size", type=_size, metavar="WxH", help="image size in pixels (default: from the panels)")
     p.add_argument("--dpi", type=int, default=100, help="dots per inch (default 100)")
     p.add_argument("--title", help="figure title (default: the file names)")
@@ -79,6 +80,8 @@ def run(args) -> int:
     path = args.grid or (case.grid if case is not None else None)
     if path is None:
         raise CaseError("no grid: give GRID or --case")
+    if args.layers is not None and args.layers < 1:
+        raise CaseError(f"--layers must be >= 1, got {args.layers}")
     if args.dpi < 10:
         raise CaseError(f"--dpi must be >= 10, got {args.dpi}")
     check_output(args.output, args.force, inputs=[path, args.ref, args.case])
@@ -92,7 +95,12 @@ def run(args) -> int:
         walls = list(case.walls)
     grid = io.read(path)
     ref = io.read(args.ref) if args.ref else None
-    title = args.title if args.title is not None else (str(path) + (f" (grey: {args.ref})" if ref else ""))
+    title = args.title
+    if title is None:
+        title = str(path)
+        if ref is not None:
+            grey = args.layout == "overlay" and not args.color
+            title += f" ({'grey' if grey else 'reference'}: {args.ref})"
     zoom = args.zoom if args.zoom else "auto"
     try:
         fig = grid_figure(grid, ref=ref, walls=walls or None, zoom=zoom, color=args.color, layout=args.layout,
