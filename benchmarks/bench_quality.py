@@ -6,7 +6,9 @@ the reference is the same box unwarped, the walls are every block's jmin face.
 Three reports are timed (best of ``--repeat``): cell metrics alone, with the
 reference (volume ratio), and with reference and walls (orthogonality and its
 change over ``--layers`` layers), beside two streaming references measured in
-the same run, alternately with the report:
+the same run, alternately with the report (wall time, and the process CPU
+time over all threads per point, which the other users of a shared machine
+disturb less):
 
 - ``copy``: numpy ``np.copyto`` of every block's coordinates (24 bytes read
   and 24 written per point);
@@ -67,13 +69,12 @@ def make_grid(points: float, blocks: int):
     return Grid(warped, ndim=3), Grid(ref, ndim=3), walls
 
 
-def best(fn, repeat):
-    t = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        t.append(time.perf_counter() - t0)
-    return min(t)
+def timed(fn):
+    """(wall seconds, process CPU seconds over all threads) of one call."""
+    c0 = time.process_time()
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0, time.process_time() - c0
 
 
 def main(argv=None):
@@ -123,17 +124,20 @@ def main(argv=None):
     times = {"copy": [], "sum": []}
     times.update({name: [] for name, _ in cases})
     for _ in range(args.repeat):            # alternate, so every figure sees the same load
-        times["copy"].append(best(copy, 1))
-        times["sum"].append(best(stream, 1))
+        times["copy"].append(timed(copy))
+        times["sum"].append(timed(stream))
         for name, fn in cases:
-            times[name].append(best(fn, 1))
-    t_sum = min(times["sum"])
-    print(f"\n{'what':45s} {'best s':>8s} {'median s':>9s} {'M points/s':>11s} {'x stream sum':>13s}")
+            times[name].append(timed(fn))
+    t_sum = min(t for t, _ in times["sum"])
+    print(f"\n{'what':52s} {'best s':>7s} {'median s':>8s} {'M points/s':>10s} {'x read':>7s} "
+          f"{'CPU ns/point':>12s}")
     for name, ts in times.items():
         label = {"copy": "numpy copyto of the coordinates (48 B/point)",
                  "sum": "numba parallel read of the coordinates (24 B/point)"}.get(name, name)
-        b = min(ts)
-        print(f"{label:45s} {b:8.3f} {np.median(ts):9.3f} {npts / b / 1e6:11.1f} {b / t_sum:13.1f}")
+        b = min(t for t, _ in ts)
+        cpu = min(c for _, c in ts)
+        print(f"{label:52s} {b:7.3f} {np.median([t for t, _ in ts]):8.3f} {npts / b / 1e6:10.1f} "
+              f"{b / t_sum:7.1f} {1e9 * cpu / npts:12.1f}")
     rep = quality_report(grid, ref=ref, walls=walls, layers=args.layers)
     print(f"\nload average after: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     print(f"(the report found {rep.negative} negative cells, skewness max {rep.metrics['skewness'].max:.3f}, "
