@@ -8,7 +8,9 @@ sense.
 
 - **volume** (area in 2-D): signed.  Hexahedron: the six tetrahedra around
   the diagonal from ``c(0,0,0)`` to ``c(1,1,1)``, one per monotone path along
-  the cell edges; exact for cells with planar faces.  Quadrilateral: half the
+  the cell edges (the Kuhn triangulation: two cells split their common face
+  the same way, so the cells tile the block); exact for cells with planar
+  faces.  Quadrilateral: half the
   cross product of the diagonals.  Positive for right-handed (i, j, k) cells
   (counter-clockwise (i, j) in 2-D).
 - **jacobian**: at each of the 8 corners (4 in 2-D) the determinant of the
@@ -849,9 +851,9 @@ def _block_quality(b: int, blk: Block, ref: Block | None, ndim: int, rtol: float
         rmax = int(np.argmax(hi[:, m]))
         metrics[name] = MetricStats(float(lo[rmin, m]), float(hi[rmax, m]), float(tot[:, m].sum() / n), n,
                                     where(arg[rmin, m, 0]), where(arg[rmax, m, 1]))
-    counts = cnt[:, _C_NEG:].sum(axis=0)
-    bq = BlockQuality(b, blk.dims, int(np.prod(shape)), s, metrics, int(counts[0]), int(counts[1]),
-                      int(counts[2]), int(counts[3]))
+    counts = cnt.sum(axis=0)
+    bq = BlockQuality(b, blk.dims, int(np.prod(shape)), s, metrics, int(counts[_C_NEG]), int(counts[_C_NEGJ]),
+                      int(counts[_C_DEG]), int(counts[_C_COL]))
     # list the first few bad cells: revisit only the rows that hold some
     bad = np.flatnonzero(cnt[:, _C_NEG:_C_DEG + 1].sum(axis=1) > 0)
     lists = {NEGATIVE: bq.negative_cells, NEGATIVE_JACOBIAN: bq.negative_jacobian_cells,
