@@ -253,6 +253,15 @@ def plot_walls_2d(ax, grid: Grid, walls, *, color=WALL_COLOR, linewidth: float =
     return out
 
 
+def _cells_in(p: np.ndarray, window) -> np.ndarray:
+    """Mask (na-1, nb-1) of the cells of a point sheet ``p`` (na, nb, 2) whose centre lies in ``window``."""
+    c = 0.25 * (p[:-1, :-1] + p[1:, :-1] + p[:-1, 1:] + p[1:, 1:])
+    if window is None:
+        return np.ones(c.shape[:2], dtype=bool)
+    x0, x1, y0, y1 = window
+    return (c[..., 0] >= x0) & (c[..., 0] <= x1) & (c[..., 1] >= y0) & (c[..., 1] <= y1)
+
+
 def _log_or_nan(x):
     """log(x) where x > 0, NaN elsewhere (no warning)."""
     x = np.asarray(x, dtype=np.float64)
@@ -276,8 +285,10 @@ def _colorbar(fig, mappable, metric: str, **kw):
     label = _LABELS[metric]
     if metric == "volume_ratio":
         lo, hi = mappable.norm.vmin, mappable.norm.vmax
-        ticks = [t for t in (0.1, 0.2, 0.5, 0.8, 1.0, 1.25, 2.0, 5.0, 10.0) if lo <= t <= hi] or [1.0]
-        cb.set_ticks(ticks, labels=[f"{t:g}" for t in ticks])
+        # ratios r and 1/r, the three widest that fit
+        steps = [r for r in (1.01, 1.02, 1.05, 1.1, 1.2, 1.5, 2.0, 5.0, 10.0) if r <= hi * (1 + 1e-9)][-3:]
+        ticks = sorted([1.0] + steps + [1.0 / r for r in steps if 1.0 / r >= lo * (1 - 1e-9)])
+        cb.set_ticks(ticks, labels=[f"{t:.3g}" for t in ticks])
         label += "; green: <= 0 (inverted)"
     cb.set_label(label, fontsize=8)
     cb.ax.tick_params(labelsize=7)
@@ -295,12 +306,13 @@ def _norm(metric: str, values: list, vmin=None, vmax=None):
     lo = float(allv.min()) if vmin is None else float(vmin)
     hi = float(allv.max()) if vmax is None else float(vmax)
     if metric == "volume_ratio":
-        # log scale symmetric about 1, at most 10x either way; ratios <= 0 (inverted
-        # cells) have no logarithm and take the colour map's "bad" colour
+        # log scale symmetric about 1, at most 10x either way (arrows beyond); ratios <= 0
+        # (inverted cells) have no logarithm and take the colour map's "bad" colour
         pos = allv[allv > 0.0]
         if pos.size == 0:
             return Normalize(lo, hi)
-        span = min(max(float(np.abs(np.log(pos)).max()), math.log(1.05)), math.log(RATIO_SPAN))
+        # the 99th percentile of |log ratio|: a few extreme cells do not wash the rest out
+        span = min(max(float(np.percentile(np.abs(np.log(pos)), 99.0)), math.log(1.05)), math.log(RATIO_SPAN))
         return FuncNorm((_log_or_nan, np.exp), vmin=math.exp(-span), vmax=math.exp(span))
     if metric in ("aspect_ratio", "volume", "jacobian") and lo > 0.0 and hi / lo > 100.0:
         return LogNorm(lo, hi)
@@ -355,7 +367,9 @@ def plot_metric_2d(ax, grid: Grid, metric: str, *, ref: Grid | None = None, wall
     (list of QuadMesh, Colorbar or None)
     """
     values = cell_values(grid, metric, ref=ref, walls=walls, layers=layers)
-    norm = norm or _norm(metric, values)
+    if norm is None:      # the colour scale of the cells shown
+        win = None if window is None else _check_window(window)
+        norm = _norm(metric, [v[..., 0][_cells_in(b.xyz[:, :, 0, :2], win)] for b, v in zip(grid, values)])
     meshes = plot_cells_2d(ax, grid, values, cmap=cmap or _cmap(metric), norm=norm, window=window)
     if lines:
         plot_grid_2d(ax, grid, window=window, color="0.15", linewidth=0.25)
@@ -441,8 +455,8 @@ def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, 
         whole grid.
     layout : {"overlay", "side"}
     color : str, optional
-        A metric of :data:`COLOR_METRICS` to colour the cells by, one colour
-        scale over every panel, with a colour bar.
+        A metric of :data:`COLOR_METRICS` to colour the cells by, with one
+        colour scale (and colour bar) over the cells the panels show.
     layers : int, optional
         Layers of the orthogonality metrics (default: every layer).
     subtitles : dict of label -> str, optional
@@ -478,7 +492,6 @@ def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, 
             # the reference column is not coloured by a metric relative to itself
             if not (g is ref and color in ("volume_ratio", "orthogonality_change")):
                 values[label] = cell_values(g, color, ref=ref, walls=walls, layers=layers)
-        norm = _norm(color, [v for vs in values.values() for v in vs])
     rows = {label: _windows(g, walls, windows) for label, g in columns.items()}
     # the overviews show one region in every column; the zooms follow each column's wall
     for r, (where, _) in enumerate(next(iter(rows.values()))):
@@ -487,6 +500,16 @@ def plot_compare(grids, ref: Grid | None = None, walls=None, windows="auto", *, 
             union = (wins[:, 0].min(), wins[:, 1].max(), wins[:, 2].min(), wins[:, 3].max())
             for label in rows:
                 rows[label][r] = (where, union)
+    if color is not None:
+        # one colour scale over the cells the panels show
+        shown = []
+        for label, vs in values.items():
+            for blk, v in zip(columns[label], vs):
+                inside = np.zeros(v.shape[:2], dtype=bool)
+                for _, win in rows[label]:
+                    inside |= _cells_in(blk.xyz[:, :, 0, :2], win)
+                shown.append(v[..., 0][inside])
+        norm = _norm(color, shown)
     nrow = len(next(iter(rows.values())))
     ncol = len(columns)
     if transpose is None:
@@ -580,6 +603,33 @@ def _projection(p: np.ndarray):
     return tuple(sorted(np.argsort(ext)[::-1][:2]))
 
 
+def _cut_values(values: list, cut: Cut) -> np.ndarray:
+    """The cells of the layer on a cut's upper side (lower side for the last plane), (na-1, nb-1)."""
+    d = "ijk".index(cut.axis)
+    vals = np.asarray(values[cut.block])
+    idx = [slice(None)] * 3
+    idx[d] = min(cut.index, vals.shape[d] - 1)
+    return vals[tuple(idx)]
+
+
+def _wall_face_values(spec, vals: np.ndarray) -> np.ndarray:
+    """The cells on a wall patch, (na-1, nb-1), from one block's per-cell values."""
+    d, side = divmod(FACES.index(spec.face), 2)
+    idx = [slice(None)] * 3
+    idx[d] = vals.shape[d] - 1 if side else 0
+    run = [m for m in range(3) if m != d]
+    (a0, a1), (b0, b1) = spec.range
+    idx[run[0]] = slice(a0, a1)
+    idx[run[1]] = slice(b0, b1)
+    return vals[tuple(idx)]
+
+
+def _wall_values(grid: Grid, walls, values: list) -> np.ndarray:
+    from .quality import _wall_specs
+    return np.concatenate([_wall_face_values(s, np.asarray(values[s.block])).ravel()
+                           for s in _wall_specs(grid, walls)])
+
+
 def plot_cut(ax, grid: Grid, cut: Cut, *, ref: Grid | None = None, values: list | None = None, cmap="viridis",
              norm=None, window=None, coords=None, linewidth: float = 0.4):
     """Draw a constant-index plane of a 3-D block, projected on two coordinates.
@@ -610,13 +660,8 @@ def plot_cut(ax, grid: Grid, cut: Cut, *, ref: Grid | None = None, values: list 
     u, v = coords if coords is not None else _projection(p)
     mesh = None
     if values is not None:
-        d = "ijk".index(cut.axis)
-        vals = np.asarray(values[cut.block])
-        c = min(cut.index, vals.shape[d] - 1)
-        idx = [slice(None)] * 3
-        idx[d] = c
-        mesh = ax.pcolormesh(p[..., u], p[..., v], np.ma.masked_invalid(vals[tuple(idx)]), cmap=cmap, norm=norm,
-                             shading="flat", zorder=1, rasterized=True)
+        mesh = ax.pcolormesh(p[..., u], p[..., v], np.ma.masked_invalid(_cut_values(values, cut)), cmap=cmap,
+                             norm=norm, shading="flat", zorder=1, rasterized=True)
     if ref is not None and values is None:
         pr = _plane(ref, cut)
         ax.add_collection(LineCollection(_lines_in(pr[..., [u, v]], window, 1), colors=REF_COLOR,
@@ -707,15 +752,7 @@ def plot_wall_3d(ax, grid: Grid, walls, *, values: list | None = None, cmap="vir
         lo = np.minimum(lo, w.reshape(-1, 3).min(axis=0))
         hi = np.maximum(hi, w.reshape(-1, 3).max(axis=0))
         if values is not None:
-            d, side = divmod(FACES.index(spec.face), 2)
-            vals = np.asarray(values[spec.block])
-            idx = [slice(None)] * 3
-            idx[d] = vals.shape[d] - 1 if side else 0
-            run = [m for m in range(3) if m != d]
-            (a0, a1), (b0, b1) = spec.range
-            idx[run[0]] = slice(a0, a1)
-            idx[run[1]] = slice(b0, b1)
-            fv = vals[tuple(idx)].reshape(-1)
+            fv = _wall_face_values(spec, np.asarray(values[spec.block])).reshape(-1)
             coll = Poly3DCollection(verts, cmap=cmap, norm=norm, edgecolors=edgecolor, linewidths=linewidth)
             coll.set_array(np.ma.masked_invalid(fv))
         else:
@@ -798,7 +835,27 @@ def grid_figure(grid: Grid, ref: Grid | None = None, walls=None, *, zoom="auto",
             raise CaseError(f"zoom {zoom!r}: a 3-D figure takes an explicit window U0,U1,V0,V1 for its cuts")
         win = _check_window(zoom, "zoom")
     values = cell_values(grid, color, ref=ref, walls=walls, layers=layers) if color else None
-    norm = _norm(color, values) if color else None
+    # each cut: its projection and window (the near field of the wall's section in it)
+    views = []
+    for c in cuts:
+        cwin, coords = win, None
+        w = _wall_in_cut(grid, walls, c)
+        if w is not None:
+            coords = _projection(_plane(grid, c))
+            if cwin is None:
+                lo, hi = w[:, coords].min(axis=0), w[:, coords].max(axis=0)
+                p = NEAR_PAD * float(np.max(hi - lo))
+                cwin = (lo[0] - p, hi[0] + p, lo[1] - p, hi[1] + p)
+        views.append((c, w, cwin, coords))
+    norm = None
+    if values is not None:
+        # one colour scale over what is drawn: the wall faces and the cut cells in their windows
+        shown = [_wall_values(grid, walls, values)] if walls else []
+        for c, _, cwin, coords in views:
+            p = _plane(grid, c)
+            uv = coords if coords is not None else _projection(p)
+            shown.append(_cut_values(values, c)[_cells_in(p[..., list(uv)], cwin)])
+        norm = _norm(color, shown)
     cmap = _cmap(color)
     has_wall = bool(walls)
     ncut = len(cuts)
@@ -817,17 +874,8 @@ def grid_figure(grid: Grid, ref: Grid | None = None, walls=None, *, zoom="auto",
         if values is not None:
             mappable = colls[0]
         axes.append(ax3)
-    for n, c in enumerate(cuts):
+    for n, (c, w, cwin, coords) in enumerate(views):
         ax = fig.add_subplot(gs[n, 1 if has_wall else 0])
-        cwin, coords = win, None
-        w = _wall_in_cut(grid, walls, c)
-        if w is not None:
-            # the near field of the wall's section, projected like the plane
-            coords = _projection(_plane(grid, c))
-            if cwin is None:
-                lo, hi = w[:, coords].min(axis=0), w[:, coords].max(axis=0)
-                p = NEAR_PAD * float(np.max(hi - lo))
-                cwin = (lo[0] - p, hi[0] + p, lo[1] - p, hi[1] + p)
         res = plot_cut(ax, grid, c, ref=ref, values=values, cmap=cmap, norm=norm, window=cwin, coords=coords)
         if w is not None:
             ax.plot(w[:, res["coords"][0]], w[:, res["coords"][1]], color=WALL_COLOR, lw=1.2, zorder=4)
