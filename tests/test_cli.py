@@ -601,3 +601,97 @@ def test_info_leaves_out_variants_with_absurd_iblank(capsys, tmp_path):
     assert Plot3DFormat(**s["variant"]) == Plot3DFormat(ndim=2)
     assert [Plot3DFormat(**a["variant"]) for a in s["also_fits"]] == \
         [Plot3DFormat(precision=4, iblank=True, multiblock=False)]
+
+# ----------------------------------------------------------------------------- quality, plot
+
+def _folded_grid(path):
+    """A 2-D grid with one interior point pushed through its neighbours (negative cells)."""
+    i, j = np.meshgrid(np.arange(5.0), np.arange(4.0), indexing="ij")
+    xyz = np.zeros((5, 4, 1, 3), order="F")
+    xyz[..., 0, 0], xyz[..., 0, 1] = i, j
+    xyz[2, 1, 0, :2] = (3.6, 2.7)
+    g = Grid([Block(xyz)], ndim=2)
+    tfi_quat.write(path, g)
+    return g
+
+
+def test_quality_text_and_json(capsys):
+    rc, out, err = run_cli(capsys, "quality", "grids/naca0012_c_257x65.x", "--case",
+                           "grids/naca0012_c_257x65.toml", "--layers", "3")
+    assert rc == 0 and err == ""
+    assert "0 negative (area <= 0)" in out and "near-wall orthogonality, first 3 layers" in out
+    assert "1:jmin:65-193,1-1" in out
+    rc, out, _ = run_cli(capsys, "quality", "grids/two_block_65x33.x", "--ref", "grids/two_block_65x33.x",
+                         "--walls", "1:jmin", "2:jmin", "--json")
+    d = json.loads(out)
+    assert rc == 0 and d["index_base"] == 1 and d["reference"] == "grids/two_block_65x33.x"
+    assert [b["block"] for b in d["blocks"]] == [1, 2] and len(d["walls"]) == 2
+    assert d["metrics"]["volume_ratio"]["min"] == 1.0 and d["orthogonality"]["change_max"] == 0.0
+
+
+def test_quality_reports_negative_cells_1_based(capsys, tmp_path):
+    from tfi_quat.quality import quality_report
+    p = tmp_path / "folded.x"
+    g = _folded_grid(p)
+    rep = quality_report(g)
+    assert rep.negative > 0
+    rc, out, _ = run_cli(capsys, "quality", p)
+    assert rc == 0 and f"{rep.negative} negative" in out
+    b, i, j, k = rep.negative_cells[0]
+    assert f"block {b + 1} ({i + 1}, {j + 1})" in out
+    rc, out, _ = run_cli(capsys, "quality", p, "--json", "--fail-on-negative")
+    assert rc == 1 and json.loads(out)["negative_cells"][0] == [b + 1, i + 1, j + 1, k + 1]
+    rc, _, _ = run_cli(capsys, "quality", "grids/channel_bump_129x49.x", "--fail-on-negative")
+    assert rc == 0
+
+
+def test_quality_bad_input_is_one_line(capsys, tmp_path):
+    assert_one_line_error(*run_cli(capsys, "quality", tmp_path / "missing.x"), "missing.x")
+    rc, out, err = run_cli(capsys, "quality", "grids/naca0012_c_257x65.x", "--ref", "grids/cylinder_o_129x65.x")
+    assert_one_line_error(rc, out, err, "cylinder_o_129x65.x", "dimensions")
+    assert_one_line_error(*run_cli(capsys, "quality", "grids/naca0012_c_257x65.x", "--walls", "2:jmin"),
+                          "--walls", "1 block")
+    assert_one_line_error(*run_cli(capsys, "quality", "grids/naca0012_c_257x65.x", "--walls", "1:jmid"),
+                          "--walls", "jmid")
+    assert_one_line_error(*run_cli(capsys, "quality", "grids/naca0012_c_257x65.x", "--walls", "1:jmin",
+                                   "--layers", "0"), "--layers")
+
+
+def _png_size(path):
+    with open(path, "rb") as fh:
+        data = fh.read(24)
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    return tuple(int.from_bytes(data[n:n + 4], "big") for n in (16, 20))
+
+
+def test_plot_2d_and_3d(capsys, tmp_path):
+    out = tmp_path / "c.png"
+    rc, text, err = run_cli(capsys, "plot", "grids/naca0012_c_257x65.x", "--case", "grids/naca0012_c_257x65.toml",
+                            "--zoom", "le", "--zoom", "0.9,1.1,-0.05,0.05", "--color", "skewness",
+                            "--size", "1000x450", "-o", out)
+    assert rc == 0 and err == "" and "1000 x 450 pixels" in text
+    assert _png_size(out) == (1000, 450)
+    out3 = tmp_path / "wing.png"
+    rc, text, _ = run_cli(capsys, "plot", "--case", "grids/wing_ch_501k.toml", "--cut", "1:k=10",
+                          "--cut", "3:j=2", "-o", out3, "--dpi", "60")
+    assert rc == 0 and _png_size(out3)[0] > 300
+    # an existing figure is kept without --force
+    assert_one_line_error(*run_cli(capsys, "plot", "grids/naca0012_c_257x65.x", "-o", out), "exists", "--force")
+    rc, _, _ = run_cli(capsys, "plot", "grids/naca0012_c_257x65.x", "-o", out, "--force", "--size", "400x300")
+    assert rc == 0 and _png_size(out) == (400, 300)
+
+
+def test_plot_bad_input_is_one_line(capsys, tmp_path):
+    out = tmp_path / "f.png"
+    assert_one_line_error(*run_cli(capsys, "plot", "grids/naca0012_c_257x65.x", "--color", "volume_ratio",
+                                   "-o", out), "needs a reference", "--ref")
+    assert_one_line_error(*run_cli(capsys, "plot", "grids/naca0012_c_257x65.x", "--zoom", "te", "-o", out),
+                          "needs wall patches")
+    assert_one_line_error(*run_cli(capsys, "plot", "grids/wing_ch_501k.x", "--cut", "9:k=1", "-o", out),
+                          "wing_ch_501k.x", "4 block(s)")
+    assert_one_line_error(*run_cli(capsys, "plot", tmp_path / "nope.x", "-o", out), "nope.x")
+    assert not out.exists()
+    with pytest.raises(SystemExit) as exc:            # argparse: a bad window is a usage error
+        main(["plot", "grids/naca0012_c_257x65.x", "--zoom", "1,2,3", "-o", str(out)])
+    assert exc.value.code == 2
+    capsys.readouterr()

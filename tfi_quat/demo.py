@@ -176,68 +176,22 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
     return result
 
 
-def _lines(x: np.ndarray, window) -> list:
-    """Grid-line polylines of a 2-D block (ni, nj, 2) clipped coarsely to a window."""
-    x0, x1, y0, y1 = window
-    inside = (x[..., 0] >= x0) & (x[..., 0] <= x1) & (x[..., 1] >= y0) & (x[..., 1] <= y1)
-    segs = []
-    for i in range(x.shape[0]):
-        if inside[i].any():
-            segs.append(x[i])
-    for j in range(x.shape[1]):
-        if inside[:, j].any():
-            segs.append(x[:, j])
-    return segs
-
-
 def demo_figure(ref, grids: dict, walls, result: DemoResult | None = None):
-    """The memo's figure 4 layout: one column per method (plain TFI left), rows:
-    the near field, a leading-edge zoom and a trailing-edge zoom, the
-    reference grid in light grey under the deformed one.  Zoom windows
-    follow the deformed wall (trailing edge: the wall's end points; leading
-    edge: the wall point farthest from them)."""
-    from matplotlib.collections import LineCollection
-    from matplotlib.figure import Figure
+    """The memo's figure 4 layout (:func:`tfi_quat.plot.plot_compare`): one column per
+    method (plain TFI left), rows: the near field, a leading-edge zoom and a
+    trailing-edge zoom, the reference grid in light grey under the deformed
+    one.  Zoom windows follow the deformed wall (trailing edge: the wall's end
+    points; leading edge: the wall point farthest from them)."""
+    from .plot import plot_compare
 
-    from .quality import _wall_specs
-    from .deform import _face_ijk
-
-    spec = _wall_specs(ref, walls)[0]
-    ncol = len(grids)
-    fig = Figure(figsize=(5.2 * ncol, 13.0), layout="constrained")
-    axes = fig.subplots(3, ncol, squeeze=False)
-    for c, (label, g) in enumerate(grids.items()):
-        ijk = _face_ijk(g[spec.block].dims, spec.face, spec.range).reshape(-1, 3)
-        w = g[spec.block].xyz[ijk[:, 0], ijk[:, 1], ijk[:, 2], :2]
-        te = 0.5 * (w[0] + w[-1])
-        le = w[np.argmax(np.linalg.norm(w - te, axis=1))]
-        lo, hi = w.min(axis=0), w.max(axis=0)
-        pad = 0.35 * float(np.max(hi - lo))
-        windows = [("near field", (lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad)),
-                   ("leading edge", (le[0] - 0.04, le[0] + 0.04, le[1] - 0.04, le[1] + 0.04)),
-                   ("trailing edge", (te[0] - 0.06, te[0] + 0.06, te[1] - 0.06, te[1] + 0.06))]
-        for r, (where, win) in enumerate(windows):
-            ax = axes[r, c]
-            for b, blk in enumerate(g):
-                x = blk.xyz[:, :, 0, :2]
-                xref = ref[b].xyz[:, :, 0, :2]
-                ax.add_collection(LineCollection(_lines(xref, win), colors="0.8", linewidths=0.5))
-                ax.add_collection(LineCollection(_lines(x, win), colors="k", linewidths=0.45))
-            ax.plot(w[:, 0], w[:, 1], color="tab:red", lw=1.2)
-            ax.set_xlim(win[0], win[1])
-            ax.set_ylim(win[2], win[3])
-            ax.set_aspect("equal")
-            ax.tick_params(labelsize=7)
-            title = f"{label}: {where}"
-            if r == 0 and result is not None and label in result.rows:
-                row = result.rows[label]
-                title += (f"\northogonality change (5 layers) max {row['ortho_max']:.2f} deg, "
-                          f"min volume ratio {row['min_ratio']:.2f}")
-            ax.set_title(title, fontsize=9)
+    subtitles, suptitle = None, None
     if result is not None:
-        fig.suptitle(f"NACA 0012 C-grid 257 x 65 (grey: reference grid, red: deformed wall)\n"
-                     f"wall {result.motion}", fontsize=9)
-    return fig
+        subtitles = {label: (f"orthogonality change (5 layers) max {row['ortho_max']:.2f} deg, "
+                             f"min volume ratio {row['min_ratio']:.2f}") for label, row in result.rows.items()}
+        suptitle = (f"NACA 0012 C-grid 257 x 65 (grey: reference grid, red: deformed wall)\n"
+                    f"wall {result.motion}")
+    return plot_compare(grids, ref=ref, walls=walls, windows=["near", "le", "te"], layout="overlay",
+                        subtitles=subtitles, suptitle=suptitle, figsize=(5.2 * len(grids), 13.0))
 
 
 def io_write_text(path: Path, text: str, overwrite: bool) -> None:

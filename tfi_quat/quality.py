@@ -1,26 +1,315 @@
-"""Grid quality: cell volumes (areas in 2-D) and negative-cell checks.
+"""Grid quality: cell volumes, corner Jacobians, skewness, aspect ratio, volume
+ratio to a reference grid, near-wall orthogonality, and a report of them all.
 
-Kernels are numba functions over one block; the drivers take a :class:`Block`
-or :class:`Grid` and return plain arrays.
+Definitions (formulas in ``docs/quality.md``).  A cell has corners
+``c(a, b, c) = x[i + a, j + b, k + c]``, ``a, b, c`` in {0, 1}; its 12 edges
+are the differences along i, j, k, each pointing in its index's positive
+sense.
 
-Cell volume of a hexahedron: the sum of the six tetrahedra around the
-diagonal from corner (0,0,0) to corner (1,1,1), one per monotone path along
-the cell edges, so every quadrilateral face is split through one of the two
-diagonal corners.  It is exact for cells with planar faces, independent of
-the handedness of nothing else, and signed: a right-handed (i, j, k) cell has
-a positive volume.  In 2-D the area is half the cross product of the
-diagonals (signed, positive when (i, j) is counter-clockwise).
+- **volume** (area in 2-D): signed.  Hexahedron: the six tetrahedra around
+  the diagonal from ``c(0,0,0)`` to ``c(1,1,1)``, one per monotone path along
+  the cell edges (the Kuhn triangulation: two cells split their common face
+  the same way, so the cells tile the block); exact for cells with planar
+  faces.  Quadrilateral: half the
+  cross product of the diagonals.  Positive for right-handed (i, j, k) cells
+  (counter-clockwise (i, j) in 2-D).
+- **jacobian**: at each of the 8 corners (4 in 2-D) the determinant of the
+  three (two) edge vectors leaving that corner along i, j, k, taken in the
+  positive index sense; the cell's value is the smallest of them.
+- **scaled_jacobian**: the same determinant of the *unit* edge vectors, the
+  smallest over the corners; 1 for a rectangular box, <= 0 for a folded or
+  collapsed corner.
+- **skewness**: equiangle skewness over the 24 face-corner angles (4 in 2-D),
+  ``max((θmax - 90) / 90, (90 - θmin) / 90)``, in [0, 1].
+- **aspect_ratio**: longest over shortest of the 12 (4) edges; infinite when
+  an edge has zero length.
+- **volume_ratio**: deformed over reference volume of the same cell.
+- near-wall **orthogonality**: :func:`wall_orthogonality`.
+
+A cell is **negative** when its volume is <= 0 and **negative-Jacobian**
+when any corner Jacobian is <= 0 (the stricter test: it also catches
+non-convex cells and collapsed edges), both taken in the block's
+handedness (the sign of its total volume, of the reference block when one is
+given), so a left-handed block is valid.  It is **degenerate** when
+``|volume| <= rtol * Lmax**3`` (``Lmax**2`` in 2-D), ``Lmax`` its longest
+edge.
+
+Kernels are numba functions over one block, parallel over the cell rows
+(fixed j and k); the drivers take a :class:`Block` or :class:`Grid`.
+:func:`quality_report` makes one pass per block that reduces every metric to
+its min, max, mean and the places of the extremes without storing per-cell
+fields, then revisits only the rows that hold bad cells to list them.
+:func:`cell_metrics` returns the per-cell fields (for pictures and tests).
 """
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass, field
+
 import numpy as np
 
-from ._jit import pjit, prange
+from ._jit import jit, pjit, prange
+from .errors import GridValueError
 from .grid import Block, Grid
 
-__all__ = ["cell_volumes", "volume_ratio_summary", "negative_cells", "wall_orthogonality",
-           "orthogonality_change"]
+__all__ = ["METRICS", "cell_volumes", "cell_metrics", "cell_orthogonality", "quality_report",
+           "QualityReport", "BlockQuality", "MetricStats", "WallOrthogonality",
+           "volume_ratio_summary", "negative_cells", "wall_orthogonality", "orthogonality_change"]
+
+#: per-cell metrics, in the order of the kernels' output
+METRICS = ("volume", "jacobian", "scaled_jacobian", "skewness", "aspect_ratio", "volume_ratio")
+_NM = len(METRICS)
+#: metrics whose small values are the bad ones (the others: large values)
+_LOW_IS_BAD = ("volume", "jacobian", "scaled_jacobian", "volume_ratio")
+
+# cell flags (bits) written by the field kernel
+NEGATIVE = 1
+NEGATIVE_JACOBIAN = 2
+DEGENERATE = 4
+COLLAPSED = 8
+
+# counter columns of the stats kernel after the per-metric finite counts
+_C_NEG, _C_NEGJ, _C_DEG, _C_COL = _NM, _NM + 1, _NM + 2, _NM + 3
+_NCNT = _NM + 4
+
+_HALF_PI = 0.5 * math.pi
+
+
+# ------------------------------------------------------------------ per-cell kernels
+@jit
+def _hex_volume(x, i, j, k):
+    """Signed volume of hexahedron (i, j, k): sum over the six monotone-path tetrahedra,
+    ``a . S / 6`` with ``a = c111 - c000`` and
+    ``S = (c100 - c010) x (c110 - c000) + (c010 - c001) x (c011 - c000) + (c001 - c100) x (c101 - c000)``."""
+    x0 = x[i, j, k, 0]
+    y0 = x[i, j, k, 1]
+    z0 = x[i, j, k, 2]
+    sx = 0.0
+    sy = 0.0
+    sz = 0.0
+    for p in range(3):
+        if p == 0:       # d = c100 - c010, q = c110 - c000
+            dx = x[i + 1, j, k, 0] - x[i, j + 1, k, 0]
+            dy = x[i + 1, j, k, 1] - x[i, j + 1, k, 1]
+            dz = x[i + 1, j, k, 2] - x[i, j + 1, k, 2]
+            qx = x[i + 1, j + 1, k, 0] - x0
+            qy = x[i + 1, j + 1, k, 1] - y0
+            qz = x[i + 1, j + 1, k, 2] - z0
+        elif p == 1:     # d = c010 - c001, q = c011 - c000
+            dx = x[i, j + 1, k, 0] - x[i, j, k + 1, 0]
+            dy = x[i, j + 1, k, 1] - x[i, j, k + 1, 1]
+            dz = x[i, j + 1, k, 2] - x[i, j, k + 1, 2]
+            qx = x[i, j + 1, k + 1, 0] - x0
+            qy = x[i, j + 1, k + 1, 1] - y0
+            qz = x[i, j + 1, k + 1, 2] - z0
+        else:            # d = c001 - c100, q = c101 - c000
+            dx = x[i, j, k + 1, 0] - x[i + 1, j, k, 0]
+            dy = x[i, j, k + 1, 1] - x[i + 1, j, k, 1]
+            dz = x[i, j, k + 1, 2] - x[i + 1, j, k, 2]
+            qx = x[i + 1, j, k + 1, 0] - x0
+            qy = x[i + 1, j, k + 1, 1] - y0
+            qz = x[i + 1, j, k + 1, 2] - z0
+        sx += dy * qz - dz * qy
+        sy += dz * qx - dx * qz
+        sz += dx * qy - dy * qx
+    ax = x[i + 1, j + 1, k + 1, 0] - x0
+    ay = x[i + 1, j + 1, k + 1, 1] - y0
+    az = x[i + 1, j + 1, k + 1, 2] - z0
+    return (ax * sx + ay * sy + az * sz) / 6.0
+
+
+@jit
+def _quad_area(x, i, j):
+    """Signed area of quadrilateral (i, j): half the cross product of its diagonals."""
+    d1x = x[i + 1, j + 1, 0, 0] - x[i, j, 0, 0]
+    d1y = x[i + 1, j + 1, 0, 1] - x[i, j, 0, 1]
+    d2x = x[i, j + 1, 0, 0] - x[i + 1, j, 0, 0]
+    d2y = x[i, j + 1, 0, 1] - x[i + 1, j, 0, 1]
+    return 0.5 * (d1x * d2y - d1y * d2x)
+
+
+@jit
+def _edge(x, i0, j0, k0, i1, j1, k1):
+    """Unit vector, length and squared length of the edge from point 0 to point 1."""
+    dx = x[i1, j1, k1, 0] - x[i0, j0, k0, 0]
+    dy = x[i1, j1, k1, 1] - x[i0, j0, k0, 1]
+    dz = x[i1, j1, k1, 2] - x[i0, j0, k0, 2]
+    l2 = dx * dx + dy * dy + dz * dz
+    ln = math.sqrt(l2)
+    inv = 1.0 / ln if ln > 0.0 else 0.0
+    return dx * inv, dy * inv, dz * inv, ln, l2
+
+
+@jit
+def _corner(u, v, w, fuv, fuw, fvw):
+    """(scaled Jacobian, Jacobian, min cos, max cos) at a corner with edges u, v, w (from _edge)
+    along i, j, k; f.. = -1 where one of the pair's edges points into the corner."""
+    sj = (u[0] * (v[1] * w[2] - v[2] * w[1]) - u[1] * (v[0] * w[2] - v[2] * w[0])
+          + u[2] * (v[0] * w[1] - v[1] * w[0]))
+    cuv = fuv * (u[0] * v[0] + u[1] * v[1] + u[2] * v[2])
+    cuw = fuw * (u[0] * w[0] + u[1] * w[1] + u[2] * w[2])
+    cvw = fvw * (v[0] * w[0] + v[1] * w[1] + v[2] * w[2])
+    return sj, sj * u[3] * v[3] * w[3], min(cuv, min(cuw, cvw)), max(cuv, max(cuw, cvw))
+
+
+@jit
+def _hex_row(x, j, k, s, rtol, xr, has_ref, rb, rf):
+    """Metrics of the hexahedra of row (j, k) into ``rb`` (ni - 1, len(METRICS) + 1)
+    and their flag bits into ``rf`` (ni - 1).
+
+    ``rb[i, :len(METRICS)]`` are the metrics (volume and Jacobians multiplied
+    by the orientation ``s``), ``rb[i, len(METRICS)]`` the oriented reference
+    volume (0 without a reference).  Edge m of a cell with corners
+    ``c(a, b, c) = x[i + a, j + b, k + c]``: i-edges ``i0..i3`` at
+    ``b + 2c``, j-edges ``ja0..ja3`` at ``a + 2c``, k-edges ``ka0..ka3`` at
+    ``a + 2b``; the upper (a = 1) j- and k-edges of cell i are the lower ones
+    of cell i + 1.
+    """
+    nci = x.shape[0] - 1
+    # lower (a = 0) j- and k-edges of cell 0
+    ja0 = _edge(x, 0, j, k, 0, j + 1, k)
+    ja2 = _edge(x, 0, j, k + 1, 0, j + 1, k + 1)
+    ka0 = _edge(x, 0, j, k, 0, j, k + 1)
+    ka2 = _edge(x, 0, j + 1, k, 0, j + 1, k + 1)
+    for i in range(nci):
+        i0 = _edge(x, i, j, k, i + 1, j, k)
+        i1 = _edge(x, i, j + 1, k, i + 1, j + 1, k)
+        i2 = _edge(x, i, j, k + 1, i + 1, j, k + 1)
+        i3 = _edge(x, i, j + 1, k + 1, i + 1, j + 1, k + 1)
+        ja1 = _edge(x, i + 1, j, k, i + 1, j + 1, k)
+        ja3 = _edge(x, i + 1, j, k + 1, i + 1, j + 1, k + 1)
+        ka1 = _edge(x, i + 1, j, k, i + 1, j, k + 1)
+        ka3 = _edge(x, i + 1, j + 1, k, i + 1, j + 1, k + 1)
+        c0 = _corner(i0, ja0, ka0, 1.0, 1.0, 1.0)
+        c1 = _corner(i0, ja1, ka1, -1.0, -1.0, 1.0)
+        c2 = _corner(i1, ja0, ka2, -1.0, 1.0, -1.0)
+        c3 = _corner(i1, ja1, ka3, 1.0, -1.0, -1.0)
+        c4 = _corner(i2, ja2, ka0, 1.0, -1.0, -1.0)
+        c5 = _corner(i2, ja3, ka1, -1.0, 1.0, -1.0)
+        c6 = _corner(i3, ja2, ka2, -1.0, -1.0, 1.0)
+        c7 = _corner(i3, ja3, ka3, 1.0, 1.0, 1.0)
+        sj = min(min(min(c0[0], c1[0]), min(c2[0], c3[0])), min(min(c4[0], c5[0]), min(c6[0], c7[0])))
+        sjx = max(max(max(c0[0], c1[0]), max(c2[0], c3[0])), max(max(c4[0], c5[0]), max(c6[0], c7[0])))
+        jmn = min(min(min(c0[1], c1[1]), min(c2[1], c3[1])), min(min(c4[1], c5[1]), min(c6[1], c7[1])))
+        jmx = max(max(max(c0[1], c1[1]), max(c2[1], c3[1])), max(max(c4[1], c5[1]), max(c6[1], c7[1])))
+        cmin = min(min(min(c0[2], c1[2]), min(c2[2], c3[2])), min(min(c4[2], c5[2]), min(c6[2], c7[2])))
+        cmax = max(max(max(c0[3], c1[3]), max(c2[3], c3[3])), max(max(c4[3], c5[3]), max(c6[3], c7[3])))
+        lmin = min(min(min(i0[3], i1[3]), min(i2[3], i3[3])),
+                   min(min(min(ja0[3], ja1[3]), min(ja2[3], ja3[3])), min(min(ka0[3], ka1[3]), min(ka2[3], ka3[3]))))
+        lmax = max(max(max(i0[3], i1[3]), max(i2[3], i3[3])),
+                   max(max(max(ja0[3], ja1[3]), max(ja2[3], ja3[3])), max(max(ka0[3], ka1[3]), max(ka2[3], ka3[3]))))
+        vol = s * _hex_volume(x, i, j, k)
+        if s < 0.0:
+            sj = -sjx
+            jmn = -jmx
+        rb[i, 0] = vol
+        rb[i, 1] = jmn
+        rb[i, 2] = sj
+        # (θmax - 90) / 90 = asin(-cos θmax) / (π/2), (90 - θmin) / 90 = asin(cos θmin) / (π/2)
+        sk = max(-cmin, cmax)
+        rb[i, 3] = math.asin(min(1.0, sk)) / _HALF_PI if sk > 0.0 else 0.0
+        rb[i, 4] = lmax / lmin if lmin > 0.0 else np.inf
+        if has_ref:
+            vr = s * _hex_volume(xr, i, j, k)
+            rb[i, 5] = vol / vr if vr != 0.0 else np.nan
+            rb[i, 6] = vr
+        else:
+            rb[i, 5] = np.nan
+            rb[i, 6] = 0.0
+        f = 0
+        if vol <= 0.0:
+            f |= 1
+        if jmn <= 0.0:
+            f |= 2
+        if abs(vol) <= rtol * lmax * lmax * lmax:
+            f |= 4
+        if lmin == 0.0:
+            f |= 8
+        rf[i] = f
+        ja0 = ja1
+        ja2 = ja3
+        ka0 = ka1
+        ka2 = ka3
+
+
+@jit
+def _edge2(x, i0, j0, i1, j1):
+    """2-D :func:`_edge`: unit vector (x, y) and length."""
+    dx = x[i1, j1, 0, 0] - x[i0, j0, 0, 0]
+    dy = x[i1, j1, 0, 1] - x[i0, j0, 0, 1]
+    ln = math.sqrt(dx * dx + dy * dy)
+    inv = 1.0 / ln if ln > 0.0 else 0.0
+    return dx * inv, dy * inv, ln
+
+
+@jit
+def _corner2(u, v, fuv):
+    """(scaled Jacobian, Jacobian, cos) at a quadrilateral corner with edges u (i), v (j)."""
+    sj = u[0] * v[1] - u[1] * v[0]
+    return sj, sj * u[2] * v[2], fuv * (u[0] * v[0] + u[1] * v[1])
+
+
+@jit
+def _quad_row(x, j, s, rtol, xr, has_ref, rb, rf):
+    """2-D :func:`_hex_row`: the quadrilaterals of row j; corner (a, b) has the
+    i-edge at ``b`` and the j-edge at ``a``."""
+    nci = x.shape[0] - 1
+    ja0 = _edge2(x, 0, j, 0, j + 1)
+    for i in range(nci):
+        i0 = _edge2(x, i, j, i + 1, j)
+        i1 = _edge2(x, i, j + 1, i + 1, j + 1)
+        ja1 = _edge2(x, i + 1, j, i + 1, j + 1)
+        c0 = _corner2(i0, ja0, 1.0)
+        c1 = _corner2(i0, ja1, -1.0)
+        c2 = _corner2(i1, ja0, -1.0)
+        c3 = _corner2(i1, ja1, 1.0)
+        if s < 0.0:
+            sj = -max(max(c0[0], c1[0]), max(c2[0], c3[0]))
+            jmn = -max(max(c0[1], c1[1]), max(c2[1], c3[1]))
+        else:
+            sj = min(min(c0[0], c1[0]), min(c2[0], c3[0]))
+            jmn = min(min(c0[1], c1[1]), min(c2[1], c3[1]))
+        cmin = min(min(c0[2], c1[2]), min(c2[2], c3[2]))
+        cmax = max(max(c0[2], c1[2]), max(c2[2], c3[2]))
+        lmin = min(min(i0[2], i1[2]), min(ja0[2], ja1[2]))
+        lmax = max(max(i0[2], i1[2]), max(ja0[2], ja1[2]))
+        vol = s * _quad_area(x, i, j)
+        rb[i, 0] = vol
+        rb[i, 1] = jmn
+        rb[i, 2] = sj
+        # (θmax - 90) / 90 = asin(-cos θmax) / (π/2), (90 - θmin) / 90 = asin(cos θmin) / (π/2)
+        sk = max(-cmin, cmax)
+        rb[i, 3] = math.asin(min(1.0, sk)) / _HALF_PI if sk > 0.0 else 0.0
+        rb[i, 4] = lmax / lmin if lmin > 0.0 else np.inf
+        if has_ref:
+            vr = s * _quad_area(xr, i, j)
+            rb[i, 5] = vol / vr if vr != 0.0 else np.nan
+            rb[i, 6] = vr
+        else:
+            rb[i, 5] = np.nan
+            rb[i, 6] = 0.0
+        f = 0
+        if vol <= 0.0:
+            f |= 1
+        if jmn <= 0.0:
+            f |= 2
+        if abs(vol) <= rtol * lmax * lmax:
+            f |= 4
+        if lmin == 0.0:
+            f |= 8
+        rf[i] = f
+        ja0 = ja1
+
+
+@jit
+def _row(x, xr, has_ref, ndim, r, s, rtol, rb, rf):
+    """Row r (``j + (nj - 1) * k``) of a block's cells into ``rb``, ``rf``."""
+    ncj = x.shape[1] - 1
+    if ndim == 3:
+        _hex_row(x, r % ncj, r // ncj, s, rtol, xr, has_ref, rb, rf)
+    else:
+        _quad_row(x, r, s, rtol, xr, has_ref, rb, rf)
 
 
 @pjit
@@ -29,37 +318,7 @@ def _hex_volumes(x, out):
     for k in prange(nk - 1):
         for j in range(nj - 1):
             for i in range(ni - 1):
-                x0 = x[i, j, k, 0]
-                y0 = x[i, j, k, 1]
-                z0 = x[i, j, k, 2]
-                ax = x[i + 1, j + 1, k + 1, 0] - x0
-                ay = x[i + 1, j + 1, k + 1, 1] - y0
-                az = x[i + 1, j + 1, k + 1, 2] - z0
-                v = 0.0
-                # six monotone paths 0 -> e1 -> e1+e2 -> 7; det[p1-0, p2-p1, 7-p2]
-                # = det[p1-0, p2-0, 7-0] (adding rows), with the permutation sign.
-                for p in range(6):
-                    if p == 0:
-                        d1 = (1, 0, 0); d2 = (1, 1, 0); sg = 1.0   # noqa: E702
-                    elif p == 1:
-                        d1 = (0, 1, 0); d2 = (1, 1, 0); sg = -1.0  # noqa: E702
-                    elif p == 2:
-                        d1 = (0, 1, 0); d2 = (0, 1, 1); sg = 1.0   # noqa: E702
-                    elif p == 3:
-                        d1 = (0, 0, 1); d2 = (0, 1, 1); sg = -1.0  # noqa: E702
-                    elif p == 4:
-                        d1 = (0, 0, 1); d2 = (1, 0, 1); sg = 1.0   # noqa: E702
-                    else:
-                        d1 = (1, 0, 0); d2 = (1, 0, 1); sg = -1.0  # noqa: E702
-                    px = x[i + d1[0], j + d1[1], k + d1[2], 0] - x0
-                    py = x[i + d1[0], j + d1[1], k + d1[2], 1] - y0
-                    pz = x[i + d1[0], j + d1[1], k + d1[2], 2] - z0
-                    qx = x[i + d2[0], j + d2[1], k + d2[2], 0] - x0
-                    qy = x[i + d2[0], j + d2[1], k + d2[2], 1] - y0
-                    qz = x[i + d2[0], j + d2[1], k + d2[2], 2] - z0
-                    det = px * (qy * az - qz * ay) - py * (qx * az - qz * ax) + pz * (qx * ay - qy * ax)
-                    v += sg * det
-                out[i, j, k] = v / 6.0
+                out[i, j, k] = _hex_volume(x, i, j, k)
 
 
 @pjit
@@ -67,11 +326,109 @@ def _quad_areas(x, out):
     ni, nj = x.shape[0], x.shape[1]
     for j in prange(nj - 1):
         for i in range(ni - 1):
-            d1x = x[i + 1, j + 1, 0, 0] - x[i, j, 0, 0]
-            d1y = x[i + 1, j + 1, 0, 1] - x[i, j, 0, 1]
-            d2x = x[i, j + 1, 0, 0] - x[i + 1, j, 0, 0]
-            d2y = x[i, j + 1, 0, 1] - x[i + 1, j, 0, 1]
-            out[i, j, 0] = 0.5 * (d1x * d2y - d1y * d2x)
+            out[i, j, 0] = _quad_area(x, i, j)
+
+
+@pjit
+def _block_stats(x, xr, has_ref, ndim, s, rtol, lo, hi, tot, arg, cnt, refsum):
+    """Reduce every metric of one block over each row of cells (fixed j, k).
+
+    Row ``r = j + (nj - 1) * k`` writes ``lo[r, m]``, ``hi[r, m]``, ``tot[r, m]``
+    (min, max and sum of metric m over its finite values), ``arg[r, m, 0/1]``
+    (flat cell index ``i + (ni - 1) * r`` of the min / max), ``cnt[r, :]``
+    (finite values per metric, then negative, negative-Jacobian, degenerate
+    and collapsed cells) and ``refsum[r]`` (sum of the oriented reference volumes).
+    """
+    nci = x.shape[0] - 1
+    nrows = lo.shape[0]
+    nm = lo.shape[1]
+    for r in prange(nrows):
+        rb = np.empty((nci, nm + 1))
+        rf = np.empty(nci, dtype=np.uint8)
+        _row(x, xr, has_ref, ndim, r, s, rtol, rb, rf)
+        for m in range(nm):
+            vlo = np.inf
+            vhi = -np.inf
+            ilo = 0
+            ihi = 0
+            t = 0.0
+            n = 0
+            for i in range(nci):
+                val = rb[i, m]
+                if math.isfinite(val):
+                    t += val
+                    n += 1
+                    if val < vlo:
+                        vlo = val
+                        ilo = i
+                    if val > vhi:
+                        vhi = val
+                        ihi = i
+            lo[r, m] = vlo
+            hi[r, m] = vhi
+            tot[r, m] = t
+            cnt[r, m] = n
+            arg[r, m, 0] = ilo + nci * r
+            arg[r, m, 1] = ihi + nci * r
+        c1 = 0
+        c2 = 0
+        c4 = 0
+        c8 = 0
+        rs = 0.0
+        for i in range(nci):
+            f = rf[i]
+            c1 += f & 1
+            c2 += (f >> 1) & 1
+            c4 += (f >> 2) & 1
+            c8 += (f >> 3) & 1
+            rs += rb[i, nm]
+        cnt[r, nm] = c1
+        cnt[r, nm + 1] = c2
+        cnt[r, nm + 2] = c4
+        cnt[r, nm + 3] = c8
+        refsum[r] = rs
+
+
+@pjit
+def _block_fields(x, xr, has_ref, ndim, s, rtol, rows, out, flags):
+    """Per-cell metrics of the cell rows ``rows`` of one block.
+
+    ``out`` float64 (ni - 1, len(rows), len(METRICS)), ``flags`` uint8
+    (ni - 1, len(rows)): NEGATIVE | NEGATIVE_JACOBIAN | DEGENERATE | COLLAPSED.
+    """
+    nci = x.shape[0] - 1
+    nm = out.shape[2]
+    for q in prange(rows.size):
+        rb = np.empty((nci, nm + 1))
+        rf = np.empty(nci, dtype=np.uint8)
+        _row(x, xr, has_ref, ndim, rows[q], s, rtol, rb, rf)
+        for i in range(nci):
+            flags[i, q] = rf[i]
+            for m in range(nm):
+                out[i, q, m] = rb[i, m]
+
+
+# ------------------------------------------------------------------ per-cell drivers
+def _xyz(block, what: str = "block") -> np.ndarray:
+    xyz = block.xyz if isinstance(block, Block) else np.asarray(block, dtype=np.float64)
+    if xyz.ndim != 4 or xyz.shape[-1] != 3:
+        raise GridValueError(f"{what}: expected coordinates of shape (ni, nj, nk, 3), got {xyz.shape}")
+    return np.asfortranarray(xyz, dtype=np.float64)
+
+
+def _ndim(xyz: np.ndarray, ndim) -> int:
+    if ndim is None:
+        return 2 if xyz.shape[2] == 1 else 3
+    if ndim not in (2, 3):
+        raise GridValueError(f"ndim must be 2 or 3, got {ndim!r}")
+    if ndim == 2 and xyz.shape[2] != 1:
+        raise GridValueError(f"a 2-D block needs nk == 1, got nk = {xyz.shape[2]}")
+    return int(ndim)
+
+
+def _cell_shape(dims, ndim: int) -> tuple[int, int, int]:
+    ni, nj, nk = dims
+    return max(ni - 1, 0), max(nj - 1, 0), (max(nk - 1, 0) if ndim == 3 else 1)
 
 
 def cell_volumes(block: Block | np.ndarray, ndim: int | None = None) -> np.ndarray:
@@ -88,19 +445,510 @@ def cell_volumes(block: Block | np.ndarray, ndim: int | None = None) -> np.ndarr
     ndarray, float64, shape (ni-1, nj-1, nk-1) in 3-D or (ni-1, nj-1, 1) in 2-D
         Positive for right-handed (counter-clockwise in 2-D) cells.
     """
-    xyz = block.xyz if isinstance(block, Block) else np.asarray(block, dtype=np.float64)
-    ni, nj, nk = xyz.shape[:3]
-    if ndim is None:
-        ndim = 2 if nk == 1 else 3
-    if ndim == 2:
-        out = np.empty((max(ni - 1, 0), max(nj - 1, 0), 1), order="F")
-        if out.size:
-            _quad_areas(xyz, out)
-        return out
-    out = np.empty((max(ni - 1, 0), max(nj - 1, 0), max(nk - 1, 0)), order="F")
+    xyz = _xyz(block)
+    ndim = _ndim(xyz, ndim)
+    out = np.empty(_cell_shape(xyz.shape[:3], ndim), order="F")
     if out.size:
-        _hex_volumes(xyz, out)
+        (_quad_areas if ndim == 2 else _hex_volumes)(xyz, out)
     return out
+
+
+def _check_ref(xyz: np.ndarray, ref, where: str) -> np.ndarray:
+    xr = _xyz(ref, f"{where} reference")
+    if xr.shape != xyz.shape:
+        raise GridValueError(f"{where}: reference has dimensions {xr.shape[:3]}, the grid {xyz.shape[:3]}")
+    return xr
+
+
+def _fields(xyz, xr, ndim, s, rtol, rows):
+    """Kernel call: per-cell metrics (nci, len(rows), NM) and flags of the given rows."""
+    nci = xyz.shape[0] - 1
+    out = np.empty((nci, rows.size, _NM), order="F")
+    flags = np.empty((nci, rows.size), dtype=np.uint8, order="F")
+    if out.size:
+        _block_fields(xyz, xr if xr is not None else xyz, xr is not None, ndim, float(s), float(rtol),
+                      rows, out, flags)
+    return out, flags
+
+
+def cell_metrics(block: Block | np.ndarray, ndim: int | None = None, ref: Block | np.ndarray | None = None,
+                 rtol: float = 1e-12) -> dict:
+    """Every per-cell metric of one block (definitions in the module docstring).
+
+    Parameters
+    ----------
+    block : Block or ndarray (ni, nj, nk, 3)
+    ndim : {2, 3}, optional
+        Default: 2 when ``nk == 1``, else 3.
+    ref : Block or ndarray (ni, nj, nk, 3), optional
+        The same block before deformation, for ``volume_ratio``.
+    rtol : float
+        Degenerate-cell tolerance: ``|volume| <= rtol * Lmax**3`` (``**2`` in 2-D).
+
+    Returns
+    -------
+    dict of ndarray, float64, shape (ni-1, nj-1, nk-1) (2-D: (ni-1, nj-1, 1))
+        ``volume``, ``jacobian``, ``scaled_jacobian``, ``skewness``,
+        ``aspect_ratio``, ``volume_ratio`` (NaN without ``ref`` or where the
+        reference volume is 0), signed as the cells are in the file (no
+        handedness correction), and ``flags`` (uint8, bits
+        :data:`NEGATIVE` (volume <= 0), :data:`NEGATIVE_JACOBIAN`,
+        :data:`DEGENERATE`, :data:`COLLAPSED` (a zero-length edge)).
+    """
+    xyz = _xyz(block)
+    ndim = _ndim(xyz, ndim)
+    xr = None if ref is None else _check_ref(xyz, ref, "block")
+    shape = _cell_shape(xyz.shape[:3], ndim)
+    nrows = shape[1] * shape[2]
+    vals, flags = _fields(xyz, xr, ndim, 1.0, rtol, np.arange(nrows, dtype=np.int64))
+    out = {name: vals[:, :, m].reshape(shape, order="F") for m, name in enumerate(METRICS)}
+    out["flags"] = flags.reshape(shape, order="F")
+    return out
+
+
+# ------------------------------------------------------------------ the report
+def _f(v) -> float | None:
+    """A JSON number: None for NaN and infinities."""
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _loc(t, base: int):
+    return None if t is None else [int(t[0]) + base] + [int(c) + base for c in t[1:]]
+
+
+@dataclass(frozen=True)
+class MetricStats:
+    """Min, max and mean of one metric over the cells where it is finite.
+
+    Attributes
+    ----------
+    min, max, mean : float
+        NaN when no cell has a finite value.
+    count : int
+        Cells with a finite value (aspect ratio: not those with a zero-length
+        edge; volume ratio: not those with a zero reference volume).
+    argmin, argmax : (block, i, j, k) or None
+        0-based cell of the extreme values.
+    """
+
+    min: float
+    max: float
+    mean: float
+    count: int
+    argmin: tuple | None = None
+    argmax: tuple | None = None
+
+    def to_dict(self, base: int = 0) -> dict:
+        return {"min": _f(self.min), "max": _f(self.max), "mean": _f(self.mean), "count": int(self.count),
+                "argmin": _loc(self.argmin, base), "argmax": _loc(self.argmax, base)}
+
+
+_EMPTY = MetricStats(math.nan, math.nan, math.nan, 0)
+
+
+def _merge(parts: list[MetricStats]) -> MetricStats:
+    parts = [p for p in parts if p.count]
+    if not parts:
+        return _EMPTY
+    n = sum(p.count for p in parts)
+    lo = min(parts, key=lambda p: p.min)
+    hi = max(parts, key=lambda p: p.max)
+    return MetricStats(lo.min, hi.max, sum(p.mean * p.count for p in parts) / n, n, lo.argmin, hi.argmax)
+
+
+@dataclass
+class BlockQuality:
+    """Quality of one block.
+
+    Attributes
+    ----------
+    block : int
+        0-based block number.
+    dims : (ni, nj, nk)
+    cells : int
+    handedness : {1, -1}
+        Sign of the block's total volume (of the reference block when given);
+        volumes and Jacobians in :attr:`metrics` are multiplied by it.
+    metrics : dict of str -> MetricStats
+        One entry per name in :data:`METRICS` (``volume_ratio``: empty without
+        a reference).
+    negative, negative_jacobian, degenerate, collapsed : int
+        Cells with volume <= 0, with a corner Jacobian <= 0, with
+        ``|volume| <= rtol * Lmax**3``, with a zero-length edge.
+    negative_cells, negative_jacobian_cells, degenerate_cells : list of (i, j, k)
+        The first few (0-based, in file order: i fastest).
+    """
+
+    block: int
+    dims: tuple
+    cells: int
+    handedness: int
+    metrics: dict
+    negative: int = 0
+    negative_jacobian: int = 0
+    degenerate: int = 0
+    collapsed: int = 0
+    negative_cells: list = field(default_factory=list)
+    negative_jacobian_cells: list = field(default_factory=list)
+    degenerate_cells: list = field(default_factory=list)
+
+    def to_dict(self, base: int = 0) -> dict:
+        loc = lambda cells: [[int(c) + base for c in ijk] for ijk in cells]   # noqa: E731
+        return {"block": self.block + base, "dims": list(self.dims), "cells": self.cells,
+                "handedness": "right" if self.handedness > 0 else "left",
+                "metrics": {k: v.to_dict(base) for k, v in self.metrics.items()},
+                "negative": self.negative, "negative_jacobian": self.negative_jacobian,
+                "degenerate": self.degenerate, "collapsed": self.collapsed,
+                "negative_cells": loc(self.negative_cells),
+                "negative_jacobian_cells": loc(self.negative_jacobian_cells),
+                "degenerate_cells": loc(self.degenerate_cells)}
+
+
+@dataclass
+class WallOrthogonality:
+    """Near-wall orthogonality on one wall patch (:func:`wall_orthogonality`).
+
+    Attributes
+    ----------
+    patch : PatchSpec
+        The resolved patch (0-based; ``str(patch)`` is the 1-based text).
+    points : int
+        Wall points.
+    layers : int
+    max, mean : float
+        Angle (deg) between the wall normal and the grid lines of the first
+        ``layers`` layers, over every point and layer (NaN ignored).
+    layer_max, layer_mean : list of float
+        The same per layer (layer 0 touches the wall).
+    argmax : (block, i, j, k, layer) or None
+        0-based wall point and layer of ``max``.
+    change_max, change_mean, change_layer_max, change_layer_mean, change_argmax
+        ``|angle - angle in the reference|``, when a reference was given
+        (None otherwise).
+    """
+
+    patch: object
+    points: int
+    layers: int
+    max: float
+    mean: float
+    layer_max: list
+    layer_mean: list
+    argmax: tuple | None = None
+    change_max: float | None = None
+    change_mean: float | None = None
+    change_layer_max: list | None = None
+    change_layer_mean: list | None = None
+    change_argmax: tuple | None = None
+
+    def to_dict(self, base: int = 0) -> dict:
+        fl = lambda xs: None if xs is None else [_f(x) for x in xs]   # noqa: E731
+        return {"patch": str(self.patch), "points": self.points, "layers": self.layers,
+                "max": _f(self.max), "mean": _f(self.mean),
+                "layer_max": fl(self.layer_max), "layer_mean": fl(self.layer_mean),
+                "argmax": _loc(self.argmax, base),
+                "change_max": None if self.change_max is None else _f(self.change_max),
+                "change_mean": None if self.change_mean is None else _f(self.change_mean),
+                "change_layer_max": fl(self.change_layer_max),
+                "change_layer_mean": fl(self.change_layer_mean),
+                "change_argmax": _loc(self.change_argmax, base)}
+
+
+_LABELS = {"volume": ("volume", "area"), "jacobian": ("jacobian (corner min)",) * 2,
+           "scaled_jacobian": ("scaled jacobian",) * 2, "skewness": ("skewness (equiangle)",) * 2,
+           "aspect_ratio": ("aspect ratio",) * 2, "volume_ratio": ("volume ratio", "area ratio")}
+
+
+@dataclass
+class QualityReport:
+    """The quality of a grid, per block and grid-wide (:func:`quality_report`).
+
+    Attributes
+    ----------
+    ndim, npoints, ncells : int
+    blocks : list of BlockQuality
+    metrics : dict of str -> MetricStats
+        Grid-wide, one entry per name in :data:`METRICS`.
+    negative, negative_jacobian, degenerate, collapsed : int
+        Grid-wide counts (see :class:`BlockQuality`).
+    negative_cells, negative_jacobian_cells, degenerate_cells : list of (block, i, j, k)
+        The first few over the grid (0-based).
+    walls : list of WallOrthogonality
+        One per wall patch (empty without walls).
+    orthogonality : dict
+        Over every wall: ``max``, ``mean`` and, with a reference,
+        ``change_max``, ``change_mean`` (degrees); empty without walls.
+    has_reference : bool
+    layers : int
+    rtol : float
+    """
+
+    ndim: int
+    npoints: int
+    ncells: int
+    blocks: list
+    metrics: dict
+    negative: int
+    negative_jacobian: int
+    degenerate: int
+    collapsed: int
+    negative_cells: list
+    negative_jacobian_cells: list
+    degenerate_cells: list
+    walls: list
+    orthogonality: dict
+    has_reference: bool
+    layers: int
+    rtol: float
+
+    @property
+    def valid(self) -> bool:
+        """No cell with a volume <= 0 (the test a flow solver applies)."""
+        return self.negative == 0
+
+    def to_dict(self, one_based: bool = False) -> dict:
+        """JSON-ready dict (plain lists, floats, ints, str; None for NaN/inf).
+
+        Parameters
+        ----------
+        one_based : bool
+            Block and cell indices 1-based (as the CLI and files), else 0-based
+            (as the Python API); the dict says which under ``index_base``.
+        """
+        base = 1 if one_based else 0
+        loc = lambda cells: [_loc(c, base) for c in cells]   # noqa: E731
+        return {"index_base": base, "ndim": self.ndim, "npoints": self.npoints, "ncells": self.ncells,
+                "has_reference": self.has_reference, "layers": self.layers, "rtol": self.rtol,
+                "valid": self.valid,
+                "metrics": {k: v.to_dict(base) for k, v in self.metrics.items()},
+                "negative": self.negative, "negative_jacobian": self.negative_jacobian,
+                "degenerate": self.degenerate, "collapsed": self.collapsed,
+                "negative_cells": loc(self.negative_cells),
+                "negative_jacobian_cells": loc(self.negative_jacobian_cells),
+                "degenerate_cells": loc(self.degenerate_cells),
+                "orthogonality": {k: _f(v) for k, v in self.orthogonality.items()},
+                "walls": [w.to_dict(base) for w in self.walls],
+                "blocks": [b.to_dict(base) for b in self.blocks]}
+
+    def summary(self) -> str:
+        """A readable text report; block and cell indices 1-based."""
+        d2 = 1 if self.ndim == 2 else 0
+        cell = "cell"
+        lines = [f"{self.ndim}-D grid: {len(self.blocks)} block(s), {self.npoints:,} points, "
+                 f"{self.ncells:,} {cell}s" + ("; reference grid given" if self.has_reference else "")]
+
+        def g(v):
+            return "-" if v is None or not math.isfinite(v) else f"{v:.4g}"
+
+        def at(t):
+            if t is None:
+                return ""
+            b, *ijk = (c + 1 for c in t)
+            return f"block {b} ({', '.join(map(str, ijk[:2 if d2 else 3]))})"
+
+        rows = [("metric", "min", "mean", "max", "worst at (block, i, j[, k])")]
+        for name in METRICS:
+            st = self.metrics[name]
+            if name == "volume_ratio" and not self.has_reference:
+                continue
+            worst = st.argmin if name in _LOW_IS_BAD else st.argmax
+            rows.append((_LABELS[name][d2], g(st.min), g(st.mean), g(st.max), at(worst)))
+        lines.append("")
+        lines += _table(rows)
+        vol = "area" if d2 else "volume"
+        lines.append("")
+        lines.append(f"cells: {self.negative} negative ({vol} <= 0), {self.negative_jacobian} with a corner "
+                     f"Jacobian <= 0, {self.degenerate} degenerate (|{vol}| <= {self.rtol:g} Lmax^"
+                     f"{2 if d2 else 3}), {self.collapsed} with a zero-length edge")
+        for what, cells in (("negative", self.negative_cells),
+                            ("corner Jacobian <= 0", self.negative_jacobian_cells),
+                            ("degenerate", self.degenerate_cells)):
+            if cells:
+                lines.append(f"  {what} (first {len(cells)}): " + "; ".join(at(c) for c in cells))
+        lines.append("")
+        rows = [("block", "dims", "cells", "hand", "neg", "negJ", "degen", "min sJ", "max skew", "max AR")
+                + (("min ratio", "max ratio") if self.has_reference else ())]
+        for b in self.blocks:
+            m = b.metrics
+            rows.append((str(b.block + 1), " x ".join(map(str, b.dims[:2] if d2 else b.dims)), f"{b.cells:,}",
+                         "R" if b.handedness > 0 else "L", str(b.negative), str(b.negative_jacobian),
+                         str(b.degenerate), g(m["scaled_jacobian"].min), g(m["skewness"].max),
+                         g(m["aspect_ratio"].max))
+                        + ((g(m["volume_ratio"].min), g(m["volume_ratio"].max)) if self.has_reference else ()))
+        lines += _table(rows)
+        if self.walls:
+            lines.append("")
+            lines.append(f"near-wall orthogonality, first {self.layers} layers: angle (deg) between the "
+                         "wall normal and the grid lines leaving the wall")
+            rows = [("wall", "points", "max", "mean") + (("change max", "change mean", "change max at")
+                                                         if self.has_reference else ())]
+            for w in self.walls:
+                row = (str(w.patch), str(w.points), g(w.max), g(w.mean))
+                if self.has_reference:
+                    where = ""
+                    if w.change_argmax is not None:
+                        where = at(w.change_argmax[:4]) + f" layer {w.change_argmax[4] + 1}"
+                    row += (g(w.change_max), g(w.change_mean), where)
+                rows.append(row)
+            lines += _table(rows)
+        return "\n".join(lines)
+
+
+def _table(rows) -> list[str]:
+    """Rows of strings as columns padded to their widest entry; a column whose
+    entries are all numbers (or "-") is right-aligned, header included."""
+    ncol = len(rows[0])
+    widths = [max(len(r[c]) for r in rows) for c in range(ncol)]
+
+    def number(t):
+        try:
+            float(t.replace(",", ""))
+            return True
+        except ValueError:
+            return t == "-"
+    right = [c > 0 and all(number(r[c]) for r in rows[1:]) for c in range(ncol)]
+    return ["  " + "  ".join(t.rjust(w) if rj else t.ljust(w) for t, w, rj in zip(r, widths, right)).rstrip()
+            for r in rows]
+
+
+def _block_stats_call(xyz, xr, ndim, s, rtol):
+    nci, ncj, nck = _cell_shape(xyz.shape[:3], ndim)
+    nrows = ncj * nck
+    lo = np.empty((nrows, _NM))
+    hi = np.empty((nrows, _NM))
+    tot = np.empty((nrows, _NM))
+    arg = np.empty((nrows, _NM, 2), dtype=np.int64)
+    cnt = np.empty((nrows, _NCNT), dtype=np.int64)
+    refsum = np.empty(nrows)
+    if nci and nrows:
+        _block_stats(xyz, xr if xr is not None else xyz, xr is not None, ndim, float(s), float(rtol),
+                     lo, hi, tot, arg, cnt, refsum)
+    return lo, hi, tot, arg, cnt, refsum
+
+
+def _block_quality(b: int, blk: Block, ref: Block | None, ndim: int, rtol: float, max_locations: int):
+    xyz = blk.xyz
+    xr = None if ref is None else _check_ref(xyz, ref, f"block {b + 1}")
+    shape = _cell_shape(xyz.shape[:3], ndim)
+    lo, hi, tot, arg, cnt, refsum = _block_stats_call(xyz, xr, ndim, 1.0, rtol)
+    total = refsum.sum() if xr is not None else tot[:, 0].sum()
+    s = 1
+    if total < 0.0:          # left-handed block: every sign flips
+        s = -1
+        lo, hi, tot, arg, cnt, refsum = _block_stats_call(xyz, xr, ndim, -1.0, rtol)
+
+    def where(flat):
+        return (b, *(int(c) for c in np.unravel_index(int(flat), shape, order="F")))
+
+    metrics = {}
+    for m, name in enumerate(METRICS):
+        n = int(cnt[:, m].sum())
+        if n == 0:
+            metrics[name] = _EMPTY
+            continue
+        rmin = int(np.argmin(lo[:, m]))
+        rmax = int(np.argmax(hi[:, m]))
+        metrics[name] = MetricStats(float(lo[rmin, m]), float(hi[rmax, m]), float(tot[:, m].sum() / n), n,
+                                    where(arg[rmin, m, 0]), where(arg[rmax, m, 1]))
+    counts = cnt.sum(axis=0)
+    bq = BlockQuality(b, blk.dims, int(np.prod(shape)), s, metrics, int(counts[_C_NEG]), int(counts[_C_NEGJ]),
+                      int(counts[_C_DEG]), int(counts[_C_COL]))
+    # list the first few bad cells: revisit only the rows that hold some
+    bad = np.flatnonzero(cnt[:, _C_NEG:_C_DEG + 1].sum(axis=1) > 0)
+    lists = {NEGATIVE: bq.negative_cells, NEGATIVE_JACOBIAN: bq.negative_jacobian_cells,
+             DEGENERATE: bq.degenerate_cells}
+    start = 0
+    while start < bad.size and min(len(v) for v in lists.values()) < max_locations:
+        rows = bad[start:start + 64].astype(np.int64)
+        start += rows.size
+        _, flags = _fields(xyz, xr, ndim, s, rtol, rows)
+        for bit, out in lists.items():
+            if len(out) >= max_locations:
+                continue
+            qi = np.argwhere((flags.T & bit) != 0)     # (row, i) pairs in file order: rows, then i
+            for q, i in qi[:max_locations - len(out)]:
+                r = int(rows[q])
+                out.append((int(i), r % shape[1], r // shape[1]))
+    return bq
+
+
+def quality_report(grid: Grid, ref: Grid | None = None, walls=None, layers: int = 5, rtol: float = 1e-12,
+                   max_locations: int = 10) -> QualityReport:
+    """Measure the quality of a grid: every cell metric, bad cells, near-wall orthogonality.
+
+    Parameters
+    ----------
+    grid : Grid
+    ref : Grid, optional
+        The same grid before deformation (same blocks and dimensions): adds the
+        cell volume ratio ``grid / ref`` and the orthogonality change, and
+        decides each block's handedness.
+    walls : sequence of PatchSpec or "B:FACE[:A1-A2,B1-B2]", optional
+        Wall patches (1-based text, as in case files) for the near-wall
+        orthogonality.
+    layers : int
+        Grid-line segments off the wall measured per wall point (>= 1).
+    rtol : float
+        Degenerate-cell tolerance: ``|volume| <= rtol * Lmax**3`` (``**2`` in 2-D).
+    max_locations : int
+        How many negative, negative-Jacobian and degenerate cells to list.
+
+    Returns
+    -------
+    QualityReport
+
+    Raises
+    ------
+    GridValueError
+        ``ref`` does not match ``grid`` (block count, dimensions, ndim).
+    CaseError
+        A wall patch names a block, face or range the grid does not have.
+
+    Examples
+    --------
+    >>> import tfi_quat as tq
+    >>> from tfi_quat.quality import quality_report
+    >>> g = tq.read("grids/naca0012_c_257x65.x")
+    >>> rep = quality_report(g, walls=["1:jmin:65-193"])
+    >>> rep.negative
+    0
+    """
+    if not isinstance(grid, Grid):
+        raise GridValueError(f"grid: expected a Grid, got {type(grid).__name__}")
+    if ref is not None:
+        if not isinstance(ref, Grid):
+            raise GridValueError(f"ref: expected a Grid, got {type(ref).__name__}")
+        if len(ref) != len(grid) or ref.ndim != grid.ndim:
+            raise GridValueError(f"ref: has {len(ref)} block(s), {ref.ndim}-D; the grid {len(grid)}, "
+                                 f"{grid.ndim}-D")
+    layers = int(layers)
+    if layers < 1:
+        raise ValueError(f"layers must be >= 1, got {layers}")
+    rtol = float(rtol)
+    if not rtol >= 0.0:
+        raise ValueError(f"rtol must be >= 0, got {rtol}")
+    max_locations = max(0, int(max_locations))
+    ndim = grid.ndim
+    blocks = [_block_quality(b, blk, None if ref is None else ref[b], ndim, rtol, max_locations)
+              for b, blk in enumerate(grid)]
+    metrics = {name: _merge([bq.metrics[name] for bq in blocks]) for name in METRICS}
+
+    def first(attr):
+        out = []
+        for bq in blocks:
+            out += [(bq.block, *c) for c in getattr(bq, attr)]
+        return out[:max_locations]
+
+    wall_stats, ortho = _orthogonality_stats(grid, ref, walls, layers) if walls else ([], {})
+    return QualityReport(
+        ndim=ndim, npoints=grid.npoints, ncells=sum(bq.cells for bq in blocks), blocks=blocks,
+        metrics=metrics, negative=sum(bq.negative for bq in blocks),
+        negative_jacobian=sum(bq.negative_jacobian for bq in blocks),
+        degenerate=sum(bq.degenerate for bq in blocks), collapsed=sum(bq.collapsed for bq in blocks),
+        negative_cells=first("negative_cells"), negative_jacobian_cells=first("negative_jacobian_cells"),
+        degenerate_cells=first("degenerate_cells"), walls=wall_stats, orthogonality=ortho,
+        has_reference=ref is not None, layers=layers, rtol=rtol)
 
 
 def _orientation(vol: np.ndarray) -> float:
@@ -165,6 +1013,19 @@ def _wall_specs(grid: Grid, walls):
     return [spec.resolve(grid) for spec in as_patch_specs(walls, "walls")]
 
 
+def _face_ijk(dims, face: str, rng) -> np.ndarray:
+    """Block indices (na, nb, 3) int64 of the points of a face range ((a0, a1), (b0, b1))."""
+    from .grid import FACES
+    d, side = divmod(FACES.index(face), 2)
+    (a0, a1), (b0, b1) = rng
+    others = [m for m in range(3) if m != d]
+    out = np.empty((a1 - a0 + 1, b1 - b0 + 1, 3), dtype=np.int64)
+    out[..., d] = dims[d] - 1 if side else 0
+    out[..., others[0]] = np.arange(a0, a1 + 1)[:, None]
+    out[..., others[1]] = np.arange(b0, b1 + 1)[None, :]
+    return out
+
+
 def _patch_normals(w: np.ndarray, ndim: int) -> np.ndarray:
     """Unit normals (na, nb, 3) of a wall patch from central differences
     (one-sided at the patch edges); NaN where degenerate."""
@@ -183,6 +1044,34 @@ def _patch_normals(w: np.ndarray, ndim: int) -> np.ndarray:
         return np.where(size > 0.0, n / size, np.nan)
 
 
+def _wall_angles(grid: Grid, spec, layers: int):
+    """Angles (na, nb, layers) on one resolved wall patch and its point indices (na, nb, 3)."""
+    from .grid import FACES
+
+    blk = grid[spec.block]
+    d, side = divmod(FACES.index(spec.face), 2)
+    nl = min(layers, blk.dims[d] - 1)
+    ijk = _face_ijk(blk.dims, spec.face, spec.range)
+    x = blk.xyz
+    w = x[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
+    nrm = _patch_normals(w, grid.ndim)
+    ang = np.full(w.shape[:2] + (layers,), np.nan)
+    step = -1 if side else 1
+    for lay in range(nl):
+        a = ijk.copy()
+        b = ijk.copy()
+        a[..., d] += step * lay
+        b[..., d] += step * (lay + 1)
+        e = x[b[..., 0], b[..., 1], b[..., 2]] - x[a[..., 0], a[..., 1], a[..., 2]]
+        # atan2 of |n x e| and |n . e|: accurate near 0 deg, where arccos is not
+        cr = np.linalg.norm(np.cross(nrm, e), axis=-1)
+        dt = np.abs(np.einsum("abc,abc->ab", nrm, e))
+        a_l = np.degrees(np.arctan2(cr, dt))
+        a_l[np.linalg.norm(e, axis=-1) == 0.0] = np.nan
+        ang[..., lay] = a_l
+    return ang, ijk
+
+
 def wall_orthogonality(grid: Grid, walls, layers: int = 5) -> list[np.ndarray]:
     """Angles (degrees) between the wall normal and the first grid-line segments leaving the wall.
 
@@ -199,7 +1088,8 @@ def wall_orthogonality(grid: Grid, walls, layers: int = 5) -> list[np.ndarray]:
     -------
     list of ndarray, shape (na, nb, layers)
         Per patch, in ``[0, 90]`` degrees (the line's sense does not matter);
-        NaN at degenerate wall points (collapsed edges, zero-length lines).
+        NaN at degenerate wall points (collapsed edges, zero-length lines)
+        and for layers deeper than the block.
         The wall normal comes from central differences of the patch points,
         one-sided on the patch edges (first order: robust at sharp trailing
         edges, where second-order one-sided differences overshoot; on a
@@ -207,37 +1097,10 @@ def wall_orthogonality(grid: Grid, walls, layers: int = 5) -> list[np.ndarray]:
         of the last wall interval, an error a comparison with a reference
         shares).
     """
-    from .deform import _face_ijk
-    from .grid import FACES
-
     layers = int(layers)
     if layers < 1:
         raise ValueError(f"layers must be >= 1, got {layers}")
-    out = []
-    for spec in _wall_specs(grid, walls):
-        blk = grid[spec.block]
-        d, side = divmod(FACES.index(spec.face), 2)
-        nl = min(layers, blk.dims[d] - 1)
-        ijk = _face_ijk(blk.dims, spec.face, spec.range)
-        x = blk.xyz
-        w = x[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
-        nrm = _patch_normals(w, grid.ndim)
-        ang = np.full(w.shape[:2] + (layers,), np.nan)
-        step = -1 if side else 1
-        for lay in range(nl):
-            a = ijk.copy()
-            b = ijk.copy()
-            a[..., d] += step * lay
-            b[..., d] += step * (lay + 1)
-            e = x[b[..., 0], b[..., 1], b[..., 2]] - x[a[..., 0], a[..., 1], a[..., 2]]
-            # atan2 of |n x e| and |n . e|: accurate near 0 deg, where arccos is not
-            cr = np.linalg.norm(np.cross(nrm, e), axis=-1)
-            dt = np.abs(np.einsum("abc,abc->ab", nrm, e))
-            a_l = np.degrees(np.arctan2(cr, dt))
-            a_l[np.linalg.norm(e, axis=-1) == 0.0] = np.nan
-            ang[..., lay] = a_l
-        out.append(ang)
-    return out
+    return [_wall_angles(grid, spec, layers)[0] for spec in _wall_specs(grid, walls)]
 
 
 def orthogonality_change(grid: Grid, ref: Grid, walls, layers: int = 5) -> dict:
@@ -255,3 +1118,97 @@ def orthogonality_change(grid: Grid, ref: Grid, walls, layers: int = 5) -> dict:
     if diff.size == 0:
         return {"max": float("nan"), "mean": float("nan")}
     return {"max": float(diff.max()), "mean": float(diff.mean())}
+
+
+def _nanstats(a: np.ndarray):
+    """max, mean, per-layer max and mean, and the flat index of the max of (na, nb, L); NaN ignored."""
+    ok = np.isfinite(a)
+    if not ok.any():
+        nan = [math.nan] * a.shape[-1]
+        return math.nan, math.nan, nan, nan, None
+    filled = np.where(ok, a, -np.inf)
+    flat = int(np.argmax(filled))
+    cnt = ok.sum(axis=(0, 1))
+    sums = np.where(ok, a, 0.0).sum(axis=(0, 1))
+    lmax = [float(v) if c else math.nan for v, c in zip(filled.max(axis=(0, 1)), cnt)]
+    lmean = [float(s / c) if c else math.nan for s, c in zip(sums, cnt)]
+    return float(a.flat[flat]), float(sums.sum() / cnt.sum()), lmax, lmean, flat
+
+
+def _orthogonality_stats(grid: Grid, ref: Grid | None, walls, layers: int):
+    specs = _wall_specs(grid, walls)
+    out = []
+    allang, allch = [], []
+    for spec in specs:
+        ang, ijk = _wall_angles(grid, spec, layers)
+        mx, mean, lmax, lmean, flat = _nanstats(ang)
+
+        def where(fl):
+            if fl is None:
+                return None
+            a, b, lay = np.unravel_index(fl, ang.shape)
+            return (spec.block, *(int(c) for c in ijk[a, b]), int(lay))
+        wo = WallOrthogonality(spec, int(ang.shape[0] * ang.shape[1]), layers, mx, mean, lmax, lmean, where(flat))
+        allang.append(ang[np.isfinite(ang)])
+        if ref is not None:
+            ch = np.abs(ang - _wall_angles(ref, spec, layers)[0])
+            cmx, cmean, clmax, clmean, cflat = _nanstats(ch)
+            wo.change_max, wo.change_mean = cmx, cmean
+            wo.change_layer_max, wo.change_layer_mean = clmax, clmean
+            wo.change_argmax = where(cflat)
+            allch.append(ch[np.isfinite(ch)])
+        out.append(wo)
+    tot = {}
+    a = np.concatenate(allang) if allang else np.zeros(0)
+    tot["max"] = float(a.max()) if a.size else math.nan
+    tot["mean"] = float(a.mean()) if a.size else math.nan
+    if ref is not None:
+        c = np.concatenate(allch) if allch else np.zeros(0)
+        tot["change_max"] = float(c.max()) if c.size else math.nan
+        tot["change_mean"] = float(c.mean()) if c.size else math.nan
+    return out, tot
+
+
+def cell_orthogonality(grid: Grid, walls, layers: int = 5, ref: Grid | None = None) -> list[np.ndarray]:
+    """Near-wall orthogonality (or its change from ``ref``) as a per-cell field, for pictures.
+
+    A cell in layer ``l`` off a wall gets the largest angle (or angle
+    change) of :func:`wall_orthogonality` over the 2 (2-D) or 4 (3-D) grid
+    lines of that layer that bound it; cells deeper than ``layers`` and cells
+    not next to a wall are NaN.  Where several walls reach one cell the
+    largest value wins.
+
+    Returns
+    -------
+    list of ndarray, float64, one per block, shaped as :func:`cell_volumes`
+    """
+    from .grid import FACES
+
+    layers = int(layers)
+    if layers < 1:
+        raise ValueError(f"layers must be >= 1, got {layers}")
+    ndim = grid.ndim
+    out = [np.full(_cell_shape(b.dims, ndim), np.nan, order="F") for b in grid]
+    for spec in _wall_specs(grid, walls):
+        ang, _ = _wall_angles(grid, spec, layers)
+        if ref is not None:
+            ang = np.abs(ang - _wall_angles(ref, spec, layers)[0])
+        a = np.where(np.isfinite(ang), ang, -np.inf)
+        c = np.maximum(a[:-1], a[1:])                     # (na-1, nb, L)
+        if ndim == 3:
+            c = np.maximum(c[:, :-1], c[:, 1:])           # (na-1, nb-1, L)
+        c = np.where(np.isfinite(c), c, np.nan)
+        d, side = divmod(FACES.index(spec.face), 2)
+        dims = grid[spec.block].dims
+        (a0, a1), (b0, b1) = spec.range
+        nl = min(layers, dims[d] - 1)
+        others = [m for m in range(3) if m != d]
+        cells = out[spec.block]
+        for lay in range(nl):
+            idx = [None, None, None]
+            idx[d] = dims[d] - 2 - lay if side else lay
+            idx[others[0]] = slice(a0, a1)
+            idx[others[1]] = slice(b0, b1) if ndim == 3 else slice(0, 1)
+            tgt = cells[tuple(idx)]
+            cells[tuple(idx)] = np.fmax(tgt, c[..., lay].reshape(tgt.shape))
+    return out

@@ -24,6 +24,8 @@ SUBCOMMANDS = {
     "generate": "._generate",
     "deform": "._deform",
     "demo": "._demo",
+    "quality": "._quality",
+    "plot": "._plot",
 }
 
 
