@@ -307,16 +307,24 @@ def _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
 @jit(inline="always")
 def _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
              lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb):
-    """Fused update of one point; returns 1 when the blended Q needs the fallback."""
+    """Fused update of one point; returns 1 when the blended Q needs the fallback.
+
+    A point that needs the fallback is stored as ``R_u`` itself (Q = 1 and
+    Δ = 0, selected without a branch), so that :func:`_fix_row` still finds
+    ``R_u`` there when ``out`` is ``xyz`` (in-place update).
+    """
     t = np.float64(s[i, j, k, L])
     sm = np.float64(s[i, j, k, M])
     sn = np.float64(s[i, j, k, N])
     dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
     qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
     n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    inv = 1.0 / max(n, QNORM_MIN)
-    _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw * inv, qx * inv, qy * inv, qz * inv)
-    return 1 if n < QNORM_MIN else 0
+    bad = n < QNORM_MIN
+    inv = 0.0 if bad else 1.0 / n
+    _store(xyz, out, i, j, k, cx, cy, cz,
+           0.0 if bad else dx, 0.0 if bad else dy, 0.0 if bad else dz,
+           1.0 if bad else qw * inv, qx * inv, qy * inv, qz * inv)
+    return 1 if bad else 0
 
 
 @jit(inline="always")
