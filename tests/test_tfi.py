@@ -705,6 +705,57 @@ def test_fallback_points_of_the_fused_kernels_equal_the_reference(in_place):
         np.testing.assert_allclose(out3, ref3, rtol=0, atol=1e-14 * scale(x3))
 
 
+# ------------------------------------------------------------- no full-size temporaries
+@pytest.mark.parametrize("with_q", [True, False])
+def test_fused_stage_allocates_only_surface_tables(with_q):
+    """DESIGN 6: the volume stage writes R_d without full-size Δ or Q arrays.
+
+    Peak memory traced while deforming a 128^3 block into a given ``out`` stays
+    below half of one full-size Δ array (24 bytes per point); the O(surface)
+    tables are ~1000 bytes per face point, 0.3 of it here.  (numpy allocations
+    are traced; the kernels themselves allocate nothing.)
+    """
+    import tracemalloc
+
+    n = 128
+    u = np.linspace(0.0, 1.0, n)
+    xyz = np.empty((n, n, n, 3), order="F")
+    xyz[..., 0] = 2.0 * u[:, None, None] + 0.3 * u[None, :, None]
+    xyz[..., 1] = 1.5 * u[None, :, None] + 0.2 * u[None, None, :] ** 2
+    xyz[..., 2] = u[None, None, :] + 0.1 * u[:, None, None] * u[None, :, None]
+    s = tfi.arclength(xyz)
+    fs = tfi.face_params(s)
+    b = Block(xyz)
+    fd = [0.01 * np.sin(b.face(f)) for f in range(6)]
+    fq = [qa.normalize(np.concatenate([np.ones(b.face(f).shape[:2] + (1,)), 0.02 * np.cos(b.face(f))], -1))
+          for f in range(6)] if with_q else None
+    out = np.empty_like(xyz, order="F")
+    c = np.array([0.5, 0.5, 0.5])
+    tfi.deform_block(xyz, s, fd, fq, c, (1, 2, 0), out=out, face_s=fs)        # compile / warm
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        tfi.deform_block(xyz, s, fd, fq, c, (1, 2, 0), out=out, face_s=fs)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    full_delta = 24 * n ** 3
+    assert peak < 0.5 * full_delta, f"peak {peak / 1e6:.1f} MB vs one full-size Δ {full_delta / 1e6:.1f} MB"
+    assert np.all(np.isfinite(out))
+
+
+def test_volume_kernels_are_parallel_and_cached():
+    """cache=True and parallel=True on the kernels of the volume stage (DESIGN 6), set in _jit."""
+    from tfi_quat import _jit
+    for k in (tfi._deform3_q, tfi._deform3_d, tfi._deform2_q, tfi._deform2_d, tfi._arclength_kernel,
+              tfi._prep, tfi._fields2):
+        if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
+            assert k.py_func is k
+            continue
+        assert k.targetoptions.get("parallel") is True, k
+        assert (type(k._cache).__name__ == "FunctionCache") == _jit.CACHE, k
+
+
 # ------------------------------------------------------------- argument validation
 def test_deform_block_validates_arguments():
     xyz = warped_block((4, 3, 2), 0)
