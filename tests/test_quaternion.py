@@ -427,6 +427,35 @@ def test_drivers_broadcast_and_round_trip():
     assert s.shape == (3, 4)
 
 
+@given(qlist=st.lists(unit_quat(), min_size=2, max_size=7), data=st.data())
+def test_array_drivers_match_scipy(qlist, data):
+    """The vectorised drivers against scipy on whole arrays (antipodal signs included)."""
+    q = np.array(qlist)
+    p = np.array(data.draw(st.lists(unit_quat(), min_size=len(q), max_size=len(q))))
+    v = np.array(data.draw(st.lists(vec3, min_size=len(q), max_size=len(q))))
+    t = np.array(data.draw(st.lists(st.floats(0.0, 1.0), min_size=len(q), max_size=len(q))))
+    rq, rp = R(q), R(p)
+    for a, b in zip(Q.multiply(q, p), qs(rq * rp)):
+        assert same_rotation(a, b)
+    np.testing.assert_allclose(Q.rotate(q, v), rq.apply(v), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(Q.to_matrix(q), rq.as_matrix(), rtol=0, atol=1e-14)
+    for a, b in zip(Q.from_matrix(rq.as_matrix()), q):
+        assert same_rotation(a, b)
+    np.testing.assert_allclose(np.linalg.norm(Q.log(q), axis=-1), rq.magnitude(), rtol=0, atol=1e-12)
+    for a, b in zip(Q.exp(rq.as_rotvec()), q):
+        assert same_rotation(a, b)
+    axis, ang = Q.to_axis_angle(q)
+    np.testing.assert_allclose(ang, rq.magnitude(), rtol=0, atol=1e-12)
+    for a, b in zip(Q.from_axis_angle(axis, ang), q):
+        assert same_rotation(a, b)
+    sl = Q.slerp(q, p, t)
+    np.testing.assert_allclose(np.linalg.norm(sl, axis=-1), 1.0, rtol=0, atol=UNIT_TOL)
+    for k in range(len(q)):
+        if abs(q[k] @ p[k]) > 1e-6:          # not a half turn apart (the path is then not unique)
+            ref = Slerp([0.0, 1.0], Rotation.concatenate([rq[k], rp[k]]))([t[k]])[0]
+            assert same_rotation(sl[k], qs(ref), 1e-10)
+
+
 @pytest.mark.parametrize("call, name", [
     (lambda: Q.to_matrix(np.ones(3)), "q"),
     (lambda: Q.from_matrix(np.eye(4)), "m"),
