@@ -51,7 +51,10 @@ def test_switch_off_gives_plain_python_kernels():
 def test_kernel_tests_pass_uncompiled():
     """The quaternion, boundary and TFI test files, run with every kernel as plain Python."""
     files = ["tests/test_quaternion.py", "tests/test_boundary.py", "tests/test_tfi.py"]
-    res = _run(["-m", "pytest", "-q", "-p", "no:cacheprovider", *files], "0")
+    # the memory test needs a 128^3 block (minutes in plain Python) and measures numpy
+    # allocations, which are the same compiled or not
+    res = _run(["-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", "not allocates_only_surface_tables",
+                *files], "0")
     tail = (res.stdout + res.stderr)[-3000:]
     assert res.returncode == 0, tail
     assert " passed" in res.stdout and "failed" not in res.stdout and "skipped" not in res.stdout, tail
