@@ -70,9 +70,10 @@ __all__ = [
 
 #: storage type of the arclength parameters returned by :func:`arclength`.
 #: float64, chosen by measurement (docs/performance.md, "TFI kernels"):
-#: float32 saves 12 of 72 bytes per point of the volume stage but gave no
-#: measurable speed-up (the quaternion loop is compute-bound), while it moved
-#: interior points by up to ~1e-7 of a line length, so affine fields and
+#: float32 saves 12 of 72 bytes per point of the volume stage; on a quiet
+#: machine that sped the quaternion loop up by 2 % (it is compute-bound) and
+#: the baseline loop by 20 % (memory-bound, already 2.6x its target), while it
+#: moved interior points by up to ~1e-7 of a line length, so affine fields and
 #: TFI-built grids were no longer reproduced to round-off.  The kernels
 #: therefore take float64 only (one compiled specialisation each).
 S_DTYPE = np.float64
