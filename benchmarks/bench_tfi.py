@@ -2,9 +2,11 @@
 
 Prints points per second, bytes moved per point and the ratio of the
 kernel's effective bandwidth to the machine's streaming bandwidth, measured
-in the same run by a parallel numba copy of the same number of bytes.  Every
-figure is the best of ``--repeat`` runs (the machine is shared: the best run
-is the least disturbed one).
+in the same run by two parallel numba streams over the same bytes: ``add``
+(``c = a + b`` on three arrays the size of ``R_u``: reads 48 and writes 24
+bytes per point, exactly the volume stage's traffic, so its points/s is the
+roofline) and a plain copy.  Every figure is the best of ``--repeat`` runs
+(the machine is shared: the best run is the least disturbed one).
 
 Usage::
 
@@ -30,12 +32,17 @@ from tfi_quat.quaternion import normalize  # noqa: E402
 
 
 @pjit
-def _stream(src, dst):
-    """Parallel copy: reads and writes ``src.size`` float64 each, like the kernels' streams."""
-    n = src.shape[0]
-    for b in prange(n // 8192 + 1):
-        for m in range(b * 8192, min(n, (b + 1) * 8192)):
-            dst[m] = src[m]
+def _copy(src, dst):
+    """Parallel copy (one flat ``prange``; a blocked loop ran at half the bandwidth)."""
+    for m in prange(src.shape[0]):
+        dst[m] = src[m]
+
+
+@pjit
+def _add(a, b, c):
+    """STREAM add ``c = a + b``: two read streams and one write stream, as the volume stage."""
+    for m in prange(a.shape[0]):
+        c[m] = a[m] + b[m]
 
 
 def best(fn, repeat):
@@ -68,8 +75,9 @@ def main(argv=None):
     n = max(4, int(round(args.points ** (1.0 / 3.0))))
     npts = n ** 3
     order = tuple(int(v) for v in args.order.split(","))
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"block {n}^3 = {npts / 1e6:.2f} M points; threads {numba.get_num_threads()}; "
-          f"order {order}; best of {args.repeat}")
+          f"order {order}; best of {args.repeat}; load average {load:.1f} on {os.cpu_count()} CPUs")
 
     xyz = make_block(n)
     b = Block(xyz)
@@ -106,28 +114,38 @@ def main(argv=None):
     t_kq = best(lambda: tfi._deform3_q(xyz, s, out, *c, *order, *tq), args.repeat)
     t_kd = best(lambda: tfi._deform3_d(xyz, s, out, *order, td[0], td[2], td[4]), args.repeat)
 
-    # streaming bandwidth: copy the bytes the volume stage moves (read R_u and s, write R_d)
+    # streaming bandwidth of the same bytes (read R_u and s, write R_d), same run
     sb = s.itemsize * 3
     nbytes = 24 + sb + 24
-    src = np.ones(npts * (24 + sb) // 8 // 2 * 2)
+    a = np.ones(3 * npts)
+    b2 = np.ones(3 * npts)
+    c2 = np.empty(3 * npts)
+    _add(a, b2, c2)
+    t_add = best(lambda: _add(a, b2, c2), args.repeat)
+    src = np.ones(npts * (24 + sb) // 8)
     dst = np.empty_like(src)
-    _stream(src, dst)
-    t_copy = best(lambda: _stream(src, dst), args.repeat)
-    bw = 2.0 * src.nbytes / t_copy            # bytes read + written per second
+    _copy(src, dst)
+    t_copy = best(lambda: _copy(src, dst), args.repeat)
+    del a, b2, c2, src, dst
+    bw = nbytes * npts / t_add                 # bytes read + written per second (write-allocate not counted)
+    bw_copy = 2.0 * (24 + sb) * npts / t_copy
 
     def line(name, t, bpp):
         pps = npts / t
         print(f"{name:<28s} {t * 1e3:9.2f} ms  {pps / 1e6:8.1f} M points/s  {bpp:3d} B/point  "
               f"{pps * bpp / 1e9:6.2f} GB/s  = {pps * bpp / bw:5.2f} x stream")
 
-    print(f"{'stream copy (numba)':<28s} {t_copy * 1e3:9.2f} ms  {bw / 1e9:6.2f} GB/s "
-          f"(read + write of {src.nbytes / 1e6:.0f} MB)")
+    print(f"{'stream add c = a + b':<28s} {t_add * 1e3:9.2f} ms  {npts / t_add / 1e6:8.1f} M points/s  "
+          f"{nbytes:3d} B/point  {bw / 1e9:6.2f} GB/s  (the roofline)")
+    print(f"{'stream copy':<28s} {t_copy * 1e3:9.2f} ms  {'':19s}  {'':9s}  {bw_copy / 1e9:6.2f} GB/s")
     line("deform_block quaternion", t_q, nbytes)
     line("  same without face_s", t_q0, nbytes)
     line("deform_block baseline", t_d, nbytes)
     line("  quaternion loop only", t_kq, nbytes)
     line("  baseline loop only", t_kd, nbytes)
     line("arclength set-up", t_arc, 24 * 2 + sb)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"load average at the end {load:.1f}")
     return 0
 
 

@@ -453,3 +453,50 @@ def test_interior_fast_path_equals_the_general_kernel():
                     if 0 < i < ru.shape[0] - 1 and 0 < j < ru.shape[1] - 1 else (0, 0, 0, 0, False)
                 if fgood:
                     assert good and qerr(np.array([fw, fx, fy, fz]), np.array([w, x, y, z])) <= 1e-14
+
+
+def test_regression_edge_angles_cancelling_exactly_gave_nan():
+    """Four edge rotations 0, 180, +90, -90 deg about the normal: their unit sines and
+    cosines sum to exactly (0, 0).  The straight-line interior kernel used to normalise
+    that zero vector into NaN; the angle is undefined, so the point must fall back to
+    the general kernel (Q2 = identity), and nothing may be NaN."""
+    ru = np.zeros((3, 3, 3))
+    rd = np.zeros((3, 3, 3))
+    edges_u = {(2, 1): (1, .5), (0, 1): (-1, .5), (1, 2): (0, 1), (1, 0): (.5, -.5)}
+    edges_d = {(2, 1): (1, .5), (0, 1): (1, -.5), (1, 2): (-1, 0), (1, 0): (-.5, -.5)}
+    for k in edges_u:
+        ru[k][:2] = edges_u[k]
+        rd[k][:2] = edges_d[k]
+    for k in [(0, 0), (0, 2), (2, 0), (2, 2)]:
+        ru[k][:2] = rd[k][:2] = np.array(k) - 1.0
+    q, delta = boundary_motion(ru, rd)
+    assert np.all(np.isfinite(q)) and np.all(np.isfinite(delta))
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, rtol=0, atol=1e-12)
+    # the normal stays +z (Q1 = identity) and the in-plane angle is undefined (Q2 = identity)
+    assert qerr(q[1:2, 1:2], [1.0, 0.0, 0.0, 0.0]) <= 1e-15
+    c = ru.reshape(-1, 3).mean(axis=0)
+    np.testing.assert_allclose(reconstruct(q, delta, ru, c), rd, rtol=0, atol=1e-14)
+
+
+@given(deg=st.floats(-180.0, 180.0), shift=vec3.map(lambda v: 10.0 * v), g=vec3,
+       gdeg=st.floats(0.0, 180.0))
+def test_moving_the_whole_2d_problem_moves_q_and_delta(deg, shift, g, gdeg):
+    """DESIGN 3.6 for a wall curve: translating the problem leaves (q, delta) unchanged;
+    rotating it by G (points, centre and the plane normal) gives (G q G*, G delta)."""
+    ru = airfoil_curve()
+    rd = ru.copy()
+    rd[:, 1] += 0.05 * ru[:, 0] ** 2                 # camber change (non-rigid) ...
+    rd = apply(Rotation.from_rotvec([0.0, 0.0, np.radians(deg)]), [0.2, -0.1, 0.0], rd)   # ... then moved
+    e = np.array([0.0, 0.0, 1.0])
+    q, delta = boundary_motion(ru, rd, plane_normal=e)
+    qt, dt = boundary_motion(ru + shift, rd + shift, plane_normal=e)
+    assert qerr(qt, q) <= 1e-10
+    np.testing.assert_allclose(dt, delta, rtol=0, atol=1e-10 * 10)
+    G = Rotation.from_rotvec(g / np.linalg.norm(g) * np.radians(gdeg))
+    qg, dg = boundary_motion(G.apply(ru), G.apply(rd), plane_normal=G.apply(e))
+    gq = G.as_quat(scalar_first=True)
+    assert qerr(qg, Q.multiply(Q.multiply(gq, q), Q.conjugate(gq))) <= 1e-10
+    np.testing.assert_allclose(dg, G.apply(delta), rtol=0, atol=1e-10 * 10)
+    # every q of a curve is a rotation about the plane normal
+    axis_part = qg[:, 1:] - np.outer(qg[:, 1:] @ G.apply(e), G.apply(e))
+    np.testing.assert_allclose(axis_part, 0.0, rtol=0, atol=1e-13)

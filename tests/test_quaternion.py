@@ -80,6 +80,7 @@ def test_kmul_kdot_kconj_match_scipy(impl, a, b):
     assert impl(Q.kdot)(a, b) == pytest.approx(float(a @ b), abs=1e-15)
     impl(Q.kconj)(a, out)
     assert same_rotation(out, qs(R(a).inv()))
+    assert unit(out)
     # aliasing: out may be an input
     c = a.copy()
     impl(Q.kmul)(c, b, c)
@@ -121,8 +122,49 @@ def test_kslerp_matches_scipy_and_takes_shortest_arc(impl, a, b, t, flip):
     assert unit(out)
     if t == 0.0:
         np.testing.assert_array_equal(out, a)
+    if t == 1.0:            # exactly the other end, in a's hemisphere
+        np.testing.assert_array_equal(out, (1.0 if a @ (flip * b) >= 0 else -1.0) * flip * b)
     # shortest arc: the path stays within the hemisphere of a
     assert out @ a >= -1e-12
+
+
+@given(a=unit_quat(), ax=vec3, ang=angle, t=st.one_of(st.floats(0, 1), st.sampled_from([0.0, 0.5, 1.0])),
+       flip=sign)
+def test_kslerp_relative_angles_near_0_and_180_deg(impl, a, ax, ang, t, flip):
+    """b = a ⊗ exp(ang · axis) with the relative angle drawn near 0 and near 180 deg."""
+    rel = Rotation.from_rotvec(ax / np.linalg.norm(ax) * ang)
+    b = flip * qs(R(a) * rel)
+    out = np.empty(4)
+    impl(Q.kslerp)(a, b, t, out)
+    assert unit(out)
+    assert np.all(np.isfinite(out))
+    # independent oracle: a ⊗ exp(t · v), the rotation t of the way from a to b
+    expect = qs(R(a) * Rotation.from_rotvec(rel.as_rotvec() * t))
+    if ang < math.pi - 1e-6:
+        assert same_rotation(out, expect, 1e-12)
+        ref = Slerp([0.0, 1.0], Rotation.concatenate([R(a), R(b)]))([t])[0]
+        assert same_rotation(out, qs(ref), 1e-12)
+    else:
+        # within 1e-6 of a half turn the path may go either way round (the 4-D dot
+        # product is ~0); along the chosen great circle it is still slerp
+        s = 1.0 if a @ b >= 0 else -1.0
+        om = math.atan2(np.linalg.norm(a - s * b), np.linalg.norm(a + s * b)) * 2.0
+        lin = (math.sin((1 - t) * om) * a + math.sin(t * om) * s * b) / math.sin(om)
+        np.testing.assert_allclose(out, lin, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("theta", [1e-300, 1e-200, 1e-100, 1e-20, 1e-12, 1e-8])
+def test_kslerp_tiny_angles_keep_relative_accuracy(impl, theta):
+    """From the identity, the vector part of slerp is t sin(theta/2) n to relative round-off."""
+    n = np.array([0.6, -0.8, 0.0])
+    a = np.array([1.0, 0.0, 0.0, 0.0])
+    b = np.concatenate([[math.cos(theta / 2)], math.sin(theta / 2) * n])
+    out = np.empty(4)
+    for t in (0.0, 1e-3, 0.25, 0.5, 0.999, 1.0):
+        impl(Q.kslerp)(a, b, t, out)
+        assert unit(out) and np.all(np.isfinite(out))
+        np.testing.assert_allclose(out[1:], math.sin(t * theta / 2) * n, rtol=1e-14, atol=0)
+        assert out[0] == pytest.approx(1.0, abs=1e-16)
 
 
 # ------------------------------------------------------------------ axis-angle
@@ -383,6 +425,35 @@ def test_drivers_broadcast_and_round_trip():
     np.testing.assert_allclose(Q.multiply(q, Q.conjugate(q))[..., 0], 1.0, atol=1e-15)
     s = Q.slerp(q[0, 0], q[0, 1], np.linspace(0, 1, 3))
     assert s.shape == (3, 4)
+
+
+@given(qlist=st.lists(unit_quat(), min_size=2, max_size=7), data=st.data())
+def test_array_drivers_match_scipy(qlist, data):
+    """The vectorised drivers against scipy on whole arrays (antipodal signs included)."""
+    q = np.array(qlist)
+    p = np.array(data.draw(st.lists(unit_quat(), min_size=len(q), max_size=len(q))))
+    v = np.array(data.draw(st.lists(vec3, min_size=len(q), max_size=len(q))))
+    t = np.array(data.draw(st.lists(st.floats(0.0, 1.0), min_size=len(q), max_size=len(q))))
+    rq, rp = R(q), R(p)
+    for a, b in zip(Q.multiply(q, p), qs(rq * rp)):
+        assert same_rotation(a, b)
+    np.testing.assert_allclose(Q.rotate(q, v), rq.apply(v), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(Q.to_matrix(q), rq.as_matrix(), rtol=0, atol=1e-14)
+    for a, b in zip(Q.from_matrix(rq.as_matrix()), q):
+        assert same_rotation(a, b)
+    np.testing.assert_allclose(np.linalg.norm(Q.log(q), axis=-1), rq.magnitude(), rtol=0, atol=1e-12)
+    for a, b in zip(Q.exp(rq.as_rotvec()), q):
+        assert same_rotation(a, b)
+    axis, ang = Q.to_axis_angle(q)
+    np.testing.assert_allclose(ang, rq.magnitude(), rtol=0, atol=1e-12)
+    for a, b in zip(Q.from_axis_angle(axis, ang), q):
+        assert same_rotation(a, b)
+    sl = Q.slerp(q, p, t)
+    np.testing.assert_allclose(np.linalg.norm(sl, axis=-1), 1.0, rtol=0, atol=UNIT_TOL)
+    for k in range(len(q)):
+        if abs(q[k] @ p[k]) > 1e-6:          # not a half turn apart (the path is then not unique)
+            ref = Slerp([0.0, 1.0], Rotation.concatenate([rq[k], rp[k]]))([t[k]])[0]
+            assert same_rotation(sl[k], qs(ref), 1e-10)
 
 
 @pytest.mark.parametrize("call, name", [

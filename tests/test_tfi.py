@@ -618,7 +618,9 @@ def test_tfi_patch_affine_field_and_validation():
 def test_near_zero_blend_falls_back_to_rotation_vectors():
     """Sides at a = 0, a = na-1 at rest; b-sides rotated by +180° and -180° about z
     (the same rotation, opposite hemispheres of the identity): the linear correction
-    cancels the slerp value; the fallback blends rotation vectors instead."""
+    nearly cancels the slerp value (|V| ~ 1e-3 on the middle row of this warped grid,
+    just above QNORM_MIN); fused and reference agree and stay unit.  The exact
+    cancellation, where the fallback must run, is the next test."""
     ni, nj = 5, 5
     xyz = block2d(ni, nj, 1)
     s = tfi.arclength(xyz)
@@ -648,6 +650,110 @@ def test_near_zero_blend_falls_back_to_rotation_vectors():
     ref3, _, Q3 = ref_update(x3, s3, fd3, fq3, c, (0, 1, 2))
     np.testing.assert_allclose(out3, ref3, rtol=0, atol=1e-14 * scale(x3))
     np.testing.assert_allclose(np.linalg.norm(Q3, axis=-1), 1.0, rtol=0, atol=1e-12)
+
+
+def _half_turn_sides(ni, nj, delta):
+    """Sides at rest in rotation on i, rotated by +180 and -180 deg about z on jmin / jmax."""
+    ident = np.array([1.0, 0, 0, 0])
+    half = np.array([0.0, 0, 0, 1.0])
+    jmin = np.tile(half, (ni, 1))
+    jmax = np.tile(-half, (ni, 1))
+    jmin[0] = jmin[-1] = jmax[0] = jmax[-1] = ident
+    fq = [np.tile(ident, (nj, 1)), np.tile(ident, (nj, 1)), jmin, jmax]
+    fd = [np.tile(delta, (n, 1)) for n in (nj, nj, ni, ni)]
+    return fd, fq
+
+
+@pytest.mark.parametrize("in_place", [False, True])
+def test_fallback_points_of_the_fused_kernels_equal_the_reference(in_place):
+    """On a uniform grid s_j = 1/2 exactly on the middle row, where the linear blend
+    U + (1 - s_j)(F_jmin - U) + s_j (F_jmax - U) of +-180 deg vanishes: the fused
+    kernels must take the rotation-vector fallback there, and give the reference's
+    result also when updating in place (out = xyz_u, Δ != 0)."""
+    ni, nj = 5, 5
+    xyz = np.zeros((ni, nj, 1, 3), order="F")
+    xyz[..., 0] = np.linspace(0.0, 1.0, ni)[:, None, None] + 0.3
+    xyz[..., 1] = np.linspace(0.0, 2.0, nj)[None, :, None] + 0.1
+    s = tfi.arclength(xyz)
+    assert np.all(s[:, 2, 0, 1] == 0.5)
+    delta = np.array([0.1, -0.2, 0.0])
+    fd, fq = _half_turn_sides(ni, nj, delta)
+    c = np.array([0.2, 0.4, 0.0])
+    order = (0, 1)
+    # the linear Boolean sum on the middle row: U = 1, V = 1 + (half - 1)/2 + (-half - 1)/2 = 0
+    sj = s[1:-1, 2, 0, 1][:, None]
+    V = fq[0][0] + (1 - sj) * (fq[2][1:-1] - fq[0][0]) + sj * (fq[3][1:-1] - fq[0][0])
+    assert np.linalg.norm(V, axis=-1).max() < tfi.QNORM_MIN
+    D, Q = tfi.tfi_block_fields(fd, fq, s, order)
+    np.testing.assert_allclose(np.linalg.norm(Q, axis=-1), 1.0, rtol=0, atol=1e-12)
+    ref = c + D + rot(Q, xyz - c)
+    work = xyz.copy(order="F")
+    out = tfi.deform_block_2d(work, s, fd, fq, c, order, out=work if in_place else None)
+    np.testing.assert_allclose(out, ref, rtol=0, atol=1e-14 * scale(xyz))
+    # 3-D: extruded, k faces derived from the 2-D solution
+    nk = 3
+    x3 = np.asfortranarray(np.repeat(xyz, nk, axis=2))
+    x3[..., 2] = np.linspace(0.0, 1.0, nk)[None, None, :]
+    s3 = tfi.arclength(x3)
+    fd3 = [np.repeat(fd[f][:, None, :], nk, axis=1) for f in range(4)] + [D[:, :, 0], D[:, :, 0]]
+    fq3 = [np.repeat(fq[f][:, None, :], nk, axis=1) for f in range(4)] + [Q[:, :, 0], Q[:, :, 0]]
+    for order3 in [(0, 1, 2), (2, 0, 1)]:
+        ref3, _, Q3 = ref_update(x3, s3, fd3, fq3, c, order3)
+        np.testing.assert_allclose(np.linalg.norm(Q3, axis=-1), 1.0, rtol=0, atol=1e-12)
+        work = x3.copy(order="F")
+        out3 = tfi.deform_block(work, s3, fd3, fq3, c, order3, out=work if in_place else None)
+        np.testing.assert_allclose(out3, ref3, rtol=0, atol=1e-14 * scale(x3))
+
+
+# ------------------------------------------------------------- no full-size temporaries
+@pytest.mark.parametrize("with_q", [True, False])
+def test_fused_stage_allocates_only_surface_tables(with_q):
+    """DESIGN 6: the volume stage writes R_d without full-size Δ or Q arrays.
+
+    Peak memory traced while deforming a 128^3 block into a given ``out`` stays
+    below half of one full-size Δ array (24 bytes per point); the O(surface)
+    tables are ~1000 bytes per face point, 0.3 of it here.  (numpy allocations
+    are traced; the kernels themselves allocate nothing.)
+    """
+    import tracemalloc
+
+    n = 128
+    u = np.linspace(0.0, 1.0, n)
+    xyz = np.empty((n, n, n, 3), order="F")
+    xyz[..., 0] = 2.0 * u[:, None, None] + 0.3 * u[None, :, None]
+    xyz[..., 1] = 1.5 * u[None, :, None] + 0.2 * u[None, None, :] ** 2
+    xyz[..., 2] = u[None, None, :] + 0.1 * u[:, None, None] * u[None, :, None]
+    s = tfi.arclength(xyz)
+    fs = tfi.face_params(s)
+    b = Block(xyz)
+    fd = [0.01 * np.sin(b.face(f)) for f in range(6)]
+    fq = [qa.normalize(np.concatenate([np.ones(b.face(f).shape[:2] + (1,)), 0.02 * np.cos(b.face(f))], -1))
+          for f in range(6)] if with_q else None
+    out = np.empty_like(xyz, order="F")
+    c = np.array([0.5, 0.5, 0.5])
+    tfi.deform_block(xyz, s, fd, fq, c, (1, 2, 0), out=out, face_s=fs)        # compile / warm
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        tfi.deform_block(xyz, s, fd, fq, c, (1, 2, 0), out=out, face_s=fs)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    full_delta = 24 * n ** 3
+    assert peak < 0.5 * full_delta, f"peak {peak / 1e6:.1f} MB vs one full-size Δ {full_delta / 1e6:.1f} MB"
+    assert np.all(np.isfinite(out))
+
+
+def test_volume_kernels_are_parallel_and_cached():
+    """cache=True and parallel=True on the kernels of the volume stage (DESIGN 6), set in _jit."""
+    from tfi_quat import _jit
+    for k in (tfi._deform3_q, tfi._deform3_d, tfi._deform2_q, tfi._deform2_d, tfi._arclength_kernel,
+              tfi._prep, tfi._fields2):
+        if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
+            assert k.py_func is k
+            continue
+        assert k.targetoptions.get("parallel") is True, k
+        assert (type(k._cache).__name__ == "FunctionCache") == _jit.CACHE, k
 
 
 # ------------------------------------------------------------- argument validation

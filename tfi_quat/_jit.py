@@ -1,14 +1,22 @@
 """The one place that imports numba.
 
 Every kernel in the package is compiled through :data:`jit` (serial) or
-:data:`pjit` (parallel, use :data:`prange` for the outer loop).  Settings:
+:data:`pjit` (parallel, use :data:`prange` for the outer loop).  Settings,
+read once when this module is first imported:
 
+``TFI_QUAT_JIT=0``
+    do not compile at all: :data:`jit` and :data:`pjit` return the plain
+    Python function (with ``py_func`` pointing at itself, as a compiled
+    kernel has) and :data:`prange` is ``range``.  Every kernel then runs as
+    ordinary Python (slow: for tests and debugging with pdb/coverage).
 ``TFI_QUAT_CACHE=0``
     do not cache compiled kernels on disk (default: cache, so a warm CLI
     start-up skips compilation).
-``NUMBA_DISABLE_JIT=1``
-    numba's own switch: every kernel runs as plain Python (slow; tests use
-    ``kernel.py_func`` instead to run one kernel uncompiled).
+
+Tests that run one kernel uncompiled inside a compiled session use
+``kernel.py_func``; ``tests/test_jit.py`` runs the package with
+``TFI_QUAT_JIT=0`` in a subprocess.  (numba's own ``NUMBA_DISABLE_JIT=1``
+also works for code that does not use ``py_func``.)
 """
 
 from __future__ import annotations
@@ -18,12 +26,36 @@ import os
 
 import numba
 
-__all__ = ["jit", "pjit", "prange", "CACHE", "numba"]
+__all__ = ["jit", "pjit", "prange", "CACHE", "ENABLED", "numba"]
 
-CACHE = os.environ.get("TFI_QUAT_CACHE", "1").strip().lower() not in ("0", "false", "no", "off")
 
-#: serial kernel: ``@jit`` or ``@jit(inline="always")``
-jit = functools.partial(numba.njit, cache=CACHE, error_model="numpy", nogil=True)
-#: parallel kernel; its outer loop uses :data:`prange`
-pjit = functools.partial(numba.njit, cache=CACHE, error_model="numpy", nogil=True, parallel=True)
-prange = numba.prange
+def _flag(name: str, default: str) -> bool:
+    return os.environ.get(name, default).strip().lower() not in ("0", "false", "no", "off")
+
+
+#: kernels are compiled (``TFI_QUAT_JIT``, default on)
+ENABLED = _flag("TFI_QUAT_JIT", "1")
+#: compiled kernels are cached on disk (``TFI_QUAT_CACHE``, default on)
+CACHE = _flag("TFI_QUAT_CACHE", "1")
+
+
+def _plain(*args, **options):
+    """Stand-in for ``numba.njit`` when compilation is off: ``@_plain`` or ``@_plain(...)``."""
+    def wrap(fn):
+        fn.py_func = fn
+        return fn
+    if len(args) == 1 and callable(args[0]) and not options:
+        return wrap(args[0])
+    return wrap
+
+
+if ENABLED:
+    #: serial kernel: ``@jit`` or ``@jit(inline="always")``
+    jit = functools.partial(numba.njit, cache=CACHE, error_model="numpy", nogil=True)
+    #: parallel kernel; its outer loop uses :data:`prange`
+    pjit = functools.partial(numba.njit, cache=CACHE, error_model="numpy", nogil=True, parallel=True)
+    prange = numba.prange
+else:
+    jit = _plain
+    pjit = _plain
+    prange = range

@@ -42,6 +42,17 @@ __all__ = ["boundary_motion", "surface_normals"]
 DEGENERATE = 1e-10
 
 
+@jit(inline="always")
+def _inv_sqrt(x):
+    """``1 / sqrt(x)`` for ``x > 0``; 1 otherwise (zero, NaN).
+
+    The straight-line kernels compute everything and decide validity from
+    flags afterwards; this keeps them free of division by zero (an error in
+    plain Python, ``TFI_QUAT_JIT=0``) and of inf/NaN intermediates.
+    """
+    return 1.0 / math.sqrt(x if x > 0.0 else 1.0)
+
+
 # ------------------------------------------------------------------ kernels
 @jit
 def _valid(P, ii, jj):
@@ -103,7 +114,7 @@ def _unit_normal(ax, ay, az, bx, by, bz, curve):
         return 0.0, 0.0, 0.0, False
     if (not curve) and (la2 <= d2 * lb2 or lb2 <= d2 * la2):
         return 0.0, 0.0, 0.0, False
-    inv = 1.0 / math.sqrt(ln2)
+    inv = _inv_sqrt(ln2)
     return nx * inv, ny * inv, nz * inv, True
 
 
@@ -169,7 +180,7 @@ def _angle_terms(ok, ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
     d2 = DEGENERATE * DEGENERATE
     if not (la2 > d2 * (ex * ex + ey * ey + ez * ez) and lb2 > d2 * (fx * fx + fy * fy + fz * fz)):
         return 0.0, 0.0
-    inv = 1.0 / math.sqrt(la2 * lb2)
+    inv = _inv_sqrt(la2 * lb2)
     return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv
 
 
@@ -273,7 +284,7 @@ def _edge_angle_fast(ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
     lb2 = b1 * b1 + b2 * b2
     d2 = DEGENERATE * DEGENERATE
     good = (la2 > d2 * (ex * ex + ey * ey + ez * ez)) & (lb2 > d2 * (fx * fx + fy * fy + fz * fz))
-    inv = 1.0 / math.sqrt(la2 * lb2)
+    inv = _inv_sqrt(la2 * lb2)
     return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv, good
 
 
@@ -327,7 +338,7 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     uz = aux * buy - auy * bux
     ln2 = ux * ux + uy * uy + uz * uz
     good = (ln2 > d2 * la2 * lb2) & (la2 > d2 * lb2) & (lb2 > d2 * la2)
-    inv = 1.0 / math.sqrt(ln2)
+    inv = _inv_sqrt(ln2)
     ux *= inv
     uy *= inv
     uz *= inv
@@ -345,7 +356,7 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     dz = adx * bdy - ady * bdx
     mn2 = dx * dx + dy * dy + dz * dz
     good &= (mn2 > d2 * ma2 * mb2) & (ma2 > d2 * mb2) & (mb2 > d2 * ma2)
-    inv = 1.0 / math.sqrt(mn2)
+    inv = _inv_sqrt(mn2)
     dx *= inv
     dy *= inv
     dz *= inv
@@ -356,13 +367,13 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     vy = uz * dx - ux * dz
     vz = ux * dy - uy * dx
     w = 1.0 + c
-    inv = 1.0 / math.sqrt(w * w + vx * vx + vy * vy + vz * vz)
+    inv = _inv_sqrt(w * w + vx * vx + vy * vy + vz * vz)
     a0 = w * inv
     a1 = vx * inv
     a2 = vy * inv
     a3 = vz * inv
     # tangent-plane bases
-    inv = 1.0 / math.sqrt(la2)
+    inv = _inv_sqrt(la2)
     t1x = aux * inv
     t1y = auy * inv
     t1z = auz * inv
@@ -388,7 +399,9 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     r = math.sqrt(ss * ss + cc * cc)
     hw = r + cc
     hs = ss
-    inv = 1.0 / math.sqrt(hw * hw + hs * hs)
+    hn = hw * hw + hs * hs
+    good &= hn > 0.0                       # the four edge directions cancel: general kernel
+    inv = _inv_sqrt(hn)
     hw *= inv
     hs *= inv
     w, x, y, z = _mul_s(hw, dx * hs, dy * hs, dz * hs, a0, a1, a2, a3)
