@@ -12,7 +12,7 @@ from tfi_quat.quality import negative_cells
 
 import _deform_grids as G
 
-FORMULATIONS = ["samareh", "local"]
+FORMULATIONS = ["two-level", "samareh"]
 
 CASES = {
     "o-grid": G.o_grid,
@@ -232,13 +232,14 @@ def test_bad_inputs_are_clear_errors():
         d.deform(G.channel()[0])
 
 
-def test_local_formulation_is_independent_of_the_centre():
-    """The local formulation has no rotation centre: any ``centre`` gives the same grid."""
-    grid, walls, sym, fixed = G.o_grid_3d()
-    move = rigid_motion(25.0, (0, 0, 1), (0.2, 0.0, 0.0), (0.1, 0.3, 0.0))
-    a = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation="local").deform(move)
-    b = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation="local",
-                 centre=(40.0, -7.0, 0.0)).deform(move)
-    assert a == b
+def test_unknown_formulation_and_misplaced_options_are_errors():
+    grid, walls, sym, fixed = G.o_grid()
     with pytest.raises(CaseError, match="formulation"):
-        Deformer(grid, walls=walls, formulation="global")
+        Deformer(grid, walls=walls, formulation="local")
+    with pytest.raises(CaseError, match="blending"):
+        Deformer(grid, walls=walls, blending="linear")              # two-level has its own
+    with pytest.raises(CaseError, match="rotation_length"):
+        Deformer(grid, walls=walls, formulation="samareh", rotation_length=0.1)
+    with pytest.raises(CaseError, match="rotation_length"):
+        Deformer(grid, walls=walls, rotation_length=-1.0)
+    Deformer(grid, walls=walls, formulation="samareh", blending="linear")

@@ -13,17 +13,31 @@ Set-up (once per grid, :class:`Deformer`):
    (the master of each interface; its slave is the same global points).
    Their corners are the **vertices**, their sides the **segments**.
 4. What every level needs is precomputed: inverse-distance weights of the free
-   vertices, the gaps of each segment with their arclength parameters, the
-   arclength parameters and leading direction of each derived patch, and the
-   arclength parameters and direction order of each block.
+   vertices, the gaps of each segment with their blending parameters, the
+   parameters and leading direction of each derived patch, the parameters and
+   direction order of each block and, for the two-level formulation, the
+   rotation arms of every level.
 
-A step (:meth:`Deformer.deform`): wall quaternions and translations
-(:func:`tfi_quat.boundary.boundary_motion`, DESIGN 3.1), vertices (decayed
-inverse-distance blend), segments (translation linear, quaternion slerp in
-arclength), patches (2-D Soni TFI), symmetry (put back on the plane), then
-each block by the fused 3-D (or 2-D) TFI kernel, whose boundary points are
-finally overwritten by the global values so walls are exact and interfaces
-bit-identical.
+Formulations (``docs/deformer.md`` has the derivation and the measurements):
+
+``"two-level"`` (default)
+    The wall motion of each wall body is split into the rigid motion that
+    fits it best and a residual deformation.  The residual moves the grid by
+    ``R_d = K(x) + rot(Q(x), A(x))`` with ``K``, ``Q`` interpolated from the
+    boundaries and ``A`` the arm of each point from an interpolated centre
+    field that sits on the wall next to walls and on the point itself away
+    from them; the blending is flat over a wall layer of thickness
+    ``rotation_length``, so the residual rotations act only there.  The rigid
+    part is then applied to the whole field in Samareh's form with uniform
+    wall data.  Rigid motions are reproduced exactly, near-wall grid lines
+    turn with the wall, and small irregularities of the fitted wall rotations
+    are not carried over long lever arms into thin far-field cells.
+``"samareh"``
+    The memo's update ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``, Δ and Q
+    interpolated from the boundaries (Hermite blending by default).
+
+``method="tfi"`` is the classic baseline: the same hierarchy with Q ≡ 1 and Δ
+the displacement.
 """
 
 from __future__ import annotations
@@ -38,14 +52,31 @@ import numpy as np
 from . import quaternion as qa
 from . import tfi
 from ._jit import jit
+from .blending import wall_layer_block, wall_layer_line
 from .errors import CaseError, DeformationError
+from .fit import constrain_to_planes, fit_rigid
 from .grid import FACES, Block, Grid
 from .spec import PatchSpec, as_patch_specs, parse_patch_spec
 
-__all__ = ["Deformer", "rigid_motion", "StepTimings"]
+__all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "FORMULATIONS"]
 
 WALL, FIXED, SYMMETRY, DERIVED = 3, 2, 1, 0
 _ORIGIN = np.zeros(3)
+_IDENT = np.array([1.0, 0.0, 0.0, 0.0])
+
+#: formulations of the quaternion method
+FORMULATIONS = ("two-level", "samareh")
+
+#: default rotation length (wall-layer thickness) as a fraction of the walls'
+#: size, twice the largest distance of a wall point from the walls' centroid
+#: (docs/deformer.md, "The wall layer")
+ROTATION_LENGTH_FRACTION = 0.02
+#: derived boundary points measure their arms from the nearest wall point with
+#: weight exp(-d / (REBASE_FRACTION * rotation_length)), from themselves otherwise
+REBASE_FRACTION = 0.1
+#: residual rotations of derived boundary points are damped by
+#: exp(-(d / (DAMP_FRACTION * rotation_length))^2) (d: distance to the walls)
+DAMP_FRACTION = 4.0
 
 
 def _hermite(s: np.ndarray) -> np.ndarray:
@@ -83,10 +114,6 @@ def rigid_motion(rotate_deg: float = 0.0, axis=(0.0, 0.0, 1.0), about=(0.0, 0.0,
     return move
 
 
-def _as_specs(items, what: str) -> list[PatchSpec]:
-    return as_patch_specs(items, what)
-
-
 def _face_ijk(dims, face: str, rng) -> np.ndarray:
     """Block indices (na, nb, 3) int64 of a face range ((a0, a1), (b0, b1))."""
     d, side = divmod(FACES.index(face), 2)
@@ -112,7 +139,12 @@ def _faces_of(ndim: int) -> tuple[str, ...]:
 
 @dataclass
 class StepTimings:
-    """Seconds spent in each stage of the last :meth:`Deformer.deform` call."""
+    """Seconds spent in each stage of the last :meth:`Deformer.deform` call.
+
+    ``walls``: wall targets, rigid fits, wall quaternions; ``skeleton``:
+    vertices and segments; ``faces``: patches, symmetry and boundary
+    positions; ``volumes``: the block kernels and the copy of boundary points.
+    """
 
     walls: float = 0.0
     skeleton: float = 0.0
@@ -127,7 +159,7 @@ class StepTimings:
 # ------------------------------------------------------------- kernels
 @jit
 def _fill_gaps(gdelta, gq, left, right, ptr, pts, s, use_q):
-    """Segments: delta linear, q slerp in arclength between known end points."""
+    """Segments: delta linear, q slerp in the blending parameter between known end points."""
     tmp = np.empty(4)
     for g in range(left.shape[0]):
         a = left[g]
@@ -159,6 +191,63 @@ def _merge_quaternions(gid, q, acc, count):
         count[g] += 1
 
 
+@jit
+def _damp_towards_identity(gq, idx, f):
+    """``q <- slerp(1, q, f)`` for the listed points (``f`` in [0, 1])."""
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    tmp = np.empty(4)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        if f[m] >= 1.0:
+            continue
+        qa.kslerp(one, gq[p], f[m], tmp)
+        for c in range(4):
+            gq[p, c] = tmp[c]
+
+
+@jit
+def _fill_gaps_local(K, gq, left, right, ptr, pts, s, damp, shift):
+    """Two-level segments: K linear, Q slerp, then Q faded by ``damp`` and K re-based by
+    ``rot(Q, shift)``, gap by gap (a gap's ends may be points of earlier gaps)."""
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    tmp = np.empty(4)
+    tmp2 = np.empty(4)
+    r = np.empty(3)
+    for g in range(left.shape[0]):
+        a = left[g]
+        b = right[g]
+        for m in range(ptr[g], ptr[g + 1]):
+            p = pts[m]
+            t = s[m]
+            for c in range(3):
+                K[p, c] = (1.0 - t) * K[a, c] + t * K[b, c]
+            qa.kslerp(gq[a], gq[b], t, tmp)
+            if damp[p] < 1.0:
+                qa.kslerp(one, tmp, damp[p], tmp2)
+                for c in range(4):
+                    tmp[c] = tmp2[c]
+            for c in range(4):
+                gq[p, c] = tmp[c]
+            qa.krotate(tmp, shift[p], r)
+            for c in range(3):
+                K[p, c] += r[c]
+
+
+@jit
+def _rebase_gaps(c, left, right, ptr, pts, s, target, shift):
+    """Set-up twin of :func:`_fill_gaps_local` for the centres: interpolate, then re-base."""
+    for g in range(left.shape[0]):
+        a = left[g]
+        b = right[g]
+        for m in range(ptr[g], ptr[g + 1]):
+            p = pts[m]
+            t = s[m]
+            for k in range(3):
+                ci = (1.0 - t) * c[a, k] + t * c[b, k]
+                shift[p, k] = target[p, k] - ci
+                c[p, k] = target[p, k]
+
+
 # ------------------------------------------------------------- set-up data
 def _twist_about(q: np.ndarray, n: np.ndarray) -> np.ndarray:
     """The rotation of each ``q`` about the unit axis ``n`` (swing-twist split)."""
@@ -183,13 +272,13 @@ class _Rect:
 @dataclass
 class _PatchTFI:
     gid: np.ndarray            # (na, nb)
-    s: np.ndarray              # (na, nb, 2)
+    s: np.ndarray              # (na, nb, 2) blending parameters
     lead: int
     write: np.ndarray          # bool (na, nb): interior points this patch defines
     block: int = 0
     face: str = ""
-    e: np.ndarray | None = None   # local formulation: P - TFI(P on the sides), written points
     params: tuple | None = None   # tfi.patch_params(s), for the compiled patch kernel
+    wgid: np.ndarray | None = None   # gid[write], cached
 
 
 @dataclass
@@ -202,10 +291,20 @@ class _Wall:
 
 @dataclass
 class _BlockPlan:
-    s: np.ndarray                       # arclength parameters (ni, nj, nk, 3)
+    s: np.ndarray                       # blending parameters (ni, nj, nk, 3)
     order: tuple[int, ...]
     face_gid: list[np.ndarray] = field(default_factory=list)   # per face (na, nb)
-    e: np.ndarray | None = None         # local formulation: R_u - TFI(R_u on the faces)
+    face_s: tuple | None = None         # tfi.face_params(s), 3-D blocks
+    arm: np.ndarray | None = None       # two-level: A = R_u - TFI(c on the faces)
+
+
+@dataclass
+class _Body:
+    """A connected set of wall points and the rigid motions it may take."""
+
+    gids: np.ndarray
+    axis: np.ndarray | None            # allowed rotation axis (None: any; zero: none)
+    tproj: np.ndarray                  # translation projection
 
 
 class Deformer:
@@ -225,55 +324,73 @@ class Deformer:
         with :func:`tfi_quat.topology.connect` when omitted.  When given with
         ``walls``/``symmetry``/``fixed``, those kinds are applied to it.
     method : {"quaternion", "tfi"}
-        ``quaternion``: interpolate translations and rotations (Samareh);
+        ``quaternion``: interpolate translations and rotations;
         ``tfi``: the classic baseline, displacements only.
+    formulation : {"two-level", "samareh"}
+        How rotations act on positions (``method="quaternion"`` only); see the
+        module docstring and ``docs/deformer.md``.
     centre : array_like (3,), optional
-        Rotation centre ``c`` of the field update.  Default: the centroid of
-        the undeformed wall points (it moves with the problem, DESIGN 3.6).
+        Rotation centre ``c`` of the Samareh update (the whole update for
+        ``"samareh"``, the rigid part for ``"two-level"``).  Default: the
+        centroid of the undeformed wall points (it moves with the problem,
+        DESIGN 3.6).
     tol : float, optional
         Coincidence tolerance for merging boundary points; default
         1e-10 x the grid's bounding-box diagonal.
-    blending : {"hermite", "linear"}
-        Blending function applied to the normalised arclength ``s`` of every
-        interpolation (segments, patches, volumes).  ``linear`` is Soni's
-        original ``s``; ``hermite`` (default) is ``3 s^2 - 2 s^3``, which has
-        zero slope at both ends, so the layers next to a wall move with the
-        wall's own rotation and translation and keep their angle to it (the
-        linear form shears them by about ``|delta| / L``, a few degrees for
-        large motions).  Both reproduce the boundaries exactly.
+    blending : {"hermite", "linear"}, optional
+        Blending function of ``"samareh"`` and ``method="tfi"`` applied to the
+        normalised arclength ``s``: ``hermite`` (default) ``3 s^2 - 2 s^3``,
+        ``linear`` Soni's original.  The two-level formulation always uses its
+        wall-layer blending (:mod:`tfi_quat.blending`).
+    rotation_length : float, optional
+        Two-level formulation: thickness of the wall layer in which residual
+        (non-rigid) wall rotations act.  Default:
+        ``ROTATION_LENGTH_FRACTION`` x the walls' size (twice the largest
+        distance of a wall point from their centroid).
     idw_power : float
         Exponent of the inverse-distance weights of free vertices.
-    formulation : {"samareh", "local"}
-        How rotations act on positions (``method="quaternion"`` only).
-        ``samareh`` (default, the memo): ``R_d = c + Δ + rot(Q, R_u - c)``
-        with Δ and Q interpolated, arms measured from the centre ``c``.
-        ``local``: ``R_d = TFI(boundary R_d) + rot(Q, E)`` with
-        ``E = R_u - TFI(boundary R_u)``, the grid's offset from the
-        interpolant of its own boundary: no centre, arms only as long as
-        that offset (see ``docs/deformer.md`` for when each is better).
+    max_idw_sources : int
+        At most this many (evenly sampled) wall points serve as sources of the
+        vertex blend.
     """
 
     def __init__(self, grid: Grid, walls=(), symmetry=(), fixed=(), connectivity=None,
-                 method: str = "quaternion", centre=None, tol: float | None = None,
-                 blending: str = "hermite", idw_power: float = 3.0, max_idw_sources: int = 2000,
-                 formulation: str = "samareh"):
+                 method: str = "quaternion", formulation: str = "two-level", centre=None,
+                 tol: float | None = None, blending: str | None = None,
+                 rotation_length: float | None = None, idw_power: float = 3.0,
+                 max_idw_sources: int = 2000):
         if not isinstance(grid, Grid):
             raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
         if method not in ("quaternion", "tfi"):
             raise CaseError(f"method must be 'quaternion' or 'tfi', got {method!r}")
-        if formulation not in ("local", "samareh"):
-            raise CaseError(f"formulation must be 'local' or 'samareh', got {formulation!r}")
-        if blending not in _BLENDINGS:
+        if formulation not in FORMULATIONS:
+            raise CaseError(f"formulation must be one of {', '.join(map(repr, FORMULATIONS))}, "
+                            f"got {formulation!r}")
+        two = method == "quaternion" and formulation == "two-level"
+        if blending is not None and blending not in _BLENDINGS:
             raise CaseError(f"blending must be one of {', '.join(_BLENDINGS)}, got {blending!r}")
+        if blending is not None and two:
+            raise CaseError("blending applies to formulation='samareh' and method='tfi'; the "
+                            "two-level formulation blends with its wall layer (rotation_length)")
+        if rotation_length is not None:
+            try:
+                rotation_length = float(rotation_length)
+            except (TypeError, ValueError):
+                raise CaseError(f"rotation_length must be a positive number, got "
+                                f"{rotation_length!r}") from None
+            if not (rotation_length > 0.0 and math.isfinite(rotation_length)):
+                raise CaseError(f"rotation_length must be a positive number, got {rotation_length!r}")
+            if not two:
+                raise CaseError("rotation_length applies to the two-level formulation only")
         t0 = time.perf_counter()
-        self.blending = blending
-        self._psi = _BLENDINGS[blending]
         self.grid = grid
         self.ndim = grid.ndim
         self.method = method
+        self.formulation = formulation if method == "quaternion" else None
         self._use_q = method == "quaternion"
-        self.formulation = formulation
-        self._local = self._use_q and formulation == "local"
+        self._two = two
+        self.blending = None if two else (blending or "hermite")
+        self._psi = None if two else _BLENDINGS[self.blending]
         if grid.ndim == 3:
             for b, blk in enumerate(grid):
                 if min(blk.dims) < 2:
@@ -284,9 +401,9 @@ class Deformer:
                 if min(blk.dims[:2]) < 2:
                     raise CaseError(f"block {b + 1}: a 2-D block needs at least 2 points in i and j, "
                                     f"got {blk.dims[:2]}")
-        walls = _as_specs(walls, "walls")
-        symmetry = _as_specs(symmetry, "symmetry")
-        fixed = _as_specs(fixed, "fixed")
+        walls = as_patch_specs(walls, "walls")
+        symmetry = as_patch_specs(symmetry, "symmetry")
+        fixed = as_patch_specs(fixed, "fixed")
         from . import topology
         if connectivity is None:
             connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
@@ -296,6 +413,7 @@ class Deformer:
         self.connectivity = connectivity
         lo, hi = grid.bbox()
         diag = float(np.linalg.norm(hi - lo)) or 1.0
+        self._scale = diag
         self.tol = float(tol) if tol is not None else 1e-10 * diag
         self._number_boundary_points()
         self._classify_points()
@@ -304,12 +422,16 @@ class Deformer:
         self.centre = self._choose_centre(centre)
         self._build_walls()
         self._build_rects()
+        self.rotation_length = None
+        if two:
+            self._build_wall_distances(rotation_length)
         self._build_vertices(idw_power, max_idw_sources)
         self._build_segments_and_patches()
         self._build_symmetry()
         self._build_blocks()
-        if self._local:
-            self._build_local_arms()
+        if two:
+            self._build_bodies()
+            self._build_arms()
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -439,6 +561,7 @@ class Deformer:
         E = np.concatenate(edges) if edges else np.empty((0, 2), dtype=np.int64)
         E = E[E[:, 0] != E[:, 1]]
         E = np.unique(np.sort(E, axis=1), axis=0)
+        self._wall_edges = E
         nbr: dict[int, set[int]] = {}
         for a, b in E:
             nbr.setdefault(int(a), set()).add(int(b))
@@ -528,6 +651,58 @@ class Deformer:
                                 "covered by no patch or interface of the connectivity")
         self._rects = rects
 
+    # ----------------------------------------------------- blending parameters
+    def _build_wall_distances(self, rotation_length) -> None:
+        """Two-level: distance of every boundary point to the walls, its nearest wall point,
+        the rotation length and the end weights ``omega = exp(-d / ell)``."""
+        from scipy.spatial import cKDTree
+        P = self._P
+        wall = np.flatnonzero(self._kind == WALL)
+        W = P[wall]
+        if rotation_length is None:
+            # twice the largest distance from the walls' centroid: a size that rotates with them
+            size = 2.0 * float(np.sqrt(np.max(np.sum((W - W.mean(axis=0)) ** 2, axis=1))))
+            rotation_length = ROTATION_LENGTH_FRACTION * size
+            if not rotation_length > 0.0:
+                rotation_length = ROTATION_LENGTH_FRACTION * self._scale
+        ell = float(rotation_length)
+        self.rotation_length = ell
+        d, near = cKDTree(W).query(P)
+        d[self._kind == WALL] = 0.0
+        self._dwall = d
+        self._foot = wall[near]
+        self._omega = np.exp(-d / ell)
+
+    def _line_params(self, s: np.ndarray, length: float, g0: int, g1: int) -> np.ndarray:
+        """Blending parameters of one chain of points between the known ends g0, g1
+        (``s``: normalised arclength including both ends)."""
+        if not self._two:
+            return self._psi(np.array(s, dtype=np.float64))
+        ell = self.rotation_length
+        return wall_layer_line(s, length, ell * self._omega[g0], ell * self._omega[g1])
+
+    def _patch_params(self, g: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(self._P[g])
+        s = tfi.arclength_surface(x)
+        if not self._two:
+            return self._psi(s)
+        ell = self.rotation_length
+        om = self._omega
+        x4 = np.asfortranarray(x[:, :, None, :])
+        s4 = np.zeros(x4.shape, order="F")
+        s4[:, :, 0, :2] = s
+        lam = [ell * om[g[0, :]], ell * om[g[-1, :]], ell * om[g[:, 0]], ell * om[g[:, -1]]]
+        return np.ascontiguousarray(wall_layer_block(x4, s4, lam, ndim=2)[:, :, 0, :2])
+
+    def _block_params(self, b: int, blk: Block) -> np.ndarray:
+        s = tfi.arclength(blk.xyz)
+        if not self._two:
+            return self._psi(s)
+        ell = self.rotation_length
+        lam = [ell * self._omega[self._face_gid[(b, f)]] for f in _faces_of(self.ndim)]
+        return wall_layer_block(blk.xyz, s, lam, ndim=self.ndim)
+
+    # --------------------------------------------------------------- skeleton
     def _build_vertices(self, power: float, max_sources: int) -> None:
         known = self._kind >= FIXED
         corners = set()
@@ -577,13 +752,15 @@ class Deformer:
             pts = self._P[chain[start - 1:m + 1]]
             arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
             if arc[-1] > 0.0:
-                s = arc[1:-1] / arc[-1]
+                s = arc / arc[-1]
             else:
-                s = np.arange(1, run.size + 1) / (run.size + 1.0)
+                s = np.arange(run.size + 2) / (run.size + 1.0)
+            s[0], s[-1] = 0.0, 1.0
+            t = self._line_params(s, arc[-1], int(left), int(right))[1:-1]
             # a point may repeat along a side (collapsed): keep its first occurrence
             _, keep = np.unique(run, return_index=True)
             keep.sort()
-            gaps.append((int(left), int(right), run[keep], self._psi(s[keep])))
+            gaps.append((int(left), int(right), run[keep], t[keep]))
             known[run] = True
 
     def _build_segments_and_patches(self) -> None:
@@ -603,6 +780,9 @@ class Deformer:
                           np.concatenate([[0], np.cumsum([x[2].size for x in gaps])]).astype(np.int64),
                           np.concatenate([x[2] for x in gaps]).astype(np.int64),
                           np.concatenate([x[3] for x in gaps]).astype(np.float64))
+            left, right, ptr, pts, _ = self._gaps
+            n = np.diff(ptr)
+            self._gap_ends = (np.repeat(left, n), np.repeat(right, n))
         else:
             self._gaps = None
         patches: list[_PatchTFI] = []
@@ -615,7 +795,7 @@ class Deformer:
             inner[1:-1, 1:-1] = ~known[g[1:-1, 1:-1]]
             if not inner.any():
                 continue
-            s = self._psi(tfi.arclength_surface(np.ascontiguousarray(self._P[g])))
+            s = self._patch_params(g)
             ends = [prescribed[g[0, :]].sum() + prescribed[g[-1, :]].sum(),
                     prescribed[g[:, 0]].sum() + prescribed[g[:, -1]].sum()]
             lead = 0 if ends[0] >= ends[1] else 1
@@ -625,9 +805,11 @@ class Deformer:
             write = np.zeros(g.shape, dtype=bool)
             idx = np.argwhere(inner)[np.sort(first)]
             write[idx[:, 0], idx[:, 1]] = True
-            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face, params=tfi.patch_params(s)))
+            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face, params=tfi.patch_params(s),
+                                     wgid=g[write]))
             known[flat] = True
         self._patches = patches
+        self._derived = np.flatnonzero(self._kind < FIXED)
         if not known.all():
             g = int(np.flatnonzero(~known)[0])
             raise CaseError(f"boundary point at {tuple(np.round(self._P[g], 6))} is reached by no "
@@ -646,11 +828,12 @@ class Deformer:
         prescribed = self._kind >= FIXED
         faces = _faces_of(self.ndim)
         for b, blk in enumerate(self.grid):
-            s = self._psi(tfi.arclength(blk.xyz))
+            s = self._block_params(b, blk)
             fg = [self._face_gid[(b, f)] for f in faces]
             counts = [int(prescribed[g].sum()) for g in fg]
             order = tuple(int(x) for x in tfi.lead_order(counts))
-            plans.append(_BlockPlan(s, order, fg))
+            face_s = tfi.face_params(s) if self.ndim == 3 else None
+            plans.append(_BlockPlan(s, order, fg, face_s))
         self._blocks = plans
         # where each block's boundary points live, for the final scatter
         blk_of = np.searchsorted(self._offsets, self._copies_key, side="right") - 1
@@ -659,36 +842,114 @@ class Deformer:
             sel = blk_of == b
             self._scatter.append((self._copies_key[sel] - self._offsets[b], self._copies_gid[sel]))
 
-    def _build_local_arms(self) -> None:
-        """The local formulation's arms ``E = R_u - TFI(R_u from the boundary)``.
+    # ------------------------------------------------------- two-level set-up
+    def _build_bodies(self) -> None:
+        """Connected wall bodies, each with the rigid motions its symmetry planes allow."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        wall = self._wall_gids
+        pos = np.full(self.n_global, -1, dtype=np.int64)
+        pos[wall] = np.arange(wall.size)
+        E = self._wall_edges
+        r, c = pos[E[:, 0]], pos[E[:, 1]]
+        ok = (r >= 0) & (c >= 0)
+        graph = coo_matrix((np.ones(int(ok.sum()), dtype=np.int8), (r[ok], c[ok])),
+                           shape=(wall.size, wall.size))
+        _, label = connected_components(graph, directed=False)
+        bodies = []
+        for lab in np.unique(label):
+            gids = wall[label == lab]
+            planes = sorted({int(p) for p in self._sym_of[gids] if p >= 0})
+            normals = [self._sym_planes[p][1] for p in planes]
+            if self.ndim == 2:
+                normals.append(np.array([0.0, 0.0, 1.0]))
+            axis, tproj = constrain_to_planes(normals)
+            bodies.append(_Body(gids, axis, tproj))
+        self._bodies = bodies
 
-        Segments: the offset from the chord between the known end points;
-        patches: from the 2-D TFI of the patch's sides; blocks: from the 3-D
-        (2-D) TFI of the block's faces (sides), all with the same parameters
-        and leading directions as the step uses.
+    def _build_arms(self) -> None:
+        """Two-level: the centre field ``c`` on boundary points and the arms ``A = R_u - c``.
+
+        Walls: ``c`` is the point itself.  Fixed points on the side faces of a
+        block (faces that are not ends of its leading direction): ``c`` is the
+        interpolant along the leading direction between the face's end edges,
+        so the side faces' own offsets from their edges do not become
+        interpolation residuals that would carry un-rotated wall-layer
+        offsets into the block.  Derived points (vertices, segments, patches):
+        ``c`` is interpolated like every other field, then re-based to
+        ``w foot + (1 - w) x`` (``foot``: the nearest wall point, ``w`` =
+        ``exp(-d / (REBASE_FRACTION * rotation_length))``), and the shift
+        ``c_rebased - c_interpolated`` is kept: a step adds ``rot(Q, shift)``
+        to the interpolated ``K`` so the position is unchanged and rigid
+        motions stay exact.  Volumes: ``A = R_u - TFI(c on the faces)``.
         """
         P = self._P
+        kind = self._kind
+        c = P.copy()
+        # fixed points of side faces: the leading-direction interpolant of the face's end edges
+        for b, plan in enumerate(self._blocks):
+            L = plan.order[0]
+            dims = self.grid[b].dims
+            for d in plan.order[1:]:
+                others = [m for m in range(3) if m != d]
+                if L not in others:
+                    continue
+                ax = others.index(L)
+                for side in (0, 1):
+                    g = plan.face_gid[2 * d + side]
+                    fx = kind[g] == FIXED
+                    if not fx.any():
+                        continue
+                    sl = [slice(None)] * 3
+                    sl[d] = dims[d] - 1 if side else 0
+                    sL = plan.s[tuple(sl)][..., L]
+                    e0 = np.take(P[g], [0], axis=ax)
+                    e1 = np.take(P[g], [-1], axis=ax)
+                    u = (1.0 - sL)[..., None] * e0 + sL[..., None] * e1
+                    # near walls only: far away Q is 1 and the offsets carry no rotation, and
+                    # a point on the side faces of several blocks keeps one value there
+                    gf = g[fx]
+                    om = np.exp(-(self._dwall[gf] / (2.0 * self.rotation_length)) ** 2)[:, None]
+                    c[gf] = om * u[fx] + (1.0 - om) * P[gf]
+        shift = np.zeros_like(P)
+        lr = REBASE_FRACTION * self.rotation_length
+        w_r = np.exp(-self._dwall / lr)
+        target = w_r[:, None] * P[self._foot] + (1.0 - w_r)[:, None] * P   # re-based centres
+
+        def rebase(idx, c_interp):
+            shift[idx] = target[idx] - c_interp
+            c[idx] = target[idx]
+
+        # same order as a step: vertices, segments (gap by gap), patches
+        if self._idw is not None:
+            src, w, decay, _ = self._idw
+            free = self._free_vertices
+            rebase(free, decay[:, None] * (w @ c[src]) + (1.0 - decay)[:, None] * P[free])
         if self._gaps is not None:
-            left, right, ptr, pts, t = self._gaps
-            lo = np.repeat(left, np.diff(ptr))
-            hi = np.repeat(right, np.diff(ptr))
-            self._gap_e = P[pts] - ((1.0 - t)[:, None] * P[lo] + t[:, None] * P[hi])
-        for p in self._patches:
-            d = np.ascontiguousarray(P[p.gid])
-            tfi.tfi_patch(d, None, p.s, p.lead)
-            p.e = np.ascontiguousarray(P[p.gid][p.write] - d[p.write])
-        zero = np.zeros(3)
+            _rebase_gaps(c, *self._gaps, target, shift)
+        for pt in self._patches:
+            d = np.ascontiguousarray(c[pt.gid])
+            tfi.tfi_patch_fast(d, None, pt.params, pt.lead)
+            rebase(pt.wgid, d[pt.write])
+        self._c = c
+        self._cshift = shift
+        self._arm = P - c
+        damp = np.ones(self.n_global)
+        der = self._derived
+        damp[der] = np.exp(-(self._dwall[der] / (DAMP_FRACTION * self.rotation_length)) ** 2)
+        self._dampf = damp
         for blk, plan in zip(self.grid, self._blocks):
-            fd = tuple(np.ascontiguousarray(P[g]) for g in plan.face_gid)
+            fc = tuple(np.ascontiguousarray(c[g]) for g in plan.face_gid)
             base = np.zeros_like(blk.xyz, order="F")
             interp = np.empty_like(blk.xyz, order="F")
             if self.ndim == 3:
-                tfi.deform_block(base, plan.s, fd, None, zero, plan.order, out=interp)
+                tfi.deform_block(base, plan.s, fc, None, _ORIGIN, plan.order, out=interp,
+                                 face_s=plan.face_s)
             else:
-                tfi.deform_block_2d(base, plan.s, tuple(d[:, 0] for d in fd), None, zero, plan.order,
-                                    out=interp)
+                tfi.deform_block_2d(base, plan.s, tuple(x[:, 0] for x in fc), None, _ORIGIN,
+                                    plan.order, out=interp)
             np.subtract(blk.xyz, interp, out=interp)
-            plan.e = interp
+            plan.arm = interp
 
     # -------------------------------------------------------------- a step
     def wall_points(self) -> np.ndarray:
@@ -737,27 +998,21 @@ class Deformer:
         bad = ~np.isfinite(rd[wall])
         if bad.any():
             raise DeformationError(f"{int(bad.any(axis=1).sum())} moved wall point(s) are not finite")
+        if self.ndim == 2 and np.any(rd[wall, 2] != 0.0):
+            raise DeformationError("moved wall points of a 2-D grid must have z = 0")
         return rd
 
-    def _wall_stage(self, rd: np.ndarray):
-        G = self.n_global
-        gdelta = np.zeros((G, 3))
-        gq = np.zeros((G, 4))
-        gq[:, 0] = 1.0
-        wall = self._wall_gids
-        c = self.centre
-        if not self._use_q:
-            gdelta[wall] = rd[wall] - self._P[wall]
-            return gdelta, None
+    def _wall_quaternions(self, rd: np.ndarray) -> np.ndarray:
+        """Merged boundary quaternions ``(n_wall, 4)`` of the wall points moved to ``rd``."""
         from .boundary import boundary_motion
+        G = self.n_global
         acc = np.zeros((G, 4))
         count = np.zeros(G, dtype=np.int64)
         plane = np.array([0.0, 0.0, 1.0]) if self.ndim == 2 else None
         nan3 = np.full(3, np.nan)
+        P = self._P
         for w in self._walls:
-            ru = self._P[w.gid]
-            rdw = rd[w.gid]
-            hu = np.where((w.halo >= 0)[..., None], self._P[np.maximum(w.halo, 0)], nan3)
+            hu = np.where((w.halo >= 0)[..., None], P[np.maximum(w.halo, 0)], nan3)
             hd = np.where((w.halo >= 0)[..., None], rd[np.maximum(w.halo, 0)], nan3)
             m = w.mirror >= 0
             if m.any():
@@ -766,40 +1021,26 @@ class Deformer:
                     sel = w.mirror == sp
                     hu[sel] -= 2.0 * ((hu[sel] - o) @ n)[:, None] * n
                     hd[sel] -= 2.0 * ((hd[sel] - o) @ n)[:, None] * n
-            q, _ = boundary_motion(ru, rdw, c, plane_normal=plane, halo_u=hu, halo_d=hd)
+            q, _ = boundary_motion(P[w.gid], rd[w.gid], self.centre, plane_normal=plane,
+                                   halo_u=hu, halo_d=hd)
             _merge_quaternions(w.gid.ravel(), np.ascontiguousarray(q.reshape(-1, 4)), acc, count)
-        qw = acc[wall]
+        qw = acc[self._wall_gids]
         qw /= np.linalg.norm(qw, axis=1, keepdims=True)
-        gq[wall] = qw
-        if self._local:
-            # the local formulation carries deformed positions, not translations
-            gdelta[:] = self._P
-            gdelta[wall] = rd[wall]
-            return gdelta, gq
-        # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
-        gdelta[wall] = rd[wall] - c - qa.rotate(qw, self._P[wall] - c)
-        return gdelta, gq
+        return qw
 
+    # -- the Samareh hierarchy (formulation "samareh", the rigid part of "two-level", "tfi")
     def _vertex_stage(self, gdelta, gq) -> None:
         if self._idw is None:
             return
         src, w, decay, ref = self._idw
         free = self._free_vertices
-        if not self._local:
-            gdelta[free] = decay[:, None] * (w @ gdelta[src])
-        if gq is None:
-            return
+        gdelta[free] = decay[:, None] * (w @ gdelta[src])
+        if gq is not None:
+            gq[free] = self._vertex_q(gq, decay)
+
+    def _vertex_q(self, gq, decay) -> np.ndarray:
+        src, w, _, ref = self._idw
         qs = gq[src]                                         # (ns, 4)
-        if self._local:
-            # each wall source predicts the vertex by its own rigid motion,
-            # rd_s + rot(q_s, P_v - P_s); the predictions are blended and decayed
-            pv = self._P[free]
-            pred = np.empty((free.size, 3))
-            for a in range(0, free.size, 64):
-                arm = pv[a:a + 64, None, :] - self._P[src][None, :, :]
-                moved = gdelta[src][None] + qa.rotate(np.broadcast_to(qs, arm.shape[:2] + (4,)), arm)
-                pred[a:a + 64] = np.einsum("vs,vsc->vc", w[a:a + 64], moved)
-            gdelta[free] = pv + decay[:, None] * (pred - pv)
         qref = qs[ref]                                       # (nv, 4)
         sign = np.where(qref @ qs.T >= 0.0, 1.0, -1.0)       # (nv, ns)
         qbar = (w * sign) @ qs
@@ -809,7 +1050,7 @@ class Deformer:
         qbar[~small] /= norm[~small, None]
         ident = np.zeros_like(qbar)
         ident[:, 0] = 1.0
-        gq[free] = qa.slerp(ident, qbar, decay)
+        return qa.slerp(ident, qbar, decay)
 
     def _segment_stage(self, gdelta, gq) -> None:
         if self._gaps is None:
@@ -817,20 +1058,15 @@ class Deformer:
         left, right, ptr, pts, s = self._gaps
         _fill_gaps(gdelta, gq if gq is not None else np.empty((1, 4)), left, right, ptr, pts, s,
                    gq is not None)
-        if self._local:
-            gdelta[pts] += qa.rotate(gq[pts], self._gap_e)
 
     def _patch_stage(self, gdelta, gq) -> None:
         for p in self._patches:
             d = np.ascontiguousarray(gdelta[p.gid])
             q = np.ascontiguousarray(gq[p.gid]) if gq is not None else None
             tfi.tfi_patch_fast(d, q, p.params, p.lead)
-            if p.e is not None:
-                gdelta[p.gid[p.write]] = d[p.write] + qa.rotate(q[p.write], p.e)
-            else:
-                gdelta[p.gid[p.write]] = d[p.write]
+            gdelta[p.wgid] = d[p.write]
             if q is not None:
-                gq[p.gid[p.write]] = q[p.write]
+                gq[p.wgid] = q[p.write]
 
     def _symmetry_stage(self, gdelta, gq) -> None:
         """Symmetry points: on their plane, rotating about its normal only.
@@ -838,8 +1074,6 @@ class Deformer:
         The position from the interpolated (delta, q) is projected onto the
         plane; then q is reduced to its rotation about the plane normal (its
         "twist") and delta recomputed so that the projected position is kept.
-        Dropping part of the rotation without recomputing delta would move the
-        point by (dropped angle) x (distance to the centre).
         """
         sym = self._sym_gids
         if sym.size == 0:
@@ -847,11 +1081,6 @@ class Deformer:
         n = self._sym_normal
         c = self.centre
         arm = self._P[sym] - c
-        if self._local:
-            pos = gdelta[sym]
-            gdelta[sym] = pos - np.sum((pos - self._sym_point) * n, axis=1, keepdims=True) * n
-            gq[sym] = _twist_about(gq[sym], n)
-            return
         if gq is not None:
             pos = c + gdelta[sym] + qa.rotate(gq[sym], arm)
         else:
@@ -864,14 +1093,8 @@ class Deformer:
         gq[sym] = tw
         gdelta[sym] = pos - c - qa.rotate(tw, arm)
 
-    def _boundary_positions(self, gdelta, gq, rd) -> np.ndarray:
-        c = self.centre
-        if self._local:
-            pos = gdelta.copy()
-        elif gq is not None:
-            pos = c + gdelta + qa.rotate(gq, self._P - c)
-        else:
-            pos = self._P + gdelta
+    def _finish_boundary(self, pos, rd) -> np.ndarray:
+        """Boundary positions: symmetry points on their plane, fixed points at rest, walls exact."""
         sym = self._sym_gids
         if sym.size:
             off = np.sum((pos[sym] - self._sym_point) * self._sym_normal, axis=1)
@@ -881,6 +1104,107 @@ class Deformer:
         wall = self._wall_gids
         pos[wall] = rd[wall]
         return pos
+
+    def _samareh_fields(self, gdelta, gq):
+        """Vertices, segments, patches and symmetry of the Samareh hierarchy, in place."""
+        t1 = time.perf_counter()
+        self._vertex_stage(gdelta, gq)
+        self._segment_stage(gdelta, gq)
+        t2 = time.perf_counter()
+        self._patch_stage(gdelta, gq)
+        self._symmetry_stage(gdelta, gq)
+        return t2 - t1, time.perf_counter() - t2
+
+    def _volumes(self, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None):
+        """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``."""
+        nblk = len(self.grid)
+        total = total or nblk
+        for b, plan in enumerate(self._blocks):
+            fd = tuple(np.ascontiguousarray(gdelta[g]) for g in plan.face_gid)
+            fq = tuple(np.ascontiguousarray(gq[g]) for g in plan.face_gid) if gq is not None else None
+            if self.ndim == 3:
+                tfi.deform_block(bases[b], plan.s, fd, fq, centre, plan.order, out=outs[b],
+                                 face_s=plan.face_s)
+            else:
+                sd = tuple(d[:, 0] for d in fd)
+                sq = tuple(q[:, 0] for q in fq) if fq is not None else None
+                tfi.deform_block_2d(bases[b], plan.s, sd, sq, centre, plan.order, out=outs[b])
+            if callback is not None:
+                callback(done0 + b + 1, total)
+
+    # -- the two-level step
+    def _fits(self, rd):
+        """Per wall body: (q, t) of the best rigid motion and the pulled-back residual targets."""
+        P = self._P
+        y = P.copy()
+        fits = []
+        for body in self._bodies:
+            g = body.gids
+            q, t = fit_rigid(P[g], rd[g], body.axis, body.tproj)
+            fits.append((q, t))
+            # rot(q)^-1 (rd - t)
+            y[g] = qa.rotate(qa.conjugate(q), rd[g] - t)
+        return fits, y
+
+    def _local_fields(self, y):
+        """The residual motion: K and Q on every boundary point, and boundary positions."""
+        P = self._P
+        A = self._arm
+        wall = self._wall_gids
+        gq = np.zeros((self.n_global, 4))
+        gq[:, 0] = 1.0
+        gq[wall] = self._wall_quaternions(y)
+        K = self._c.copy()                  # fixed points: K = c (Q = 1, position c + A = P)
+        K[wall] = y[wall]                   # walls: A = 0
+        damp = self._dampf
+        shift = self._cshift
+        t1 = time.perf_counter()
+        # each level: interpolate, fade the residual rotation out away from the walls, add
+        # the re-basing shift of the centres (the position K + rot(Q, A) is unchanged by it)
+        if self._idw is not None:
+            src, w, decay, _ = self._idw
+            free = self._free_vertices
+            K[free] = decay[:, None] * (w @ K[src]) + (1.0 - decay)[:, None] * P[free]
+            gq[free] = self._vertex_q(gq, decay)
+            K[free] += qa.rotate(gq[free], shift[free])
+        if self._gaps is not None:
+            _fill_gaps_local(K, gq, *self._gaps, damp, shift)
+        t2 = time.perf_counter()
+        for p in self._patches:
+            d = np.ascontiguousarray(K[p.gid])
+            q = np.ascontiguousarray(gq[p.gid])
+            tfi.tfi_patch_fast(d, q, p.params, p.lead)
+            g = p.wgid
+            gq[g] = q[p.write]
+            _damp_towards_identity(gq, g, damp[g])
+            K[g] = d[p.write] + qa.rotate(gq[g], shift[g])
+        sym = self._sym_gids
+        if sym.size:
+            n = self._sym_normal
+            pos = K[sym] + qa.rotate(gq[sym], A[sym])
+            pos -= np.sum((pos - self._sym_point) * n, axis=1, keepdims=True) * n
+            tw = _twist_about(gq[sym], n)
+            gq[sym] = tw
+            K[sym] = pos - qa.rotate(tw, A[sym])
+        pos = K + qa.rotate(gq, A)
+        fixed = self._kind == FIXED
+        pos[fixed] = P[fixed]
+        pos[wall] = y[wall]
+        return K, gq, pos, t2 - t1, time.perf_counter() - t2
+
+    def _global_fields(self, fits):
+        """The rigid part: Samareh's hierarchy with each body's uniform (Δ, Q)."""
+        G = self.n_global
+        c = self.centre
+        gdelta = np.zeros((G, 3))
+        gq = np.zeros((G, 4))
+        gq[:, 0] = 1.0
+        for body, (q, t) in zip(self._bodies, fits):
+            # c + Δ + rot(q, x - c) = rot(q, x) + t
+            gdelta[body.gids] = t + qa.rotate(q, c) - c
+            gq[body.gids] = q
+        ts, tf = self._samareh_fields(gdelta, gq)
+        return gdelta, gq, ts, tf
 
     def deform(self, moved, *, callback: Callable[[int, int], None] | None = None) -> Grid:
         """Deform the grid for new wall positions.
@@ -895,7 +1219,7 @@ class Deformer:
             * a mapping ``PatchSpec or "B:FACE[:range]" -> array (na, nb, 3)``
               covering every wall point.
         callback : callable(done, total), optional
-            Called after each block (progress reporting).
+            Called after each block kernel (progress reporting).
 
         Returns
         -------
@@ -905,46 +1229,107 @@ class Deformer:
         """
         t0 = time.perf_counter()
         rd = self._wall_targets(moved)
-        gdelta, gq = self._wall_stage(rd)
-        t1 = time.perf_counter()
-        self._vertex_stage(gdelta, gq)
-        self._segment_stage(gdelta, gq)
-        t2 = time.perf_counter()
-        self._patch_stage(gdelta, gq)
-        self._symmetry_stage(gdelta, gq)
-        pos = self._boundary_positions(gdelta, gq, rd)
-        t3 = time.perf_counter()
-        out_blocks = []
-        nblk = len(self.grid)
-        for b, (blk, plan) in enumerate(zip(self.grid, self._blocks)):
-            fd = tuple(np.ascontiguousarray(gdelta[g]) for g in plan.face_gid)
-            fq = tuple(np.ascontiguousarray(gq[g]) for g in plan.face_gid) if gq is not None else None
-            out = np.empty_like(blk.xyz, order="F")
-            # local: TFI(boundary positions) + rot(Q, E); samareh: c + Δ + rot(Q, R_u - c)
-            base, c = (plan.e, _ORIGIN) if self._local else (blk.xyz, self.centre)
-            if self.ndim == 3:
-                tfi.deform_block(base, plan.s, fd, fq, c, plan.order, out=out)
-            else:
-                sd = tuple(d[:, 0] for d in fd)
-                sq = tuple(q[:, 0] for q in fq) if fq is not None else None
-                tfi.deform_block_2d(base, plan.s, sd, sq, c, plan.order, out=out)
+        if self._two:
+            grid = self._deform_two_level(rd, callback, t0)
+        else:
+            grid = self._deform_samareh(rd, callback, t0)
+        return grid
+
+    def _assemble(self, outs, pos) -> Grid:
+        blocks = []
+        for b, (blk, out) in enumerate(zip(self.grid, outs)):
             local, gid = self._scatter[b]
             out.reshape(-1, 3, order="F")[local] = pos[gid]
             if self.ndim == 2:
                 out[..., 2] = 0.0
-            out_blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
-            if callback is not None:
-                callback(b + 1, nblk)
+            blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
+        return Grid(blocks, self.ndim, source_format=self.grid.source_format)
+
+    def _deform_samareh(self, rd, callback, t0) -> Grid:
+        G = self.n_global
+        wall = self._wall_gids
+        c = self.centre
+        gdelta = np.zeros((G, 3))
+        if self._use_q:
+            gq = np.zeros((G, 4))
+            gq[:, 0] = 1.0
+            qw = self._wall_quaternions(rd)
+            gq[wall] = qw
+            # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
+            gdelta[wall] = rd[wall] - c - qa.rotate(qw, self._P[wall] - c)
+        else:
+            gq = None
+            gdelta[wall] = rd[wall] - self._P[wall]
+        t1 = time.perf_counter()
+        ts, tf = self._samareh_fields(gdelta, gq)
+        if gq is not None:
+            pos = c + gdelta + qa.rotate(gq, self._P - c)
+        else:
+            pos = self._P + gdelta
+        pos = self._finish_boundary(pos, rd)
+        t3 = time.perf_counter()
+        outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
+        self._volumes([blk.xyz for blk in self.grid], gdelta, gq, c, outs, callback)
+        grid = self._assemble(outs, pos)
         t4 = time.perf_counter()
-        self.timings = StepTimings(walls=t1 - t0, skeleton=t2 - t1, faces=t3 - t2, volumes=t4 - t3)
-        return Grid(out_blocks, self.ndim, source_format=self.grid.source_format)
+        self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=tf + (t3 - t1 - ts - tf),
+                                   volumes=t4 - t3)
+        return grid
+
+    def _deform_two_level(self, rd, callback, t0) -> Grid:
+        wall = self._wall_gids
+        P = self._P
+        fits, y = self._fits(rd)
+        tiny = 1e-14 * self._scale
+        local = bool(np.max(np.abs(y[wall] - P[wall]), initial=0.0) > tiny)
+        rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
+        t1 = time.perf_counter()
+        ts = tf = 0.0
+        if local:
+            K, gql, pos, a, b = self._local_fields(y)
+            ts += a
+            tf += b
+        else:
+            pos = P.copy()
+        if rigid:
+            gdelta, gq, a, b = self._global_fields(fits)
+            ts += a
+            tf += b
+            c = self.centre
+            pos = c + gdelta + qa.rotate(gq, pos - c)
+        pos = self._finish_boundary(pos, rd)
+        t3 = time.perf_counter()
+        outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
+        total = len(self.grid) * (int(local) + int(rigid))
+        if local:
+            self._volumes([plan.arm for plan in self._blocks], K, gql, _ORIGIN, outs, callback, 0,
+                          total)
+        else:
+            for out, blk in zip(outs, self.grid):
+                np.copyto(out, blk.xyz)
+        if rigid:
+            self._volumes(outs, gdelta, gq, self.centre, outs, callback,
+                          len(self.grid) * int(local), total)
+        grid = self._assemble(outs, pos)
+        t4 = time.perf_counter()
+        self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=tf + (t3 - t1 - ts - tf),
+                                   volumes=t4 - t3)
+        return grid
 
     # ------------------------------------------------------------ reporting
     def summary(self) -> str:
         """A few lines describing the skeleton (for the CLI and logs)."""
         k = self._kind
+        if self.method == "tfi":
+            head = f"method tfi (plain TFI), {self.blending} blending"
+        elif self._two:
+            head = (f"method quaternion, formulation two-level, rotation length "
+                    f"{self.rotation_length:.6g}, {len(self._bodies)} wall bod"
+                    f"{'y' if len(self._bodies) == 1 else 'ies'}")
+        else:
+            head = f"method quaternion, formulation samareh, {self.blending} blending"
         lines = [
-            f"method {self.method}, centre ({', '.join(f'{v:.6g}' for v in self.centre)})",
+            head + f", centre ({', '.join(f'{v:.6g}' for v in self.centre)})",
             f"{self.n_global} boundary points: {int((k == WALL).sum())} wall, "
             f"{int((k == FIXED).sum())} fixed, {int((self._sym_of >= 0).sum())} symmetry",
             f"{len(self._vertex_corners)} vertices ({len(self._free_vertices)} free), "
@@ -960,4 +1345,3 @@ def deformer_from_case(case, grid: Grid | None = None, **kw) -> Deformer:
     if grid is None:
         grid = io.read(case.grid)
     return Deformer(grid, walls=case.walls, symmetry=case.symmetry, fixed=case.fixed, **kw)
-
