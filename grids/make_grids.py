@@ -42,7 +42,7 @@ SAMPLES = {
     "wing_ch_501k": (
         "wing", dict(naca="0012", aspect_ratio=4.0, taper=0.5, sweep=30.0, ni=129, nj=49, nk_wing=45,
                      nk_cap=9, nk_out=25, first_spacing=2e-5, farfield=15.0, span_farfield=10.0),
-        dict(deformation="bend", amplitude=0.15, span_axis=[0.0, 1.0, 0.0], span=1.5,
+        dict(bend=0.15, twist=5.0, about=[0.25, 0.0, 0.0], span_axis=[0.0, 1.0, 0.0], span=1.5,
              direction=[0.0, 0.0, 1.0]),
         "3-D C-H wing: wake cuts, tip cap with collapsed edge, symmetry plane, swapped/reversed interfaces"),
 }

@@ -13,11 +13,11 @@ A case file is TOML (layout in ``docs/formats.md``)::
     axis = [0.0, 0.0, 1.0]
     about = [0.25, 0.0, 0.0]
     translate = [0.0, 0.05, 0.0]
-    deformation = "twist"                # optional: "bend" or "twist"
-    amplitude = 5.0                      # twist: degrees; bend: length
-    span_axis = [0.0, 1.0, 0.0]
+    twist = 5.0                          # optional: degrees at the span
+    bend = 0.15                          # optional: deflection at the span
+    span_axis = [0.0, 1.0, 0.0]          # the beam axis (through `about`)
     span = 1.5
-    direction = [0.0, 0.0, 1.0]          # bend only
+    direction = [0.0, 0.0, 1.0]          # bend direction
 
 :func:`load_case` reads and validates one (unknown keys, bad patch strings,
 wrong types and a missing grid file are :class:`~tfi_quat.errors.CaseError`
@@ -80,7 +80,26 @@ def _rotation_matrix(axis, angle_deg: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Motion:
-    """A prescribed wall motion: a named deformation, then a rigid motion.
+    """A prescribed wall motion: a beam-like twist and bend, then a rigid motion.
+
+    The deformation acts along a *beam axis*, the line through ``about``
+    along ``span_axis``.  With ``eta = (p - about) . span_axis`` the distance
+    of a point's section from ``about`` and ``s = max(eta, 0) / span``:
+
+    1. **twist**: the section turns about the beam axis by
+       ``theta(s) = twist * s**2`` degrees;
+    2. **bend**: the beam axis is deflected along ``direction`` by
+       ``f(s) = bend * s**2`` and every section turns with the slope of the
+       bent axis (plane sections stay plane and normal to it: Euler-Bernoulli
+       beam kinematics), so a wing's sections keep their shape and the wall
+       moves locally like a rigid body;
+    3. the rigid rotation (``rotate`` degrees about ``axis`` through
+       ``about``) and the translation.
+
+    Beyond ``s = 1`` both go on along their tangent (``twist * (2 s - 1)``,
+    ``bend * (2 s - 1)``): the motion stays smooth, so what lies past the
+    span (a wing-tip cap) moves with the last section instead of shearing
+    against it.  ``s = 0`` for ``eta <= 0``: nothing behind ``about`` deforms.
 
     Attributes
     ----------
@@ -89,61 +108,71 @@ class Motion:
     axis : (3,) floats
         Rotation axis (non-zero; normalised on use).
     about : (3,) floats
-        A point on the rotation axis (also the origin of the deformation).
+        A point on the rotation axis and on the beam axis.
     translate : (3,) floats
-        Rigid translation, applied after the rotation.
-    deformation : {None, "bend", "twist"}
-        Optional named deformation applied before the rigid motion.  With
-        ``s = clip((p - about) . span_axis, 0, span) / span``:
-        ``twist`` rotates each point about the line through ``about`` along
-        ``span_axis`` by ``amplitude * s**2`` degrees; ``bend`` moves it by
-        ``amplitude * s**2`` along ``direction``.  Beyond ``span`` the twist
-        stays at ``amplitude`` and the bend goes on along its tangent,
-        ``amplitude * (2 s' - 1)`` with ``s' = (p - about) . span_axis / span``:
-        both keep the sections' rotation continuous, so what lies past the
-        span (a wing-tip cap) turns with the last section instead of shearing
-        against it.
-    amplitude : float
-        Twist angle (degrees) or bend deflection (length) at ``s = 1``.
+        Rigid translation, applied last.
+    bend : float
+        Deflection (length) of the beam axis at ``s = 1``.
+    twist : float
+        Twist angle (degrees) at ``s = 1``, right-handed about ``span_axis``.
     span_axis : (3,) floats
-        Direction along which the deformation grows.
+        Direction of the beam axis.
     span : float
-        Length over which it grows (> 0 when a deformation is given).
+        Length over which the deformation grows (> 0).
     direction : (3,) floats
-        Bend direction.
+        Bend direction (its component normal to ``span_axis`` is used).
+    deformation, amplitude :
+        The older single-deformation form: ``deformation = "bend"`` (or
+        ``"twist"``) with ``amplitude`` means ``bend = amplitude`` (or
+        ``twist = amplitude``); not together with ``bend``/``twist``.
     """
 
     rotate: float = 0.0
     axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
     about: tuple[float, float, float] = (0.0, 0.0, 0.0)
     translate: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    deformation: str | None = None
-    amplitude: float = 0.0
+    bend: float = 0.0
+    twist: float = 0.0
     span_axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
     span: float = 1.0
     direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    deformation: str | None = None
+    amplitude: float | None = None
 
     def __post_init__(self):
         set_ = object.__setattr__
-        for name in ("rotate", "amplitude", "span"):
+        for name in ("rotate", "span", "bend", "twist"):
             set_(self, name, _num(getattr(self, name), f"motion.{name}"))
         for name in ("axis", "about", "translate", "span_axis", "direction"):
             set_(self, name, _vec3(getattr(self, name), f"motion.{name}"))
         for name in ("axis", "span_axis", "direction"):
             if not any(getattr(self, name)):
                 raise CaseError(f"motion.{name}: must not be the zero vector")
-        if self.deformation is not None:
+        if self.deformation is not None or self.amplitude is not None:
+            if self.deformation is None:
+                raise CaseError("motion.amplitude: give it with motion.deformation "
+                                f"({' or '.join(map(repr, DEFORMATIONS))}), or use motion.bend / motion.twist")
             if not isinstance(self.deformation, str) or self.deformation.lower() not in DEFORMATIONS:
                 raise CaseError(f"motion.deformation: expected one of {', '.join(DEFORMATIONS)}, "
                                 f"got {self.deformation!r}")
-            set_(self, "deformation", self.deformation.lower())
+            if self.bend != 0.0 or self.twist != 0.0:
+                raise CaseError("motion: give either deformation/amplitude or bend/twist, not both")
+            amp = _num(0.0 if self.amplitude is None else self.amplitude, "motion.amplitude")
+            set_(self, self.deformation.lower(), amp)
+            set_(self, "deformation", None)
+            set_(self, "amplitude", None)
         if self.span <= 0.0:
             raise CaseError(f"motion.span: must be > 0, got {self.span}")
+        if self.bend != 0.0:
+            sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
+            d = np.asarray(self.direction) / np.linalg.norm(self.direction)
+            if np.linalg.norm(d - (d @ sa) * sa) < 1e-9:
+                raise CaseError("motion.direction: must not be parallel to motion.span_axis")
 
     # dict-like access, for code that treats the motion as a mapping
     def keys(self) -> list[str]:
-        """Field names, in declaration order."""
-        return [f.name for f in fields(self)]
+        """Field names, in declaration order (the older deformation/amplitude form left out)."""
+        return [f.name for f in fields(self) if f.name not in ("deformation", "amplitude")]
 
     def __getitem__(self, key: str):
         if key not in self.keys():
@@ -157,22 +186,34 @@ class Motion:
     def to_dict(self) -> dict:
         """The motion as a plain dict (vectors as lists).
 
-        Leaves out the deformation parameters when there is no deformation,
-        and ``direction`` unless the deformation is a bend.
+        Leaves out the beam keys when there is no bend or twist, and
+        ``direction`` unless there is a bend.
         """
-        skip = set()
-        if self.deformation is None:
-            skip = {"deformation", "amplitude", "span_axis", "span", "direction"}
-        elif self.deformation != "bend":
-            skip = {"direction"}
+        skip = {"deformation", "amplitude"}
+        if self.bend == 0.0 and self.twist == 0.0:
+            skip |= {"bend", "twist", "span_axis", "span", "direction"}
+        elif self.bend == 0.0:
+            skip |= {"direction"}
         return {f.name: (list(v) if isinstance(v, tuple) else v)
                 for f in fields(self) if f.name not in skip
                 for v in (getattr(self, f.name),)}
 
     @property
     def is_rigid(self) -> bool:
-        """True when there is no named deformation."""
-        return self.deformation is None
+        """True when there is no bend and no twist."""
+        return self.bend == 0.0 and self.twist == 0.0
+
+    def describe(self) -> str:
+        """One line for logs and the CLI."""
+        parts = []
+        beam = f"along {tuple(self.span_axis)} from {tuple(self.about)}, span {self.span:g}"
+        if self.twist:
+            parts.append(f"twisted {self.twist:g} deg")
+        if self.bend:
+            parts.append(f"bent {self.bend:g} towards {tuple(self.direction)}")
+        text = (" and ".join(parts) + f" ({beam}), ") if parts else ""
+        return (text + f"rotated {self.rotate:g} deg about axis {tuple(self.axis)} through "
+                f"{tuple(self.about)}, translated {tuple(self.translate)}")
 
     def apply(self, points) -> np.ndarray:
         """Moved positions of ``points``.
@@ -190,26 +231,34 @@ class Motion:
         if p.shape[-1:] != (3,):
             raise CaseError(f"motion.apply: points must have shape (..., 3), got {p.shape}")
         c = np.asarray(self.about)
-        if self.deformation is not None:
+        if not self.is_rigid:
             sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
-            s = np.maximum((p - c) @ sa, 0.0) / self.span
-            if self.deformation == "bend":
-                # a * s**2 up to s = 1, then on along its tangent: the slope
-                # (the sections' rotation) stays continuous past the span, so
-                # a wing-tip cap turns with the tip section
-                f = self.amplitude * np.where(s <= 1.0, s * s, 2.0 * s - 1.0)
+            eta = (p - c) @ sa
+            s = np.maximum(eta, 0.0) / self.span
+            inner = s <= 1.0
+            grow = np.where(inner, s * s, 2.0 * s - 1.0)          # C1 past the span
+            a = c + eta[..., None] * sa                            # section centre on the beam axis
+            r = p - a
+            if self.twist:
+                r = _rodrigues(r, sa, np.radians(self.twist) * grow)
+            if self.bend:
                 d = np.asarray(self.direction) / np.linalg.norm(self.direction)
-                p = p + f[..., None] * d
-            else:
-                f = self.amplitude * np.minimum(s, 1.0) ** 2
-                t = np.radians(f)[..., None]
-                r = p - c
-                # Rodrigues rotation about sa by angle t, per point
-                p = c + r * np.cos(t) + np.cross(sa, r) * np.sin(t) + \
-                    sa * (r @ sa)[..., None] * (1.0 - np.cos(t))
+                d = d - (d @ sa) * sa
+                d /= np.linalg.norm(d)
+                slope = self.bend / self.span * np.where(inner, 2.0 * s, 2.0)
+                r = _rodrigues(r, np.cross(sa, d), np.arctan(slope))
+                a = a + (self.bend * grow)[..., None] * d
+            p = a + r
         if self.rotate != 0.0:
             p = c + (p - c) @ _rotation_matrix(self.axis, self.rotate).T
         return p + np.asarray(self.translate)
+
+
+def _rodrigues(r: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotate vectors ``r (..., 3)`` about the unit ``axis`` by per-vector ``angle`` (radians)."""
+    cs = np.cos(angle)[..., None]
+    sn = np.sin(angle)[..., None]
+    return r * cs + np.cross(axis, r) * sn + axis * (r @ axis)[..., None] * (1.0 - cs)
 
 
 @dataclass

@@ -9,6 +9,9 @@ import time
 from ..errors import CaseError
 from ._common import check_output
 
+#: tfi_quat.deform.FORMULATIONS, spelled out so the CLI starts without numba
+FORMULATIONS = ("two-level", "samareh")
+
 HELP = "deform a volume grid when its walls move (quaternion TFI or plain TFI)"
 DESCRIPTION = """Deform GRID for a wall motion and write the deformed grid to OUT.
 
@@ -46,7 +49,14 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--about", type=_vec, default=None, metavar="X,Y,Z",
                    help="point on the rotation axis (default 0,0,0)")
     p.add_argument("--translate", type=_vec, default=None, metavar="X,Y,Z", help="translate the walls")
-    p.add_argument("--method", choices=("quaternion", "tfi"), default="quaternion")
+    p.add_argument("--method", choices=("quaternion", "tfi"), default="quaternion",
+                   help="quaternion TFI (default) or plain TFI of displacements")
+    p.add_argument("--formulation", choices=FORMULATIONS, default="two-level",
+                   help="how rotations act (quaternion method): two-level (default) or samareh "
+                        "(the memo's update); docs/deformer.md")
+    p.add_argument("--rotation-length", type=float, metavar="L",
+                   help="two-level: thickness of the wall layer where non-rigid wall rotations act "
+                        "(default 2%% of the walls' size)")
     p.add_argument("-o", "--output", help="deformed grid file (default: the case file's output)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -67,15 +77,7 @@ def _motion(args, case):
         tr = args.translate or (0.0, 0.0, 0.0)
     elif case is not None and case.motion is not None:
         m = case.motion
-        desc = "walls moved by the case file's motion:"
-        if m.deformation is not None:
-            unit = "deg" if m.deformation == "twist" else ""
-            desc += (f" {m.deformation} {m.amplitude:g}{unit} at {m.span:g} along {tuple(m.span_axis)}"
-                     f" from {tuple(m.about)}" + (f" towards {tuple(m.direction)}" if m.deformation == "bend" else "")
-                     + ",")
-        desc += (f" rotated {m.rotate:g} deg about axis {tuple(m.axis)} through {tuple(m.about)},"
-                 f" translated {tuple(m.translate)}")
-        return m.apply, desc
+        return m.apply, "walls moved by the case file's motion: " + m.describe()
     else:
         raise CaseError("no wall motion: give --moved, --rotate/--translate, or a case file with [motion]")
     desc = f"walls rotated {rot:g} deg about axis {tuple(axis)} through {tuple(about)}, translated {tuple(tr)}"
@@ -128,13 +130,22 @@ def run(args) -> int:
         walls, sym, fixed = list(case.walls), list(case.symmetry), list(case.fixed)
     moved, desc = _motion(args, case)
     t0 = time.perf_counter()
-    deformer = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, connectivity=conn, method=args.method)
+    kw = {}
+    if args.method == "quaternion":
+        kw["formulation"] = args.formulation
+        if args.formulation == "two-level" and args.rotation_length is not None:
+            kw["rotation_length"] = args.rotation_length
+    if args.rotation_length is not None and "rotation_length" not in kw:
+        raise CaseError("--rotation-length applies to --method quaternion --formulation two-level")
+    deformer = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, connectivity=conn,
+                        method=args.method, **kw)
     t1 = time.perf_counter()
     result = deformer.deform(moved, callback=_Progress(not args.quiet and grid.npoints > 2_000_000))
     t2 = time.perf_counter()
     io.write(out, result, like=grid, overwrite=args.force)
     q = volume_ratio_summary(result, grid)
-    print(f"{desc}; method {args.method}")
+    label = args.method if args.method == "tfi" else f"{args.method} ({args.formulation})"
+    print(f"{desc}; method {label}")
     print(f"set-up {t1 - t0:.3f} s, step {t2 - t1:.3f} s ({grid.npoints / max(t2 - t1, 1e-12) / 1e6:.1f} M points/s)")
     where = ""
     if q["where"] is not None:
