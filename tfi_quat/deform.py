@@ -43,6 +43,7 @@ the displacement.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
@@ -248,6 +249,41 @@ def _rebase_gaps(c, left, right, ptr, pts, s, target, shift):
                 c[p, k] = target[p, k]
 
 
+@jit
+def _positions_local(K, gq, A, idx, pos):
+    """``pos[p] = K[p] + rot(q[p], A[p])`` for the listed points."""
+    r = np.empty(3)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        qa.krotate(gq[p], A[p], r)
+        for c in range(3):
+            pos[p, c] = K[p, c] + r[c]
+
+
+@jit
+def _positions_global(gdelta, gq, centre, idx, pos):
+    """In place, for the listed points: ``pos = c + Δ + rot(q, pos - c)``."""
+    v = np.empty(3)
+    r = np.empty(3)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        for c in range(3):
+            v[c] = pos[p, c] - centre[c]
+        qa.krotate(gq[p], v, r)
+        for c in range(3):
+            pos[p, c] = centre[c] + gdelta[p, c] + r[c]
+
+
+@jit
+def _scatter_rows(src, gid, local, dst):
+    """``dst[local[m]] = src[gid[m]]`` (dst: a block's points as (n, 3), any layout)."""
+    for m in range(gid.shape[0]):
+        g = gid[m]
+        r = local[m]
+        for c in range(3):
+            dst[r, c] = src[g, c]
+
+
 # ------------------------------------------------------------- set-up data
 def _twist_about(q: np.ndarray, n: np.ndarray) -> np.ndarray:
     """The rotation of each ``q`` about the unit axis ``n`` (swing-twist split)."""
@@ -294,7 +330,7 @@ class _BlockPlan:
     s: np.ndarray                       # blending parameters (ni, nj, nk, 3)
     order: tuple[int, ...]
     face_gid: list[np.ndarray] = field(default_factory=list)   # per face (na, nb)
-    face_s: tuple | None = None         # tfi.face_params(s), 3-D blocks
+    face_s: tuple | None = None         # tfi.face_params(s)
     arm: np.ndarray | None = None       # two-level: A = R_u - TFI(c on the faces)
 
 
@@ -432,6 +468,9 @@ class Deformer:
         if two:
             self._build_bodies()
             self._build_arms()
+        self._buffers = None
+        self._wall_local = None
+        self._lock = threading.Lock()
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -667,10 +706,13 @@ class Deformer:
                 rotation_length = ROTATION_LENGTH_FRACTION * self._scale
         ell = float(rotation_length)
         self.rotation_length = ell
-        d, near = cKDTree(W).query(P)
+        # every weight built from d is 0 to double precision beyond 40 ell: a bounded query
+        d, near = cKDTree(W).query(P, distance_upper_bound=40.0 * ell)
+        far = ~np.isfinite(d)
         d[self._kind == WALL] = 0.0
+        near[far] = 0
         self._dwall = d
-        self._foot = wall[near]
+        self._foot = np.where(far, np.arange(P.shape[0]), wall[near])
         self._omega = np.exp(-d / ell)
 
     def _line_params(self, s: np.ndarray, length: float, g0: int, g1: int) -> np.ndarray:
@@ -700,7 +742,7 @@ class Deformer:
             return self._psi(s)
         ell = self.rotation_length
         lam = [ell * self._omega[self._face_gid[(b, f)]] for f in _faces_of(self.ndim)]
-        return wall_layer_block(blk.xyz, s, lam, ndim=self.ndim)
+        return wall_layer_block(blk.xyz, s, lam, ndim=self.ndim, out=s)
 
     # --------------------------------------------------------------- skeleton
     def _build_vertices(self, power: float, max_sources: int) -> None:
@@ -832,8 +874,7 @@ class Deformer:
             fg = [self._face_gid[(b, f)] for f in faces]
             counts = [int(prescribed[g].sum()) for g in fg]
             order = tuple(int(x) for x in tfi.lead_order(counts))
-            face_s = tfi.face_params(s) if self.ndim == 3 else None
-            plans.append(_BlockPlan(s, order, fg, face_s))
+            plans.append(_BlockPlan(s, order, fg, tfi.face_params(s)))
         self._blocks = plans
         # where each block's boundary points live, for the final scatter
         blk_of = np.searchsorted(self._offsets, self._copies_key, side="right") - 1
@@ -939,17 +980,13 @@ class Deformer:
         damp[der] = np.exp(-(self._dwall[der] / (DAMP_FRACTION * self.rotation_length)) ** 2)
         self._dampf = damp
         for blk, plan in zip(self.grid, self._blocks):
-            fc = tuple(np.ascontiguousarray(c[g]) for g in plan.face_gid)
-            base = np.zeros_like(blk.xyz, order="F")
-            interp = np.empty_like(blk.xyz, order="F")
-            if self.ndim == 3:
-                tfi.deform_block(base, plan.s, fc, None, _ORIGIN, plan.order, out=interp,
-                                 face_s=plan.face_s)
-            else:
-                tfi.deform_block_2d(base, plan.s, tuple(x[:, 0] for x in fc), None, _ORIGIN,
-                                    plan.order, out=interp)
-            np.subtract(blk.xyz, interp, out=interp)
-            plan.arm = interp
+            # A = R_u - TFI(c): the baseline kernel with R_u as base and -c on the faces
+            fc = tuple(np.negative(c[g]) for g in plan.face_gid)
+            arm = np.empty_like(blk.xyz, order="F")
+            kernel = tfi.deform_block if self.ndim == 3 else tfi.deform_block_2d
+            kernel(blk.xyz, plan.s, fc, None, _ORIGIN, plan.order, out=arm, face_s=plan.face_s,
+                   check=False)
+            plan.arm = arm
 
     # -------------------------------------------------------------- a step
     def wall_points(self) -> np.ndarray:
@@ -1005,13 +1042,17 @@ class Deformer:
     def _wall_quaternions(self, rd: np.ndarray) -> np.ndarray:
         """Merged boundary quaternions ``(n_wall, 4)`` of the wall points moved to ``rd``."""
         from .boundary import boundary_motion
-        G = self.n_global
-        acc = np.zeros((G, 4))
-        count = np.zeros(G, dtype=np.int64)
+        nw = self._wall_gids.size
+        if self._wall_local is None:
+            where = np.full(self.n_global, -1, dtype=np.int64)
+            where[self._wall_gids] = np.arange(nw)
+            self._wall_local = [np.ascontiguousarray(where[w.gid].ravel()) for w in self._walls]
+        acc = np.zeros((nw, 4))
+        count = np.zeros(nw, dtype=np.int64)
         plane = np.array([0.0, 0.0, 1.0]) if self.ndim == 2 else None
         nan3 = np.full(3, np.nan)
         P = self._P
-        for w in self._walls:
+        for w, lid in zip(self._walls, self._wall_local):
             hu = np.where((w.halo >= 0)[..., None], P[np.maximum(w.halo, 0)], nan3)
             hd = np.where((w.halo >= 0)[..., None], rd[np.maximum(w.halo, 0)], nan3)
             m = w.mirror >= 0
@@ -1023,10 +1064,9 @@ class Deformer:
                     hd[sel] -= 2.0 * ((hd[sel] - o) @ n)[:, None] * n
             q, _ = boundary_motion(P[w.gid], rd[w.gid], self.centre, plane_normal=plane,
                                    halo_u=hu, halo_d=hd)
-            _merge_quaternions(w.gid.ravel(), np.ascontiguousarray(q.reshape(-1, 4)), acc, count)
-        qw = acc[self._wall_gids]
-        qw /= np.linalg.norm(qw, axis=1, keepdims=True)
-        return qw
+            _merge_quaternions(lid, np.ascontiguousarray(q.reshape(-1, 4)), acc, count)
+        acc /= np.linalg.norm(acc, axis=1, keepdims=True)
+        return acc
 
     # -- the Samareh hierarchy (formulation "samareh", the rigid part of "two-level", "tfi")
     def _vertex_stage(self, gdelta, gq) -> None:
@@ -1116,19 +1156,19 @@ class Deformer:
         return t2 - t1, time.perf_counter() - t2
 
     def _volumes(self, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None):
-        """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``."""
+        """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``.
+
+        The face values are gathered from the global boundary arrays; they agree on
+        the faces' edges by construction, so the kernels skip their argument checks.
+        """
         nblk = len(self.grid)
         total = total or nblk
+        kernel = tfi.deform_block if self.ndim == 3 else tfi.deform_block_2d
         for b, plan in enumerate(self._blocks):
-            fd = tuple(np.ascontiguousarray(gdelta[g]) for g in plan.face_gid)
-            fq = tuple(np.ascontiguousarray(gq[g]) for g in plan.face_gid) if gq is not None else None
-            if self.ndim == 3:
-                tfi.deform_block(bases[b], plan.s, fd, fq, centre, plan.order, out=outs[b],
-                                 face_s=plan.face_s)
-            else:
-                sd = tuple(d[:, 0] for d in fd)
-                sq = tuple(q[:, 0] for q in fq) if fq is not None else None
-                tfi.deform_block_2d(bases[b], plan.s, sd, sq, centre, plan.order, out=outs[b])
+            fd = tuple(gdelta[g] for g in plan.face_gid)
+            fq = tuple(gq[g] for g in plan.face_gid) if gq is not None else None
+            kernel(bases[b], plan.s, fd, fq, centre, plan.order, out=outs[b], face_s=plan.face_s,
+                   check=False)
             if callback is not None:
                 callback(done0 + b + 1, total)
 
@@ -1146,15 +1186,28 @@ class Deformer:
             y[g] = qa.rotate(qa.conjugate(q), rd[g] - t)
         return fits, y
 
+    def _work(self):
+        """Buffers reused by every two-level step (boundary-sized; a step is not re-entrant,
+        :meth:`deform` holds a lock).  Fixed points' entries are constant and set here."""
+        if self._buffers is None:
+            G = self.n_global
+            P = self._P
+            K = self._c.copy()                 # fixed points: K = c (Q = 1: position c + A = P)
+            ql = np.zeros((G, 4))
+            ql[:, 0] = 1.0
+            gd = np.zeros((G, 3))
+            qg = ql.copy()
+            pos = P.copy()
+            self._buffers = (K, ql, gd, qg, pos)
+        return self._buffers
+
     def _local_fields(self, y):
-        """The residual motion: K and Q on every boundary point, and boundary positions."""
+        """The residual motion: K and Q on every boundary point, positions in the work buffer."""
         P = self._P
         A = self._arm
         wall = self._wall_gids
-        gq = np.zeros((self.n_global, 4))
-        gq[:, 0] = 1.0
+        K, gq, _, _, pos = self._work()
         gq[wall] = self._wall_quaternions(y)
-        K = self._c.copy()                  # fixed points: K = c (Q = 1, position c + A = P)
         K[wall] = y[wall]                   # walls: A = 0
         damp = self._dampf
         shift = self._cshift
@@ -1171,8 +1224,8 @@ class Deformer:
             _fill_gaps_local(K, gq, *self._gaps, damp, shift)
         t2 = time.perf_counter()
         for p in self._patches:
-            d = np.ascontiguousarray(K[p.gid])
-            q = np.ascontiguousarray(gq[p.gid])
+            d = K[p.gid]
+            q = gq[p.gid]
             tfi.tfi_patch_fast(d, q, p.params, p.lead)
             g = p.wgid
             gq[g] = q[p.write]
@@ -1181,24 +1234,19 @@ class Deformer:
         sym = self._sym_gids
         if sym.size:
             n = self._sym_normal
-            pos = K[sym] + qa.rotate(gq[sym], A[sym])
-            pos -= np.sum((pos - self._sym_point) * n, axis=1, keepdims=True) * n
+            ps = K[sym] + qa.rotate(gq[sym], A[sym])
+            ps -= np.sum((ps - self._sym_point) * n, axis=1, keepdims=True) * n
             tw = _twist_about(gq[sym], n)
             gq[sym] = tw
-            K[sym] = pos - qa.rotate(tw, A[sym])
-        pos = K + qa.rotate(gq, A)
-        fixed = self._kind == FIXED
-        pos[fixed] = P[fixed]
+            K[sym] = ps - qa.rotate(tw, A[sym])
+        _positions_local(K, gq, A, self._derived, pos)
         pos[wall] = y[wall]
         return K, gq, pos, t2 - t1, time.perf_counter() - t2
 
     def _global_fields(self, fits):
         """The rigid part: Samareh's hierarchy with each body's uniform (Δ, Q)."""
-        G = self.n_global
         c = self.centre
-        gdelta = np.zeros((G, 3))
-        gq = np.zeros((G, 4))
-        gq[:, 0] = 1.0
+        _, _, gdelta, gq, _ = self._work()
         for body, (q, t) in zip(self._bodies, fits):
             # c + Δ + rot(q, x - c) = rot(q, x) + t
             gdelta[body.gids] = t + qa.rotate(q, c) - c
@@ -1227,19 +1275,18 @@ class Deformer:
             A new grid; the reference is not modified.  Every call starts from
             the reference, so repeated steps do not drift.
         """
-        t0 = time.perf_counter()
-        rd = self._wall_targets(moved)
-        if self._two:
-            grid = self._deform_two_level(rd, callback, t0)
-        else:
-            grid = self._deform_samareh(rd, callback, t0)
-        return grid
+        with self._lock:
+            t0 = time.perf_counter()
+            rd = self._wall_targets(moved)
+            if self._two:
+                return self._deform_two_level(rd, callback, t0)
+            return self._deform_samareh(rd, callback, t0)
 
     def _assemble(self, outs, pos) -> Grid:
         blocks = []
         for b, (blk, out) in enumerate(zip(self.grid, outs)):
             local, gid = self._scatter[b]
-            out.reshape(-1, 3, order="F")[local] = pos[gid]
+            _scatter_rows(pos, gid, local, out.reshape(-1, 3, order="F"))
             if self.ndim == 2:
                 out[..., 2] = 0.0
             blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
@@ -1285,19 +1332,23 @@ class Deformer:
         rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
         t1 = time.perf_counter()
         ts = tf = 0.0
+        pos = self._work()[4]
         if local:
             K, gql, pos, a, b = self._local_fields(y)
             ts += a
             tf += b
         else:
-            pos = P.copy()
+            pos[self._derived] = P[self._derived]
         if rigid:
             gdelta, gq, a, b = self._global_fields(fits)
             ts += a
             tf += b
-            c = self.centre
-            pos = c + gdelta + qa.rotate(gq, pos - c)
-        pos = self._finish_boundary(pos, rd)
+            _positions_global(gdelta, gq, self.centre, self._derived, pos)
+        sym = self._sym_gids
+        if sym.size:
+            off = np.sum((pos[sym] - self._sym_point) * self._sym_normal, axis=1)
+            pos[sym] -= off[:, None] * self._sym_normal
+        pos[wall] = rd[wall]
         t3 = time.perf_counter()
         outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
         total = len(self.grid) * (int(local) + int(rigid))
