@@ -71,7 +71,7 @@ FORMULATIONS = ("two-level", "samareh")
 #: default rotation length (wall-layer thickness) as a fraction of the walls'
 #: size, twice the largest distance of a wall point from the walls' centroid
 #: (docs/deformer.md, "The wall layer")
-ROTATION_LENGTH_FRACTION = 0.02
+ROTATION_LENGTH_FRACTION = 0.01
 #: derived boundary points measure their arms from the nearest wall point with
 #: weight exp(-d / (REBASE_FRACTION * rotation_length)), from themselves otherwise
 REBASE_FRACTION = 0.1

@@ -56,7 +56,7 @@ def add_args(p: argparse.ArgumentParser) -> None:
                         "(the memo's update); docs/deformer.md")
     p.add_argument("--rotation-length", type=float, metavar="L",
                    help="two-level: thickness of the wall layer where non-rigid wall rotations act "
-                        "(default 2%% of the walls' size)")
+                        "(default 1%% of the walls' size)")
     p.add_argument("-o", "--output", help="deformed grid file (default: the case file's output)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
