@@ -706,8 +706,9 @@ class Deformer:
                 rotation_length = ROTATION_LENGTH_FRACTION * self._scale
         ell = float(rotation_length)
         self.rotation_length = ell
-        # every weight built from d is 0 to double precision beyond 40 ell: a bounded query
-        d, near = cKDTree(W).query(P, distance_upper_bound=40.0 * ell)
+        # every weight built from d is below 1e-8 beyond 20 ell (omega = exp(-d / ell)): a
+        # bounded query; points farther away get d = inf, weight 0
+        d, near = cKDTree(W).query(P, distance_upper_bound=20.0 * ell, workers=-1)
         far = ~np.isfinite(d)
         d[self._kind == WALL] = 0.0
         near[far] = 0
