@@ -64,6 +64,8 @@ __all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "FOR
 WALL, FIXED, SYMMETRY, DERIVED = 3, 2, 1, 0
 _ORIGIN = np.zeros(3)
 _IDENT = np.array([1.0, 0.0, 0.0, 0.0])
+_NONE = np.zeros(0)                 # "no damping" for _fill_gaps
+_NONE3 = np.zeros((0, 3))           # "no re-basing" for _fill_gaps
 
 #: formulations of the quaternion method
 FORMULATIONS = ("two-level", "samareh")
@@ -159,9 +161,18 @@ class StepTimings:
 
 # ------------------------------------------------------------- kernels
 @jit
-def _fill_gaps(gdelta, gq, left, right, ptr, pts, s, use_q):
-    """Segments: delta linear, q slerp in the blending parameter between known end points."""
+def _fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
+    """Segments, gap by gap (a gap's ends may be points of earlier gaps): K linear and Q
+    slerp in the blending parameter between the known end points.
+
+    The two-level formulation also passes ``damp`` and ``shift`` (length G; empty
+    otherwise): Q is then faded towards 1 by ``damp`` and K re-based by ``rot(Q, shift)``.
+    """
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    local = damp.shape[0] > 0
     tmp = np.empty(4)
+    tmp2 = np.empty(4)
+    r = np.empty(3)
     for g in range(left.shape[0]):
         a = left[g]
         b = right[g]
@@ -169,11 +180,20 @@ def _fill_gaps(gdelta, gq, left, right, ptr, pts, s, use_q):
             p = pts[m]
             t = s[m]
             for c in range(3):
-                gdelta[p, c] = (1.0 - t) * gdelta[a, c] + t * gdelta[b, c]
-            if use_q:
-                qa.kslerp(gq[a], gq[b], t, tmp)
+                K[p, c] = (1.0 - t) * K[a, c] + t * K[b, c]
+            if not use_q:
+                continue
+            qa.kslerp(gq[a], gq[b], t, tmp)
+            if local and damp[p] < 1.0:
+                qa.kslerp(one, tmp, damp[p], tmp2)
                 for c in range(4):
-                    gq[p, c] = tmp[c]
+                    tmp[c] = tmp2[c]
+            for c in range(4):
+                gq[p, c] = tmp[c]
+            if local:
+                qa.krotate(tmp, shift[p], r)
+                for c in range(3):
+                    K[p, c] += r[c]
 
 
 @jit
@@ -207,36 +227,8 @@ def _damp_towards_identity(gq, idx, f):
 
 
 @jit
-def _fill_gaps_local(K, gq, left, right, ptr, pts, s, damp, shift):
-    """Two-level segments: K linear, Q slerp, then Q faded by ``damp`` and K re-based by
-    ``rot(Q, shift)``, gap by gap (a gap's ends may be points of earlier gaps)."""
-    one = np.array([1.0, 0.0, 0.0, 0.0])
-    tmp = np.empty(4)
-    tmp2 = np.empty(4)
-    r = np.empty(3)
-    for g in range(left.shape[0]):
-        a = left[g]
-        b = right[g]
-        for m in range(ptr[g], ptr[g + 1]):
-            p = pts[m]
-            t = s[m]
-            for c in range(3):
-                K[p, c] = (1.0 - t) * K[a, c] + t * K[b, c]
-            qa.kslerp(gq[a], gq[b], t, tmp)
-            if damp[p] < 1.0:
-                qa.kslerp(one, tmp, damp[p], tmp2)
-                for c in range(4):
-                    tmp[c] = tmp2[c]
-            for c in range(4):
-                gq[p, c] = tmp[c]
-            qa.krotate(tmp, shift[p], r)
-            for c in range(3):
-                K[p, c] += r[c]
-
-
-@jit
 def _rebase_gaps(c, left, right, ptr, pts, s, target, shift):
-    """Set-up twin of :func:`_fill_gaps_local` for the centres: interpolate, then re-base."""
+    """Set-up twin of the two-level :func:`_fill_gaps` for the centres: interpolate, then re-base."""
     for g in range(left.shape[0]):
         a = left[g]
         b = right[g]
@@ -1098,7 +1090,7 @@ class Deformer:
             return
         left, right, ptr, pts, s = self._gaps
         _fill_gaps(gdelta, gq if gq is not None else np.empty((1, 4)), left, right, ptr, pts, s,
-                   gq is not None)
+                   gq is not None, _NONE, _NONE3)
 
     def _patch_stage(self, gdelta, gq) -> None:
         for p in self._patches:
@@ -1222,7 +1214,7 @@ class Deformer:
             gq[free] = self._vertex_q(gq, decay)
             K[free] += qa.rotate(gq[free], shift[free])
         if self._gaps is not None:
-            _fill_gaps_local(K, gq, *self._gaps, damp, shift)
+            _fill_gaps(K, gq, *self._gaps, True, damp, shift)
         t2 = time.perf_counter()
         for p in self._patches:
             d = K[p.gid]

@@ -7,7 +7,7 @@ import sys
 import time
 
 from ..errors import CaseError
-from ._common import check_output
+from ._common import case_and_grid, check_output
 
 #: tfi_quat.deform.FORMULATIONS, spelled out so the CLI starts without numba
 FORMULATIONS = ("two-level", "samareh")
@@ -105,13 +105,7 @@ def run(args) -> int:
     from ..quality import volume_ratio_summary
     from ..spec import parse_patch_spec
 
-    case = None
-    if args.case:
-        from ..case import load_case
-        case = load_case(args.case)
-    path = args.grid or (case.grid if case is not None else None)
-    if path is None:
-        raise CaseError("no grid: give GRID or --case")
+    case, path = case_and_grid(args)
     out = args.output or (case.output if case is not None else None)
     if out is None:
         raise CaseError("no output file: give -o OUT")
