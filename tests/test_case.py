@@ -171,3 +171,50 @@ def test_motion_apply_rigid_and_named():
     assert np.array_equal(p, src)
     with pytest.raises(CaseError, match="shape"):
         m.apply(np.zeros((3, 2)))
+
+
+def test_beam_motion_keeps_sections_rigid_and_normal_to_the_bent_axis():
+    """bend + twist: each section (points of one span station) moves rigidly, turned by the
+    twist about the beam axis and by the slope of the bent axis; smooth past the span."""
+    m = Motion(bend=0.3, twist=8.0, about=(0.25, 0.0, 0.0), span_axis=(0, 1, 0), span=1.5,
+               direction=(0, 0, 1))
+    rng = np.random.default_rng(4)
+    for eta in (0.0, 0.4, 1.5, 1.9):
+        sec = np.c_[rng.uniform(-0.5, 1.5, 30), np.full(30, eta), rng.uniform(-0.1, 0.1, 30)]
+        out = m.apply(sec)
+        d0 = np.linalg.norm(sec[:, None] - sec[None], axis=-1)
+        d1 = np.linalg.norm(out[:, None] - out[None], axis=-1)
+        np.testing.assert_allclose(d1, d0, atol=1e-12)            # rigid section
+        s = min(eta / 1.5, 1.0)
+        grow = s * s if eta <= 1.5 else 2 * eta / 1.5 - 1
+        axis_pt = m.apply([[0.25, eta, 0.0]])[0]
+        np.testing.assert_allclose(axis_pt, [0.25, eta, 0.3 * grow], atol=1e-14)
+        # the section's normal is the tangent of the bent axis
+        _, _, vt = np.linalg.svd(out - out.mean(0))
+        slope = 0.3 / 1.5 * (2 * s if eta <= 1.5 else 2.0)
+        tangent = np.array([0.0, 1.0, slope]) / np.hypot(1.0, slope)
+        assert abs(abs(vt[-1] @ tangent) - 1.0) < 1e-12
+    # C1 through the span: value and slope of the axis, and the twist, continuous
+    eps = 1e-6
+    a, b = m.apply([[0.25, 1.5 - eps, 0.0], [0.25, 1.5 + eps, 0.0]])
+    assert np.linalg.norm(b - a) < 3 * eps
+    lo, hi = m.apply([[1.25, 1.5 - eps, 0.0], [1.25, 1.5 + eps, 0.0]])
+    assert np.linalg.norm(hi - lo) < 10 * eps
+    # behind `about` nothing deforms
+    back = np.array([[1.0, -0.5, 0.02]])
+    assert np.array_equal(m.apply(back), back)
+
+
+def test_older_deformation_form_and_its_errors():
+    assert Motion(deformation="bend", amplitude=0.2) == Motion(bend=0.2)
+    assert Motion(deformation="Twist", amplitude=3.0) == Motion(twist=3.0)
+    with pytest.raises(CaseError, match="not both"):
+        Motion(deformation="bend", amplitude=0.2, twist=1.0)
+    with pytest.raises(CaseError, match="amplitude"):
+        Motion(amplitude=0.2)
+    with pytest.raises(CaseError, match="parallel"):
+        Motion(bend=0.1, direction=(0, 2, 0))
+    m = Motion(bend=0.1, twist=2.0, span=1.5)
+    assert "twisted 2 deg" in m.describe() and "bent 0.1" in m.describe()
+    assert set(m.to_dict()) >= {"bend", "twist", "span", "direction"}
+    assert "direction" not in Motion(twist=2.0).to_dict()

@@ -72,11 +72,14 @@ def test_demo_writes_grids_figure_and_table(tmp_path):
     # the memo's point: quaternions keep the near-wall lines, plain TFI shears them
     assert q["ortho_mean"] < 0.05 and t["ortho_mean"] > 10.0
     assert q["negative"] == 0 and q["min_ratio"] > t["min_ratio"]
-    for name in ("naca0012_tfi.x", "naca0012_quaternion.x", "demo.md", "demo.json", "demo.png"):
+    m = res.rows["quaternion TFI, memo's update"]
+    assert m["negative"] == 0 and m["ortho_mean"] < 0.05
+    for name in ("naca0012_tfi.x", "naca0012_samareh.x", "naca0012_quaternion.x", "demo.md", "demo.json",
+                 "demo.png"):
         assert (tmp_path / name).exists(), name
     assert (tmp_path / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     data = json.loads((tmp_path / "demo.json").read_text())
-    assert set(data["methods"]) == {"plain TFI", "quaternion TFI"}
+    assert set(data["methods"]) == {"plain TFI", "quaternion TFI, memo's update", "quaternion TFI"}
     # the written grid is the deformed one, and its wall is where the motion put it
     g = tfi_quat.read(tmp_path / "naca0012_quaternion.x")
     ref = tfi_quat.read(default_grid_path())

@@ -156,7 +156,7 @@ def _layer_block_dir(xyz, s, d, lam0, lam1, out):
                 out[a, b, m, d] = res[m]
 
 
-def wall_layer_block(xyz, s, lam, ndim: int = 3) -> np.ndarray:
+def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
     """Wall-layer parameters of every grid line of a block.
 
     Parameters
@@ -171,6 +171,9 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3) -> np.ndarray:
         block's faces normal to ``d`` (faces imin, imax, jmin, jmax, kmin, kmax).
     ndim : {2, 3}
         Directions to process (the third parameter of a 2-D block is copied).
+    out : ndarray, optional
+        Receives the result (Fortran order, the shape of ``s``); may be ``s``
+        itself (each line is read before it is written).
 
     Returns
     -------
@@ -182,7 +185,12 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3) -> np.ndarray:
                              f"{xyz.shape} and {getattr(s, 'shape', None)}")
     if len(lam) != 2 * ndim:
         raise GridValueError(f"lam: expected {2 * ndim} face arrays, got {len(lam)}")
-    out = np.array(s, dtype=np.float64, order="F")
+    if out is None:
+        out = np.array(s, dtype=np.float64, order="F")
+    elif out.shape != s.shape or out.dtype != np.float64 or not out.flags.f_contiguous:
+        raise GridValueError(f"out: expected a float64 Fortran-order array of shape {s.shape}")
+    elif out is not s:
+        out[...] = s
     dims = xyz.shape[:3]
     for d in range(ndim):
         others = tuple(dims[m] for m in range(3) if m != d)

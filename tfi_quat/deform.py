@@ -43,6 +43,7 @@ the displacement.
 from __future__ import annotations
 
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
@@ -63,6 +64,8 @@ __all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "FOR
 WALL, FIXED, SYMMETRY, DERIVED = 3, 2, 1, 0
 _ORIGIN = np.zeros(3)
 _IDENT = np.array([1.0, 0.0, 0.0, 0.0])
+_NONE = np.zeros(0)                 # "no damping" for _fill_gaps
+_NONE3 = np.zeros((0, 3))           # "no re-basing" for _fill_gaps
 
 #: formulations of the quaternion method
 FORMULATIONS = ("two-level", "samareh")
@@ -70,7 +73,7 @@ FORMULATIONS = ("two-level", "samareh")
 #: default rotation length (wall-layer thickness) as a fraction of the walls'
 #: size, twice the largest distance of a wall point from the walls' centroid
 #: (docs/deformer.md, "The wall layer")
-ROTATION_LENGTH_FRACTION = 0.02
+ROTATION_LENGTH_FRACTION = 0.01
 #: derived boundary points measure their arms from the nearest wall point with
 #: weight exp(-d / (REBASE_FRACTION * rotation_length)), from themselves otherwise
 REBASE_FRACTION = 0.1
@@ -158,9 +161,18 @@ class StepTimings:
 
 # ------------------------------------------------------------- kernels
 @jit
-def _fill_gaps(gdelta, gq, left, right, ptr, pts, s, use_q):
-    """Segments: delta linear, q slerp in the blending parameter between known end points."""
+def _fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
+    """Segments, gap by gap (a gap's ends may be points of earlier gaps): K linear and Q
+    slerp in the blending parameter between the known end points.
+
+    The two-level formulation also passes ``damp`` and ``shift`` (length G; empty
+    otherwise): Q is then faded towards 1 by ``damp`` and K re-based by ``rot(Q, shift)``.
+    """
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    local = damp.shape[0] > 0
     tmp = np.empty(4)
+    tmp2 = np.empty(4)
+    r = np.empty(3)
     for g in range(left.shape[0]):
         a = left[g]
         b = right[g]
@@ -168,11 +180,20 @@ def _fill_gaps(gdelta, gq, left, right, ptr, pts, s, use_q):
             p = pts[m]
             t = s[m]
             for c in range(3):
-                gdelta[p, c] = (1.0 - t) * gdelta[a, c] + t * gdelta[b, c]
-            if use_q:
-                qa.kslerp(gq[a], gq[b], t, tmp)
+                K[p, c] = (1.0 - t) * K[a, c] + t * K[b, c]
+            if not use_q:
+                continue
+            qa.kslerp(gq[a], gq[b], t, tmp)
+            if local and damp[p] < 1.0:
+                qa.kslerp(one, tmp, damp[p], tmp2)
                 for c in range(4):
-                    gq[p, c] = tmp[c]
+                    tmp[c] = tmp2[c]
+            for c in range(4):
+                gq[p, c] = tmp[c]
+            if local:
+                qa.krotate(tmp, shift[p], r)
+                for c in range(3):
+                    K[p, c] += r[c]
 
 
 @jit
@@ -206,36 +227,8 @@ def _damp_towards_identity(gq, idx, f):
 
 
 @jit
-def _fill_gaps_local(K, gq, left, right, ptr, pts, s, damp, shift):
-    """Two-level segments: K linear, Q slerp, then Q faded by ``damp`` and K re-based by
-    ``rot(Q, shift)``, gap by gap (a gap's ends may be points of earlier gaps)."""
-    one = np.array([1.0, 0.0, 0.0, 0.0])
-    tmp = np.empty(4)
-    tmp2 = np.empty(4)
-    r = np.empty(3)
-    for g in range(left.shape[0]):
-        a = left[g]
-        b = right[g]
-        for m in range(ptr[g], ptr[g + 1]):
-            p = pts[m]
-            t = s[m]
-            for c in range(3):
-                K[p, c] = (1.0 - t) * K[a, c] + t * K[b, c]
-            qa.kslerp(gq[a], gq[b], t, tmp)
-            if damp[p] < 1.0:
-                qa.kslerp(one, tmp, damp[p], tmp2)
-                for c in range(4):
-                    tmp[c] = tmp2[c]
-            for c in range(4):
-                gq[p, c] = tmp[c]
-            qa.krotate(tmp, shift[p], r)
-            for c in range(3):
-                K[p, c] += r[c]
-
-
-@jit
 def _rebase_gaps(c, left, right, ptr, pts, s, target, shift):
-    """Set-up twin of :func:`_fill_gaps_local` for the centres: interpolate, then re-base."""
+    """Set-up twin of the two-level :func:`_fill_gaps` for the centres: interpolate, then re-base."""
     for g in range(left.shape[0]):
         a = left[g]
         b = right[g]
@@ -246,6 +239,41 @@ def _rebase_gaps(c, left, right, ptr, pts, s, target, shift):
                 ci = (1.0 - t) * c[a, k] + t * c[b, k]
                 shift[p, k] = target[p, k] - ci
                 c[p, k] = target[p, k]
+
+
+@jit
+def _positions_local(K, gq, A, idx, pos):
+    """``pos[p] = K[p] + rot(q[p], A[p])`` for the listed points."""
+    r = np.empty(3)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        qa.krotate(gq[p], A[p], r)
+        for c in range(3):
+            pos[p, c] = K[p, c] + r[c]
+
+
+@jit
+def _positions_global(gdelta, gq, centre, idx, pos):
+    """In place, for the listed points: ``pos = c + Δ + rot(q, pos - c)``."""
+    v = np.empty(3)
+    r = np.empty(3)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        for c in range(3):
+            v[c] = pos[p, c] - centre[c]
+        qa.krotate(gq[p], v, r)
+        for c in range(3):
+            pos[p, c] = centre[c] + gdelta[p, c] + r[c]
+
+
+@jit
+def _scatter_rows(src, gid, local, dst):
+    """``dst[local[m]] = src[gid[m]]`` (dst: a block's points as (n, 3), any layout)."""
+    for m in range(gid.shape[0]):
+        g = gid[m]
+        r = local[m]
+        for c in range(3):
+            dst[r, c] = src[g, c]
 
 
 # ------------------------------------------------------------- set-up data
@@ -294,7 +322,7 @@ class _BlockPlan:
     s: np.ndarray                       # blending parameters (ni, nj, nk, 3)
     order: tuple[int, ...]
     face_gid: list[np.ndarray] = field(default_factory=list)   # per face (na, nb)
-    face_s: tuple | None = None         # tfi.face_params(s), 3-D blocks
+    face_s: tuple | None = None         # tfi.face_params(s)
     arm: np.ndarray | None = None       # two-level: A = R_u - TFI(c on the faces)
 
 
@@ -432,6 +460,9 @@ class Deformer:
         if two:
             self._build_bodies()
             self._build_arms()
+        self._buffers = None
+        self._wall_local = None
+        self._lock = threading.Lock()
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -667,10 +698,14 @@ class Deformer:
                 rotation_length = ROTATION_LENGTH_FRACTION * self._scale
         ell = float(rotation_length)
         self.rotation_length = ell
-        d, near = cKDTree(W).query(P)
+        # every weight built from d is below 1e-8 beyond 20 ell (omega = exp(-d / ell)): a
+        # bounded query; points farther away get d = inf, weight 0
+        d, near = cKDTree(W).query(P, distance_upper_bound=20.0 * ell, workers=-1)
+        far = ~np.isfinite(d)
         d[self._kind == WALL] = 0.0
+        near[far] = 0
         self._dwall = d
-        self._foot = wall[near]
+        self._foot = np.where(far, np.arange(P.shape[0]), wall[near])
         self._omega = np.exp(-d / ell)
 
     def _line_params(self, s: np.ndarray, length: float, g0: int, g1: int) -> np.ndarray:
@@ -700,7 +735,7 @@ class Deformer:
             return self._psi(s)
         ell = self.rotation_length
         lam = [ell * self._omega[self._face_gid[(b, f)]] for f in _faces_of(self.ndim)]
-        return wall_layer_block(blk.xyz, s, lam, ndim=self.ndim)
+        return wall_layer_block(blk.xyz, s, lam, ndim=self.ndim, out=s)
 
     # --------------------------------------------------------------- skeleton
     def _build_vertices(self, power: float, max_sources: int) -> None:
@@ -832,8 +867,7 @@ class Deformer:
             fg = [self._face_gid[(b, f)] for f in faces]
             counts = [int(prescribed[g].sum()) for g in fg]
             order = tuple(int(x) for x in tfi.lead_order(counts))
-            face_s = tfi.face_params(s) if self.ndim == 3 else None
-            plans.append(_BlockPlan(s, order, fg, face_s))
+            plans.append(_BlockPlan(s, order, fg, tfi.face_params(s)))
         self._blocks = plans
         # where each block's boundary points live, for the final scatter
         blk_of = np.searchsorted(self._offsets, self._copies_key, side="right") - 1
@@ -939,17 +973,13 @@ class Deformer:
         damp[der] = np.exp(-(self._dwall[der] / (DAMP_FRACTION * self.rotation_length)) ** 2)
         self._dampf = damp
         for blk, plan in zip(self.grid, self._blocks):
-            fc = tuple(np.ascontiguousarray(c[g]) for g in plan.face_gid)
-            base = np.zeros_like(blk.xyz, order="F")
-            interp = np.empty_like(blk.xyz, order="F")
-            if self.ndim == 3:
-                tfi.deform_block(base, plan.s, fc, None, _ORIGIN, plan.order, out=interp,
-                                 face_s=plan.face_s)
-            else:
-                tfi.deform_block_2d(base, plan.s, tuple(x[:, 0] for x in fc), None, _ORIGIN,
-                                    plan.order, out=interp)
-            np.subtract(blk.xyz, interp, out=interp)
-            plan.arm = interp
+            # A = R_u - TFI(c): the baseline kernel with R_u as base and -c on the faces
+            fc = tuple(np.negative(c[g]) for g in plan.face_gid)
+            arm = np.empty_like(blk.xyz, order="F")
+            kernel = tfi.deform_block if self.ndim == 3 else tfi.deform_block_2d
+            kernel(blk.xyz, plan.s, fc, None, _ORIGIN, plan.order, out=arm, face_s=plan.face_s,
+                   check=False)
+            plan.arm = arm
 
     # -------------------------------------------------------------- a step
     def wall_points(self) -> np.ndarray:
@@ -1005,13 +1035,17 @@ class Deformer:
     def _wall_quaternions(self, rd: np.ndarray) -> np.ndarray:
         """Merged boundary quaternions ``(n_wall, 4)`` of the wall points moved to ``rd``."""
         from .boundary import boundary_motion
-        G = self.n_global
-        acc = np.zeros((G, 4))
-        count = np.zeros(G, dtype=np.int64)
+        nw = self._wall_gids.size
+        if self._wall_local is None:
+            where = np.full(self.n_global, -1, dtype=np.int64)
+            where[self._wall_gids] = np.arange(nw)
+            self._wall_local = [np.ascontiguousarray(where[w.gid].ravel()) for w in self._walls]
+        acc = np.zeros((nw, 4))
+        count = np.zeros(nw, dtype=np.int64)
         plane = np.array([0.0, 0.0, 1.0]) if self.ndim == 2 else None
         nan3 = np.full(3, np.nan)
         P = self._P
-        for w in self._walls:
+        for w, lid in zip(self._walls, self._wall_local):
             hu = np.where((w.halo >= 0)[..., None], P[np.maximum(w.halo, 0)], nan3)
             hd = np.where((w.halo >= 0)[..., None], rd[np.maximum(w.halo, 0)], nan3)
             m = w.mirror >= 0
@@ -1023,10 +1057,9 @@ class Deformer:
                     hd[sel] -= 2.0 * ((hd[sel] - o) @ n)[:, None] * n
             q, _ = boundary_motion(P[w.gid], rd[w.gid], self.centre, plane_normal=plane,
                                    halo_u=hu, halo_d=hd)
-            _merge_quaternions(w.gid.ravel(), np.ascontiguousarray(q.reshape(-1, 4)), acc, count)
-        qw = acc[self._wall_gids]
-        qw /= np.linalg.norm(qw, axis=1, keepdims=True)
-        return qw
+            _merge_quaternions(lid, np.ascontiguousarray(q.reshape(-1, 4)), acc, count)
+        acc /= np.linalg.norm(acc, axis=1, keepdims=True)
+        return acc
 
     # -- the Samareh hierarchy (formulation "samareh", the rigid part of "two-level", "tfi")
     def _vertex_stage(self, gdelta, gq) -> None:
@@ -1057,7 +1090,7 @@ class Deformer:
             return
         left, right, ptr, pts, s = self._gaps
         _fill_gaps(gdelta, gq if gq is not None else np.empty((1, 4)), left, right, ptr, pts, s,
-                   gq is not None)
+                   gq is not None, _NONE, _NONE3)
 
     def _patch_stage(self, gdelta, gq) -> None:
         for p in self._patches:
@@ -1116,19 +1149,19 @@ class Deformer:
         return t2 - t1, time.perf_counter() - t2
 
     def _volumes(self, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None):
-        """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``."""
+        """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``.
+
+        The face values are gathered from the global boundary arrays; they agree on
+        the faces' edges by construction, so the kernels skip their argument checks.
+        """
         nblk = len(self.grid)
         total = total or nblk
+        kernel = tfi.deform_block if self.ndim == 3 else tfi.deform_block_2d
         for b, plan in enumerate(self._blocks):
-            fd = tuple(np.ascontiguousarray(gdelta[g]) for g in plan.face_gid)
-            fq = tuple(np.ascontiguousarray(gq[g]) for g in plan.face_gid) if gq is not None else None
-            if self.ndim == 3:
-                tfi.deform_block(bases[b], plan.s, fd, fq, centre, plan.order, out=outs[b],
-                                 face_s=plan.face_s)
-            else:
-                sd = tuple(d[:, 0] for d in fd)
-                sq = tuple(q[:, 0] for q in fq) if fq is not None else None
-                tfi.deform_block_2d(bases[b], plan.s, sd, sq, centre, plan.order, out=outs[b])
+            fd = tuple(gdelta[g] for g in plan.face_gid)
+            fq = tuple(gq[g] for g in plan.face_gid) if gq is not None else None
+            kernel(bases[b], plan.s, fd, fq, centre, plan.order, out=outs[b], face_s=plan.face_s,
+                   check=False)
             if callback is not None:
                 callback(done0 + b + 1, total)
 
@@ -1146,15 +1179,28 @@ class Deformer:
             y[g] = qa.rotate(qa.conjugate(q), rd[g] - t)
         return fits, y
 
+    def _work(self):
+        """Buffers reused by every two-level step (boundary-sized; a step is not re-entrant,
+        :meth:`deform` holds a lock).  Fixed points' entries are constant and set here."""
+        if self._buffers is None:
+            G = self.n_global
+            P = self._P
+            K = self._c.copy()                 # fixed points: K = c (Q = 1: position c + A = P)
+            ql = np.zeros((G, 4))
+            ql[:, 0] = 1.0
+            gd = np.zeros((G, 3))
+            qg = ql.copy()
+            pos = P.copy()
+            self._buffers = (K, ql, gd, qg, pos)
+        return self._buffers
+
     def _local_fields(self, y):
-        """The residual motion: K and Q on every boundary point, and boundary positions."""
+        """The residual motion: K and Q on every boundary point, positions in the work buffer."""
         P = self._P
         A = self._arm
         wall = self._wall_gids
-        gq = np.zeros((self.n_global, 4))
-        gq[:, 0] = 1.0
+        K, gq, _, _, pos = self._work()
         gq[wall] = self._wall_quaternions(y)
-        K = self._c.copy()                  # fixed points: K = c (Q = 1, position c + A = P)
         K[wall] = y[wall]                   # walls: A = 0
         damp = self._dampf
         shift = self._cshift
@@ -1168,11 +1214,11 @@ class Deformer:
             gq[free] = self._vertex_q(gq, decay)
             K[free] += qa.rotate(gq[free], shift[free])
         if self._gaps is not None:
-            _fill_gaps_local(K, gq, *self._gaps, damp, shift)
+            _fill_gaps(K, gq, *self._gaps, True, damp, shift)
         t2 = time.perf_counter()
         for p in self._patches:
-            d = np.ascontiguousarray(K[p.gid])
-            q = np.ascontiguousarray(gq[p.gid])
+            d = K[p.gid]
+            q = gq[p.gid]
             tfi.tfi_patch_fast(d, q, p.params, p.lead)
             g = p.wgid
             gq[g] = q[p.write]
@@ -1181,24 +1227,19 @@ class Deformer:
         sym = self._sym_gids
         if sym.size:
             n = self._sym_normal
-            pos = K[sym] + qa.rotate(gq[sym], A[sym])
-            pos -= np.sum((pos - self._sym_point) * n, axis=1, keepdims=True) * n
+            ps = K[sym] + qa.rotate(gq[sym], A[sym])
+            ps -= np.sum((ps - self._sym_point) * n, axis=1, keepdims=True) * n
             tw = _twist_about(gq[sym], n)
             gq[sym] = tw
-            K[sym] = pos - qa.rotate(tw, A[sym])
-        pos = K + qa.rotate(gq, A)
-        fixed = self._kind == FIXED
-        pos[fixed] = P[fixed]
+            K[sym] = ps - qa.rotate(tw, A[sym])
+        _positions_local(K, gq, A, self._derived, pos)
         pos[wall] = y[wall]
         return K, gq, pos, t2 - t1, time.perf_counter() - t2
 
     def _global_fields(self, fits):
         """The rigid part: Samareh's hierarchy with each body's uniform (Δ, Q)."""
-        G = self.n_global
         c = self.centre
-        gdelta = np.zeros((G, 3))
-        gq = np.zeros((G, 4))
-        gq[:, 0] = 1.0
+        _, _, gdelta, gq, _ = self._work()
         for body, (q, t) in zip(self._bodies, fits):
             # c + Δ + rot(q, x - c) = rot(q, x) + t
             gdelta[body.gids] = t + qa.rotate(q, c) - c
@@ -1227,19 +1268,18 @@ class Deformer:
             A new grid; the reference is not modified.  Every call starts from
             the reference, so repeated steps do not drift.
         """
-        t0 = time.perf_counter()
-        rd = self._wall_targets(moved)
-        if self._two:
-            grid = self._deform_two_level(rd, callback, t0)
-        else:
-            grid = self._deform_samareh(rd, callback, t0)
-        return grid
+        with self._lock:
+            t0 = time.perf_counter()
+            rd = self._wall_targets(moved)
+            if self._two:
+                return self._deform_two_level(rd, callback, t0)
+            return self._deform_samareh(rd, callback, t0)
 
     def _assemble(self, outs, pos) -> Grid:
         blocks = []
         for b, (blk, out) in enumerate(zip(self.grid, outs)):
             local, gid = self._scatter[b]
-            out.reshape(-1, 3, order="F")[local] = pos[gid]
+            _scatter_rows(pos, gid, local, out.reshape(-1, 3, order="F"))
             if self.ndim == 2:
                 out[..., 2] = 0.0
             blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
@@ -1285,19 +1325,23 @@ class Deformer:
         rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
         t1 = time.perf_counter()
         ts = tf = 0.0
+        pos = self._work()[4]
         if local:
             K, gql, pos, a, b = self._local_fields(y)
             ts += a
             tf += b
         else:
-            pos = P.copy()
+            pos[self._derived] = P[self._derived]
         if rigid:
             gdelta, gq, a, b = self._global_fields(fits)
             ts += a
             tf += b
-            c = self.centre
-            pos = c + gdelta + qa.rotate(gq, pos - c)
-        pos = self._finish_boundary(pos, rd)
+            _positions_global(gdelta, gq, self.centre, self._derived, pos)
+        sym = self._sym_gids
+        if sym.size:
+            off = np.sum((pos[sym] - self._sym_point) * self._sym_normal, axis=1)
+            pos[sym] -= off[:, None] * self._sym_normal
+        pos[wall] = rd[wall]
         t3 = time.perf_counter()
         outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
         total = len(self.grid) * (int(local) + int(rigid))

@@ -4,9 +4,10 @@ The 257 x 65 viscous C-grid (``grids/naca0012_c_257x65.x``) has its wall
 deformed, rotated and translated "to simulate aeroelastic deformation"
 (Samareh, NASA/TM-2002-211646, figure 4): the aft part of the section is
 bent down (camber), the airfoil pitched nose-up about the quarter chord and
-plunged.  The volume grid is deformed by plain TFI (``method="tfi"``) and by
-quaternion TFI (``method="quaternion"``); both grids are written, a figure
-like the memo's (plain TFI left, quaternion right, zooms at the leading and
+plunged.  The volume grid is deformed by plain TFI (``method="tfi"``), by
+quaternion TFI with the memo's update (``formulation="samareh"``) and by the
+default two-level quaternion TFI; the three grids are written, a figure like
+the memo's (plain TFI left, quaternion TFI right, zooms at the leading and
 trailing edges) is drawn, and a table compares near-wall orthogonality,
 cell volumes and time per step.
 
@@ -94,7 +95,12 @@ class DemoResult:
                 "first_step_seconds": self.first_step_seconds}
 
 
-METHODS = {"plain TFI": "tfi", "quaternion TFI": "quaternion"}
+#: table label -> (method, formulation, output file); plain TFI left as in the memo's figure 4
+METHODS = {
+    "plain TFI": ("tfi", None, "naca0012_tfi.x"),
+    "quaternion TFI, memo's update": ("quaternion", "samareh", "naca0012_samareh.x"),
+    "quaternion TFI": ("quaternion", "two-level", "naca0012_quaternion.x"),
+}
 
 
 def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite: bool = False,
@@ -104,7 +110,7 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
     Parameters
     ----------
     outdir : path
-        Folder for ``naca0012_tfi.x``, ``naca0012_quaternion.x``,
+        Folder for ``naca0012_tfi.x``, ``naca0012_samareh.x``, ``naca0012_quaternion.x``,
         ``demo.png``, ``demo.md`` (the table) and ``demo.json``; created if
         missing.  Existing files are refused unless ``overwrite``.
     grid_path : path, optional
@@ -130,8 +136,7 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
         raise CaseError(f"{case_path}: the demo grid's case file is missing")
     motion = motion or DemoMotion()
     out = Path(outdir)
-    names = {"tfi": "naca0012_tfi.x", "quaternion": "naca0012_quaternion.x"}
-    targets = [out / n for n in names.values()] + [out / "demo.md", out / "demo.json"]
+    targets = [out / m[2] for m in METHODS.values()] + [out / "demo.md", out / "demo.json"]
     if figure:
         targets.append(out / "demo.png")
     if not overwrite:
@@ -144,11 +149,12 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
     case = load_case(case_path)
     result = DemoResult(motion.describe())
     grids = {}
-    for label, method in METHODS.items():
+    for label, (method, formulation, fname) in METHODS.items():
         t0 = time.perf_counter()
-        d = Deformer(ref, walls=case.walls, symmetry=case.symmetry, fixed=case.fixed, method=method)
+        kw = {} if formulation is None else {"formulation": formulation}
+        d = Deformer(ref, walls=case.walls, symmetry=case.symmetry, fixed=case.fixed, method=method, **kw)
         moved = d.deform(motion)
-        result.first_step_seconds[method] = time.perf_counter() - t0
+        result.first_step_seconds[label] = time.perf_counter() - t0
         best = np.inf
         for _ in range(max(1, repeats)):
             t = time.perf_counter()
@@ -156,10 +162,11 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
             best = min(best, time.perf_counter() - t)
         q = volume_ratio_summary(moved, ref)
         oc = orthogonality_change(moved, ref, case.walls, layers=5)
-        result.rows[label] = {"method": method, "ortho_max": float(oc["max"]), "ortho_mean": float(oc["mean"]),
+        result.rows[label] = {"method": method, "formulation": formulation,
+                              "ortho_max": float(oc["max"]), "ortho_mean": float(oc["mean"]),
                               "min_ratio": float(q["min_ratio"]), "negative": int(q["negative"]),
                               "step_ms": 1e3 * best, "setup_s": d.setup_seconds}
-        path = out / names[method]
+        path = out / fname
         io.write(path, moved, like=ref, overwrite=overwrite)
         result.files.append(path)
         grids[label] = moved
@@ -178,7 +185,7 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
 
 def demo_figure(ref, grids: dict, walls, result: DemoResult | None = None):
     """The memo's figure 4 layout (:func:`tfi_quat.plot.plot_compare`): one column per
-    method (plain TFI left), rows: the near field, a leading-edge zoom and a
+    method (plain TFI left, then the memo's quaternion update, then the default), rows: the near field, a leading-edge zoom and a
     trailing-edge zoom, the reference grid in light grey under the deformed
     one.  Zoom windows follow the deformed wall (trailing edge: the wall's end
     points; leading edge: the wall point farthest from them)."""
@@ -186,7 +193,7 @@ def demo_figure(ref, grids: dict, walls, result: DemoResult | None = None):
 
     subtitles, suptitle = None, None
     if result is not None:
-        subtitles = {label: (f"orthogonality change (5 layers) max {row['ortho_max']:.2f} deg, "
+        subtitles = {label: (f"orthogonality change (5 layers) max {row['ortho_max']:.2f} deg,\n"
                              f"min volume ratio {row['min_ratio']:.2f}") for label, row in result.rows.items()}
         suptitle = (f"NACA 0012 C-grid 257 x 65 (grey: reference grid, red: deformed wall)\n"
                     f"wall {result.motion}")

@@ -1381,7 +1381,7 @@ def _tables(dims, o, fd, fq, fs, hasn):
 
 
 def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
-                 face_s=None) -> np.ndarray:
+                 face_s=None, check: bool = True) -> np.ndarray:
     """Fused volume stage of one 3-D block: ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``.
 
     (Δ, Q) is the Soni TFI of the six faces' values (DESIGN 3.4), evaluated
@@ -1410,6 +1410,11 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
         ``face_params(s)``, computed once by a caller that deforms the block
         repeatedly (saves ~20 ms per call on a 10 M-point block when a face
         normal to i is an M or N face).  Must be the faces of ``s``.
+    check : bool
+        Validate every argument (default).  ``False`` is for callers that
+        build the arguments themselves and call every step (the Deformer):
+        float64 arrays of the documented shapes and layouts, faces that agree
+        on their edges, ``out`` and ``face_s`` given; nothing is checked.
 
     Returns
     -------
@@ -1423,16 +1428,20 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
         argument), non-finite or non-unit face values, or faces that disagree
         on a shared edge.
     """
-    _check_xyz(xyz_u, "xyz_u")
-    dims = xyz_u.shape[:3]
-    _check_s(s, dims)
-    o = _check_order(order, 3)
-    fd = _faces(face_delta, dims, 3, "face_delta")
-    fq = None if face_q is None else _faces(face_q, dims, 4, "face_q")
-    _check_edges(fd, fq, dims, "face_delta", "face_q")
-    c = _check_centre(centre)
-    out = _check_out(out, dims)
-    fs = _check_face_s(face_s, s, dims, 6)
+    if check:
+        _check_xyz(xyz_u, "xyz_u")
+        dims = xyz_u.shape[:3]
+        _check_s(s, dims)
+        o = _check_order(order, 3)
+        fd = _faces(face_delta, dims, 3, "face_delta")
+        fq = None if face_q is None else _faces(face_q, dims, 4, "face_q")
+        _check_edges(fd, fq, dims, "face_delta", "face_q")
+        c = _check_centre(centre)
+        out = _check_out(out, dims)
+        fs = _check_face_s(face_s, s, dims, 6)
+    else:
+        dims = xyz_u.shape[:3]
+        o, fd, fq, c, fs = tuple(order), face_delta, face_q, np.asarray(centre, dtype=np.float64), face_s
     lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, o, fd, fq, fs, True)
     L, M, N = o
     if fq is None:
@@ -1443,7 +1452,7 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
 
 
 def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
-                    face_s=None) -> np.ndarray:
+                    face_s=None, check: bool = True) -> np.ndarray:
     """Fused volume stage of one 2-D block (``nk == 1``).
 
     Parameters
@@ -1465,6 +1474,9 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
         Receives the result; may be ``xyz_u``.
     face_s : tuple of 4 (or 6) ndarray, optional
         ``face_params(s)`` (its first four faces are the sides), computed once.
+    check : bool
+        As for :func:`deform_block` (``False``: sides as ``(n, 1, c)`` arrays,
+        ``out`` and ``face_s`` given, nothing checked).
 
     Returns
     -------
@@ -1472,17 +1484,20 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
     """
     _check_xyz(xyz_u, "xyz_u")
     dims = xyz_u.shape[:3]
-    if dims[2] != 1:
-        _fail(f"xyz_u: a 2-D block needs nk == 1, got shape {xyz_u.shape}")
-    _check_s(s, dims)
-    o = _check_order(order, 2)
-    fd = _sides_as_faces(side_delta, dims, 3, "side_delta")
-    fq = None if side_q is None else _sides_as_faces(side_q, dims, 4, "side_q")
-    _check_edges(fd, fq, dims[:2], "side_delta", "side_q")
-    c = _check_centre(centre)
-    out = _check_out(out, dims)
+    if check:
+        if dims[2] != 1:
+            _fail(f"xyz_u: a 2-D block needs nk == 1, got shape {xyz_u.shape}")
+        _check_s(s, dims)
+        o = _check_order(order, 2)
+        fd = _sides_as_faces(side_delta, dims, 3, "side_delta")
+        fq = None if side_q is None else _sides_as_faces(side_q, dims, 4, "side_q")
+        _check_edges(fd, fq, dims[:2], "side_delta", "side_q")
+        c = _check_centre(centre)
+        out = _check_out(out, dims)
+        fs = _check_face_s(face_s, s, dims, 4)
+    else:
+        o, fd, fq, c, fs = tuple(order), side_delta, side_q, np.asarray(centre, dtype=np.float64), face_s
     L, M = o
-    fs = _check_face_s(face_s, s, dims, 4)
     lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, (L, M, 2), fd, fq, fs, False)
     if fq is None:
         _deform2_d(xyz_u, s, out, L, M, lineD, gD, hD)

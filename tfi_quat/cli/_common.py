@@ -5,7 +5,19 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from ..errors import OverwriteError
+from ..errors import CaseError, OverwriteError
+
+
+def case_and_grid(args):
+    """The ``--case`` file (or None) and the grid path: ``GRID`` or the case file's grid."""
+    case = None
+    if getattr(args, "case", None):
+        from ..case import load_case
+        case = load_case(args.case)
+    path = args.grid or (case.grid if case is not None else None)
+    if path is None:
+        raise CaseError("no grid: give GRID or --case")
+    return case, path
 
 
 def check_output(path, force: bool, inputs=()) -> Path:

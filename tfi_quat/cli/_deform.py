@@ -7,7 +7,7 @@ import sys
 import time
 
 from ..errors import CaseError
-from ._common import check_output
+from ._common import case_and_grid, check_output
 
 #: tfi_quat.deform.FORMULATIONS, spelled out so the CLI starts without numba
 FORMULATIONS = ("two-level", "samareh")
@@ -56,7 +56,7 @@ def add_args(p: argparse.ArgumentParser) -> None:
                         "(the memo's update); docs/deformer.md")
     p.add_argument("--rotation-length", type=float, metavar="L",
                    help="two-level: thickness of the wall layer where non-rigid wall rotations act "
-                        "(default 2%% of the walls' size)")
+                        "(default 1%% of the walls' size)")
     p.add_argument("-o", "--output", help="deformed grid file (default: the case file's output)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -105,13 +105,7 @@ def run(args) -> int:
     from ..quality import volume_ratio_summary
     from ..spec import parse_patch_spec
 
-    case = None
-    if args.case:
-        from ..case import load_case
-        case = load_case(args.case)
-    path = args.grid or (case.grid if case is not None else None)
-    if path is None:
-        raise CaseError("no grid: give GRID or --case")
+    case, path = case_and_grid(args)
     out = args.output or (case.output if case is not None else None)
     if out is None:
         raise CaseError("no output file: give -o OUT")

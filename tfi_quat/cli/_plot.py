@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import CaseError, GridValueError
-from ._common import check_output
+from ._common import case_and_grid, check_output
 
 HELP = "draw a grid (2-D: zoom windows, reference overlaid; 3-D: wall surface and cuts) into a PNG"
 DESCRIPTION = """Draw GRID into FIG (PNG, or another format matplotlib knows from the extension).
@@ -73,13 +73,7 @@ def run(args) -> int:
     from ..plot import grid_figure, save_figure
     from ..spec import parse_patch_spec
 
-    case = None
-    if args.case:
-        from ..case import load_case
-        case = load_case(args.case)
-    path = args.grid or (case.grid if case is not None else None)
-    if path is None:
-        raise CaseError("no grid: give GRID or --case")
+    case, path = case_and_grid(args)
     if args.layers is not None and args.layers < 1:
         raise CaseError(f"--layers must be >= 1, got {args.layers}")
     if args.dpi < 10:

@@ -7,6 +7,7 @@ import argparse
 import json
 
 from ..errors import CaseError, GridValueError
+from ._common import case_and_grid
 
 HELP = "grid quality: volumes, Jacobians, skewness, aspect ratio, negative cells, near-wall orthogonality"
 DESCRIPTION = """Measure the quality of GRID: per block and over the grid, the min, mean and
@@ -44,13 +45,7 @@ def run(args) -> int:
     from ..quality import quality_report
     from ..spec import parse_patch_spec
 
-    case = None
-    if args.case:
-        from ..case import load_case
-        case = load_case(args.case)
-    path = args.grid or (case.grid if case is not None else None)
-    if path is None:
-        raise CaseError("no grid: give GRID or --case")
+    case, path = case_and_grid(args)
     if args.layers < 1:
         raise CaseError(f"--layers must be >= 1, got {args.layers}")
     walls = []
