@@ -4,7 +4,7 @@ Runs, in one process and one run, on the shipped grids:
 
 * the NACA 0012 C-grid ``grids/naca0012_c_257x65`` (walls and fixed
   boundaries from its case file): rigid rotations of the airfoil by 5, 15,
-  30, 45 and 60 deg about the quarter chord (0.25, 0, 0) plus a translation
+  30, 45 and 60 deg nose-up about the quarter chord (0.25, 0, 0) plus a translation
   (0, 0.05, 0), and the camber-like bending of :class:`tfi_quat.demo.DemoMotion`
   (camber 0.08 alone, and with the demo's pitch and translation);
 * the 3-D wing ``grids/wing_ch_501k`` (walls, symmetry and fixed boundaries
@@ -89,9 +89,10 @@ def c_grid_cases(quick: bool) -> list[CaseSpec]:
     """Rigid pitch + plunge of the airfoil, and camber-like bending (DemoMotion)."""
     out = []
     for a in ((30.0, 60.0) if quick else (5.0, 15.0, 30.0, 45.0, 60.0)):
-        out.append(CaseSpec(C_GRID, f"rotate {a:g}",
-                            f"rotated {a:g} deg about (0.25, 0), translated (0, 0.05)",
-                            rigid_motion(a, axis=(0, 0, 1), about=(0.25, 0, 0), translate=(0, 0.05, 0)),
+        # nose up: clockwise in the x-y plane (x downstream, y up), as the demo's pitch
+        out.append(CaseSpec(C_GRID, f"pitch {a:g}",
+                            f"pitched {a:g} deg nose-up about (0.25, 0), translated (0, 0.05)",
+                            rigid_motion(a, axis=(0, 0, -1), about=(0.25, 0, 0), translate=(0, 0.05, 0)),
                             True, a))
     if not quick:
         for m in (DemoMotion(camber=0.08, pitch=0.0, translate=(0.0, 0.0, 0.0)), DemoMotion()):
@@ -624,7 +625,7 @@ def main(argv=None) -> int:
         doc = {"meta": meta, "rbf": {k: results[k]["rbf"] for k in results}, "rows": rows, "targets": tg}
         (args.out / "reproduction.json").write_text(json.dumps(doc, indent=1) + "\n")
         if not args.no_figures:
-            c_figs = [("rotate 30", "reproduction_rotate30.png"), ("rotate 60", "reproduction_rotate60.png"),
+            c_figs = [("pitch 30", "reproduction_pitch30.png"), ("pitch 60", "reproduction_pitch60.png"),
                       ("camber 0.08, pitch 30", "reproduction_camber.png")]
             for label, fname in c_figs:
                 if label in results["c"]["grids"]:
