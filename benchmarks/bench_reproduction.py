@@ -45,6 +45,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 import scipy
 from scipy.interpolate import RBFInterpolator
@@ -70,6 +71,8 @@ DEFORMERS = {
 }
 RBF = "RBF"
 METHODS = (*DEFORMERS, RBF)
+#: numba thread counts the TFI methods are timed with (one, and numba's default: all cores)
+THREADS = tuple(sorted({1, numba.config.NUMBA_NUM_THREADS}))
 
 
 # ------------------------------------------------------------------ the cases
@@ -358,15 +361,6 @@ def motion_field(ref: Grid, motion) -> Grid:
     return Grid(blocks, ref.ndim)
 
 
-def best_of(f, n: int) -> tuple[float, object]:
-    best, res = np.inf, None
-    for _ in range(n):
-        t = time.perf_counter()
-        res = f()
-        best = min(best, time.perf_counter() - t)
-    return best, res
-
-
 def uptime() -> str:
     try:
         with open("/proc/loadavg") as fh:
@@ -399,13 +393,30 @@ def run_grid(name: str, cases: list[CaseSpec], repeats: int, rbf_repeats: int, r
         + f"; RBF centres {rbf.describe()}")
     rows, grids = [], {}
     for cs in cases:
-        outs = {}
-        for label, d in deformers.items():
+        # the methods timed in turn, round after round (best of each kept), so that a burst of
+        # load on the shared machine does not fall on the repeats of one method only; the
+        # TFI methods with one numba thread and with all (THREADS), see the module docstring
+        for d in deformers.values():
             d.deform(cs.motion)                          # warm-up
-            t, out = best_of(lambda: d.deform(cs.motion), repeats)
-            outs[label] = (out, t, {})
-        t, out = best_of(lambda: rbf.deform(cs.motion), rbf_repeats)
-        outs[RBF] = (out, t, dict(rbf.last))
+        best = {label: dict.fromkeys(THREADS, np.inf) for label in deformers}
+        best[RBF] = {0: np.inf}
+        outs = {}
+        for r in range(max(repeats, rbf_repeats)):
+            if r < repeats:
+                for nt in THREADS:
+                    numba.set_num_threads(nt)
+                    for label, d in deformers.items():
+                        t = time.perf_counter()
+                        out = d.deform(cs.motion)
+                        best[label][nt] = min(best[label][nt], time.perf_counter() - t)
+                        outs[label] = (out, min(best[label].values()), {"step_s_threads": dict(best[label])})
+                numba.set_num_threads(THREADS[-1])
+            if r < rbf_repeats:
+                t = time.perf_counter()
+                out = rbf.deform(cs.motion)
+                if time.perf_counter() - t < best[RBF][0]:
+                    best[RBF][0] = time.perf_counter() - t
+                    outs[RBF] = (out, best[RBF][0], dict(rbf.last))
         for label, (out, t, extra) in outs.items():
             row = {"grid": name, "case": cs.label, "motion": cs.describe, "rigid": cs.rigid, "angle": cs.angle,
                    "method": label, "step_s": t, "setup_s": setup[label], **measure(out, ref, walls),
@@ -428,12 +439,16 @@ def run_grid(name: str, cases: list[CaseSpec], repeats: int, rbf_repeats: int, r
 # ------------------------------------------------------------------ tables
 def table(rows: list[dict]) -> str:
     """Markdown: one line per case and method."""
+    def fmt(t):
+        return f"{1e3 * t:.2f} ms" if t < 1.0 else f"{t:.1f} s"
     head = ("| case | method | orthogonality change, 5 layers: max / mean (deg) | smallest volume ratio "
-            "| negative cells | time per step | RBF time / this |")
-    lines = [head, "|---|---|---|---:|---:|---:|---:|"]
+            "| negative cells | time per step (best) | with " + " / ".join(map(str, THREADS))
+            + " numba threads | RBF time / this |")
+    lines = [head, "|---|---|---|---:|---:|---:|---:|---:|"]
     for r in rows:
-        t = r["step_s"]
-        ts = f"{1e3 * t:.2f} ms" if t < 1.0 else f"{t:.1f} s"
+        ts = fmt(r["step_s"])
+        per = " / ".join(fmt(v) for v in r["step_s_threads"].values()) if "step_s_threads" in r else ""
+        ts += f" | {per}"
         ratio = "" if r["method"] == RBF else f"{r['rbf_over_this']:.0f}x"
         lines.append(f"| {r['case']} | {r['method']} | {r['ortho_max']:.3f} / {r['ortho_mean']:.4f} | "
                      f"{r['min_ratio']:.3f} | {r['negative']} | {ts} | {ratio} |")
