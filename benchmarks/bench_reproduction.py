@@ -544,8 +544,8 @@ def wing_figure(res: dict, label: str, path: Path, dpi: int, k_cut: int = 44, vm
     cut_k = min(k_cut, ref[0].dims[2] - 1)
     from tfi_quat.plot import Cut
     cut = Cut(0, "k", cut_k)
-    fig = Figure(figsize=(3.6 * len(grids), 7.8), layout="constrained")
-    gs = fig.add_gridspec(2, len(grids), height_ratios=[1.25, 0.8])
+    fig = Figure(figsize=(3.6 * len(grids), 7.2), layout="constrained")
+    gs = fig.add_gridspec(2, len(grids), height_ratios=[1.1, 0.8])
     onorm = Normalize(0.0, vmax)
     ortho = {m: cell_values(g, "orthogonality_change", ref=ref, walls=walls, layers=1) for m, g in grids.items()}
     ratio = {m: cell_values(g, "volume_ratio", ref=ref) for m, g in grids.items()}
@@ -571,8 +571,10 @@ def wing_figure(res: dict, label: str, path: Path, dpi: int, k_cut: int = 44, vm
                              linewidth=0.05, elev=90.0, azim=-90.0)
         ax3.set_zticks([])
         ax3.set_zlabel("")
+        ax3.set_ylabel("")
+        ax3.set_box_aspect((1.0, 1.0, 0.02), zoom=1.3)     # x and y to the same scale; z is edge-on
         wall_mappable = wall_mappable or colls[0]
-        ax3.set_title(f"{m}\n{_subtitle(r)}\nupper surface seen from above", fontsize=8)
+        ax3.set_title(f"{m}\n{_subtitle(r)}", fontsize=8)
         top.append(ax3)
         ax = fig.add_subplot(gs[1, c])
         out = plot_cut(ax, g, cut, values=ratio[m], cmap=_cmap("volume_ratio"), norm=rnorm, window=win,
@@ -587,7 +589,9 @@ def wing_figure(res: dict, label: str, path: Path, dpi: int, k_cut: int = 44, vm
     cb.set_label(f"change of the first layer's angle to the wall normal (deg; {vmax:g}+ saturated)", fontsize=7)
     cb.ax.tick_params(labelsize=7)
     _colorbar(fig, cut_mappable, "volume_ratio", ax=bottom, shrink=0.5, aspect=40, location="right")
-    fig.suptitle(f"wing {WING} (root chord 1, half-span 1.5), {rows[RBF]['motion']}", fontsize=9)
+    fig.suptitle(f"wing {WING} (root chord 1, half-span 1.5), {rows[RBF]['motion']}\n"
+                 f"top: upper surface seen from above (x right, span y up); bottom: the wing block's "
+                 f"last section, next to the tip cap", fontsize=9)
     save_small(fig, path, dpi, colors=128)
 
 
