@@ -4,8 +4,8 @@ Runs, in one process and one run, on the shipped grids:
 
 * the NACA 0012 C-grid ``grids/naca0012_c_257x65`` (walls and fixed
   boundaries from its case file): rigid rotations of the airfoil by 5, 15,
-  30, 45 and 60 deg nose-up about the quarter chord (0.25, 0, 0) plus a translation
-  (0, 0.05, 0), and the camber-like bending of :class:`tfi_quat.demo.DemoMotion`
+  30, 45 and 60 deg nose-up about the quarter chord (0.25, 0, 0) plus a
+  translation (0, 0.05, 0), and the camber-like bending of :class:`tfi_quat.demo.DemoMotion`
   (camber 0.08 alone, and with the demo's pitch and translation);
 * the 3-D wing ``grids/wing_ch_501k`` (walls, symmetry and fixed boundaries
   from its case file): beam bending and twist (:class:`tfi_quat.case.Motion`,
@@ -22,16 +22,25 @@ each with four methods:
                         the far field
 
 and measures for each the orthogonality change of the first 5 grid layers off
-the walls (max, mean), the smallest cell-volume ratio to the reference, the
-number of negative cells and the time per step.  It prints a Markdown table,
-and with ``--out DIR`` writes ``DIR/reproduction.json`` (every number, the
-machine load and the RBF set-up) and the figures of ``docs/reproduction.md``.
+the walls (max, mean; also per wall patch, at interior wall points, and for
+the motion itself applied to every point), the smallest cell-volume ratio to
+the reference, the number of negative cells and the time per step.  It
+prints Markdown tables, and with ``--out DIR`` writes
+``DIR/reproduction.json`` (every number, the machine load and the RBF
+set-up) and the figures of ``docs/reproduction.md``.
 
-    PYTHONPATH=. python3 benchmarks/bench_reproduction.py --out docs/figures   # about 5 minutes
-    PYTHONPATH=. python3 benchmarks/bench_reproduction.py --quick              # smoke run, ~1 minute
+Timing: the Deformers are built once; after a warm-up step the methods are
+timed in turn, round after round, the TFI methods with 1 and with all numba
+threads (on a loaded machine a parallel region waits for the busy core, which
+costs a small grid ~30 ms a step); the best is kept.  RBF: fit + evaluation
+per step (it is refitted to every step's wall displacements).
 
-``--quick`` runs two C-grid rotations and one wing case with fewer repeats and
-fewer RBF centres on the wing; its numbers are not the documented ones.
+    PYTHONPATH=. python3 benchmarks/bench_reproduction.py --out docs/figures   # 2.5-7 minutes on 2 cores
+    PYTHONPATH=. python3 benchmarks/bench_reproduction.py --quick              # smoke run, < 1 minute
+
+``--quick`` runs two C-grid pitches and one wing case with fewer repeats and
+fewer RBF centres on the wing (every second wall point: it then folds cells);
+its numbers are not the documented ones.
 """
 
 from __future__ import annotations
@@ -135,8 +144,6 @@ def patch_index(grid: Grid, spec) -> tuple[int, np.ndarray]:
 def thinned_index(grid: Grid, spec, stride: int) -> tuple[int, np.ndarray]:
     """:func:`patch_index` keeping every ``stride``-th point along both face indices (ends kept)."""
     b, flat = patch_index(grid, spec)
-    d = FACES.index(spec.face) // 2
-    run = [m for m in range(3) if m != d]
     (a0, a1), (b0, b1) = spec.range
     na, nb = a1 - a0 + 1, b1 - b0 + 1
 
@@ -146,7 +153,8 @@ def thinned_index(grid: Grid, spec, stride: int) -> tuple[int, np.ndarray]:
         k[-1] = True
         return k
     mask = keep(na)[:, None] & keep(nb)[None, :]
-    # patch_index orders the points as the meshgrid of the block axes, run[0] < run[1]
+    # patch_index orders the points as the meshgrid of the block axes: the face's first running
+    # index is the lower block axis, so its points are (na, nb) in C order
     return b, flat[mask.ravel()]
 
 
