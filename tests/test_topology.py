@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from tfi_quat import ConnectivityError, Grid
 from tfi_quat.spec import PatchSpec
@@ -157,9 +156,25 @@ def test_auto_symmetry_2d_straight_side_next_to_wall():
 
 
 # ----------------------------------------------------------------- 3-D
-@given(perm=st.permutations([0, 1, 2]), flips=st.tuples(st.booleans(), st.booleans(), st.booleans()),
-       split=st.sampled_from([0, 1, 2]))
-def test_property_every_orientation_maps_points_onto_partners(perm, flips, split):
+#: every orientation of a block: the 6 permutations of its axes x the 8 reversals (48 signed permutations)
+ORIENTS_3D = [(p, f) for p in itertools.permutations(range(3)) for f in itertools.product((False, True), repeat=3)]
+#: 2-D: the 8 signed permutations of i and j (k stays k)
+ORIENTS_2D = [(p + (2,), f + (False,)) for p in itertools.permutations(range(2))
+              for f in itertools.product((False, True), repeat=2)]
+
+
+def expected_transform(perm, flips):
+    """Transform from a block to ``orient(block, perm, flips)``: master axis m runs along slave
+    axis perm^-1(m), reversed where that axis was flipped."""
+    inv = list(perm).index
+    return tuple((-1 if flips[inv(m)] else 1) * (inv(m) + 1) for m in range(3))
+
+
+@pytest.mark.parametrize("split", [0, 1, 2])
+@pytest.mark.parametrize("perm,flips", ORIENTS_3D)
+def test_every_orientation_3d_gives_its_transform(perm, flips, split):
+    """All 48 orientations x 3 interface directions, coordinates perturbed at 1e-15."""
+    rng = np.random.default_rng(100 * split + ORIENTS_3D.index((perm, flips)))
     big = sheared_box(7, 6, 5)
     cut = [3, 2, 2][split]
     lo = [slice(None)] * 3
@@ -168,16 +183,102 @@ def test_property_every_orientation_maps_points_onto_partners(perm, flips, split
     hi[split] = slice(cut, None)
     a = np.asfortranarray(big[tuple(lo)])
     b = orient(big[tuple(hi)], perm, flips)
+    b = np.asfortranarray(b * (1 + 1e-15 * rng.uniform(-1, 1, b.shape)))
     g = Grid([a, b])
     conn = connect(g)
-    assert len(conn.interfaces) == 1
-    it = conn.interfaces[0]
+    it, = conn.interfaces
     assert it.master.block == 0 and it.master.face == ("imax", "jmax", "kmax")[split]
+    assert it.transform == expected_transform(perm, flips)
+    check_interfaces(g, conn, tol=1e-13)
+    covered_once(conn, g)
+
+
+@pytest.mark.parametrize("split", [0, 1])
+@pytest.mark.parametrize("perm,flips", ORIENTS_2D)
+def test_every_orientation_2d_gives_its_transform(perm, flips, split):
+    rng = np.random.default_rng(10 * split + ORIENTS_2D.index((perm, flips)))
+    full = annulus(ni=9, nj=7)
+    a = np.asfortranarray(full[:5] if split == 0 else full[:, :4])
+    b = orient(full[4:] if split == 0 else full[:, 3:], perm, flips)
+    b = np.asfortranarray(b * (1 + 1e-15 * rng.uniform(-1, 1, b.shape)))
+    g = Grid([a, b])
+    conn = connect(g)
+    it, = conn.interfaces
+    assert it.transform == expected_transform(perm, flips) and it.transform[2] == 3
+    check_interfaces(g, conn, tol=1e-13)
+    covered_once(conn, g)
+
+
+def test_partial_faces_on_both_sides():
+    """Two boxes whose faces overlap in the middle of each (offsets in both running indices)."""
+    big = sheared_box(9, 11, 9)
+    a = np.asfortranarray(big[:5, 0:8, 1:6])
+    b = orient(big[4:, 3:11, 3:9], (2, 0, 1), (True, False, True))
+    g = Grid([a, b])
+    conn = connect(g, walls=["1:imax"])
+    it, = conn.interfaces
+    assert it.master == PatchSpec(0, "imax", ((3, 7), (2, 4)))
+    assert it.transform == expected_transform((2, 0, 1), (True, False, True))
     check_interfaces(g, conn, tol=0.0)
-    # the transform is the one of the construction: master axis m runs along slave axis perm^-1(m)
-    inv = list(perm).index
-    for m in range(3):
-        assert abs(it.transform[m]) == inv(m) + 1
+    covered_once(conn, g)
+    # the wall is what is left of 1:imax, an L shape, in rectangles
+    cells = np.zeros((7, 4), int)
+    cells[3:7, 2:4] += 1
+    for p in conn.patches:
+        if p.kind == "wall":
+            (a0, a1), (b0, b1) = p.spec.range
+            cells[a0:a1, b0:b1] += 1
+    assert (cells == 1).all()
+
+
+def cone(n=9, nk=1):
+    """A square of indices (u, v) wrapped round its corner (0, 1): side imin is glued to side jmax.
+
+    ``r = u + 1 - v``, ``theta = 2 pi u / r`` put (0, t) and (1 - t, 1) on the ray theta = 0 at the
+    same radius; extruded in z (slightly warped) when ``nk > 1``.
+    """
+    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    r = u + 1 - v
+    th = 2 * np.pi * np.divide(u, r, out=np.zeros_like(u), where=r > 0)
+    th[:, -1] = 2 * np.pi
+    xyz = np.zeros((n, n, nk, 3), order="F")
+    xyz[..., 0] = (r * np.cos(th))[..., None]
+    xyz[..., 1] = (r * np.sin(th))[..., None]
+    if nk > 1:
+        xyz[..., 2] = np.linspace(0, 1, nk)[None, None, :] + 0.1 * xyz[..., 0] ** 2
+    return xyz
+
+
+@pytest.mark.parametrize("nk", [1, 4])
+def test_self_match_of_two_faces_of_one_block_with_swapped_axes(nk):
+    """The seam of the cone includes its centre, a block point on both faces (regression: the
+    last cell of each side was left out as a patch)."""
+    n = 9
+    g = Grid([cone(n, nk)])
+    conn = connect(g, walls=["1:jmin"])
+    it, = conn.interfaces
+    assert it.is_self and (it.master.face, it.slave.face) == ("imin", "jmax")
+    assert it.transform == (2, -1, 3)
+    assert it.master.range == it.slave.range == ((0, n - 1), (0, nk - 1))
+    check_interfaces(g, conn, tol=1e-12)
+    covered_once(conn, g)
+
+
+def test_disc_centre_collapsed_to_a_point_2d():
+    """Polar disc: i round the centre (seam imin-imax through the centre), jmin one point."""
+    ni, nj = 13, 5
+    th = np.linspace(0, 2 * np.pi, ni)[:, None]
+    r = np.linspace(0, 1, nj)[None, :] ** 1.2
+    xyz = np.zeros((ni, nj, 1, 3), order="F")
+    xyz[:, :, 0, 0] = r * np.cos(th)
+    xyz[:, :, 0, 1] = r * np.sin(th)
+    g = Grid([xyz])
+    conn = connect(g, walls=["1:jmax"])
+    it, = conn.interfaces
+    assert (it.master.face, it.slave.face) == ("imin", "imax") and it.master.range == ((0, nj - 1), (0, 0))
+    check_interfaces(g, conn)
+    jmin = [p for _, p in conn.patches_on(0, "jmin")]
+    assert len(jmin) == 1 and jmin[0].collapsed and jmin[0].kind == "free"
     covered_once(conn, g)
 
 

@@ -394,9 +394,12 @@ def _group_rectangles(geo, F1: _Face, F2: _Face, M, off):
     QB = M[1, 0] * A + M[1, 1] * B + off[1]
     inr = (QA >= 0) & (QA < F2.na) & (QB >= 0) & (QB < F2.nb)
     ids2 = F2.off + np.where(inr, QA + F2.na * QB, 0)
-    ok = inr & (geo.g[ids1] == geo.g[ids2]) & (geo.bp[ids1] != geo.bp[ids2])
+    ok = inr & (geo.g[ids1] == geo.g[ids2])
     if F1 is F2:
-        ok &= geo.cface[ids1] != geo.cface[ids2]
+        # a point of a face matching itself, or an in-face neighbour, is a fold: no interface
+        ok &= (geo.bp[ids1] != geo.bp[ids2]) & (geo.cface[ids1] != geo.cface[ids2])
+    # on two faces of one block, a block point the map sends to itself (their common edge,
+    # e.g. the centre of a block wrapped round a point) belongs to both sides
     act_a, act_b = F1.active
     cell = ok
     if act_a:
