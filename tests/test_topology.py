@@ -462,6 +462,50 @@ def test_extruded_c_grid_auto_symmetry_and_user_kinds():
     covered_once(conn2, g)
 
 
+def _box_with_bulge(eps, n=6):
+    """Unit box, wall jmin; its imin face (x = 0) bulges out by eps at its centre."""
+    u = np.linspace(0, 1, n)
+    X, Y, Z = np.meshgrid(u, u, u, indexing="ij")
+    bump = eps * np.sin(np.pi * Y) * np.sin(np.pi * Z) * (1 - X)
+    return Grid([np.asfortranarray(np.stack([X - bump, Y, Z], -1))])
+
+
+@pytest.mark.parametrize("tol", [None, 0.1])
+def test_auto_symmetry_planar_relative_to_the_patch_size(tol):
+    from tfi_quat.topology import PLANE_RTOL
+    assert PLANE_RTOL == 1e-6
+    flat = connect(_box_with_bulge(1e-8), walls=["1:jmin"], tol=tol)
+    p, = [p for _, p in flat.patches_on(0, "imin")]
+    assert (p.kind, p.origin) == ("symmetry", "auto")
+    np.testing.assert_allclose(p.plane[1], [1, 0, 0], atol=1e-6)
+    # a bulge of 1e-4 of the face is not a plane, whatever the matching tolerance
+    bent = connect(_box_with_bulge(1e-4), walls=["1:jmin"], tol=tol)
+    p, = [p for _, p in bent.patches_on(0, "imin")]
+    assert (p.kind, p.origin) == ("fixed", "default")
+    # a user symmetry patch on it is kept, with a note
+    sym = connect(_box_with_bulge(1e-4), walls=["1:jmin"], symmetry=["1:imin"], tol=tol)
+    p, = [p for _, p in sym.patches_on(0, "imin")]
+    assert p.kind == "symmetry" and p.plane is None
+    assert any("1:imin" in s and "not planar" in s for s in sym.notes)
+
+
+def test_auto_symmetry_needs_a_shared_point_with_a_wall():
+    g = _box_with_bulge(0.0)
+    # the wall is part of jmin away from imin: imin does not touch it
+    conn = connect(g, walls=["1:jmin:3-6,1-6"])
+    # (the rest of jmin is coplanar with the wall and touches it: symmetry too)
+    assert sorted(p.spec.face for p in conn.patches if p.origin == "auto") == ["imax", "jmin", "kmax", "kmin"]
+    assert not any("1:imin" in s for s in conn.notes)
+    # a wall on another block counts: the touching point is shared across the interface
+    big = np.asfortranarray(g[0].xyz)
+    g2 = Grid([np.asfortranarray(big[:3]), np.asfortranarray(big[2:])])
+    conn2 = connect(g2, walls=["2:jmin"])
+    auto = sorted((p.spec.block, p.spec.face) for p in conn2.patches if p.origin == "auto")
+    assert (0, "jmin") in auto and (0, "imin") not in auto
+    notes = [s for s in conn2.notes if s.startswith("symmetry (auto)")]
+    assert len(notes) == len(auto) and "-0" not in " ".join(notes)
+
+
 # ---------------------------------------------------------------- errors
 def test_user_patch_errors_name_block_face_and_range():
     g = Grid([sheared_box(5, 4, 3)])

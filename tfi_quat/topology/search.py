@@ -33,10 +33,13 @@ from ..grid import FACES
 from ..spec import PatchSpec, parse_patch_spec
 from .model import KINDS, Connectivity, Interface, Patch, face_axes
 
-__all__ = ["connect", "classify", "node_labels", "DEFAULT_RTOL"]
+__all__ = ["connect", "classify", "node_labels", "DEFAULT_RTOL", "PLANE_RTOL"]
 
 #: default matching tolerance relative to the smallest adjacent edge
 DEFAULT_RTOL = 1e-6
+#: a patch is planar (a straight side in 2-D) when no point is farther from its best plane
+#: than this fraction of the patch's extent -- the test the Deformer applies to symmetry patches
+PLANE_RTOL = 1e-6
 
 # the eight signed permutations of two face axes: q = M @ p + off
 _MS = [np.array(m, dtype=np.int64) for m in (
@@ -444,16 +447,22 @@ def _as_specs(items, what: str, grid) -> list[PatchSpec]:
 
 
 def _plane(points: np.ndarray, ndim: int):
-    """Best plane ``(origin, normal, max deviation)``; in 2-D the plane contains the z axis."""
+    """Best plane ``(origin, normal, deviation)``: normal None when the points span no plane.
+
+    ``deviation`` is the largest distance of a point from the plane relative to
+    the points' extent (the largest side of their bounding box).  In 2-D the
+    points are a side, in order, and the plane is the line through its two
+    ends (and the z axis).
+    """
     c = points.mean(axis=0)
     x = points - c
+    size = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
     if ndim == 2:
-        xy = x[:, :2]
-        if not np.any(xy):
+        # the chord between the side's end points (as the Deformer measures it)
+        t = points[-1, :2] - points[0, :2]
+        if not np.any(t):
             return c, None, np.inf
-        _, _, vt = np.linalg.svd(xy, full_matrices=False)
-        t = vt[0]
-        n = np.array([-t[1], t[0], 0.0])
+        n = np.array([-t[1], t[0], 0.0]) / np.hypot(t[0], t[1])
     else:
         if len(points) < 3:
             return c, None, np.inf
@@ -461,10 +470,11 @@ def _plane(points: np.ndarray, ndim: int):
         if len(s) < 3 or s[1] <= 0:
             return c, None, np.inf
         n = vt[2]
-    # a reproducible sign: largest component positive
+    # a reproducible sign: largest component positive; no negative zeros
     if n[np.argmax(np.abs(n))] < 0:
         n = -n
-    return c, n, float(np.max(np.abs(x @ n)))
+    n = n + 0.0
+    return c, n, float(np.max(np.abs(x @ n))) / size
 
 
 def _classify(geo: _Geometry, interfaces, base_patches, walls, symmetry, fixed, default,
@@ -542,15 +552,16 @@ def _classify(geo: _Geometry, interfaces, base_patches, walls, symmetry, fixed, 
         ids = _patch_ids(geo, p.spec)
         if p.kind == "symmetry":
             c, n, dev = _plane(geo.xyz[ids], geo.ndim)
-            if n is None or dev > geo.tol[ids].max():
-                notes.append(f"symmetry {p.spec} is not planar (largest deviation {dev:.3g})")
+            if n is None or dev > PLANE_RTOL:
+                notes.append(f"symmetry {p.spec} is not planar (points up to {dev:.3g} of its size "
+                             f"off the best plane, more than {PLANE_RTOL:g})")
                 out.append(p)
             else:
                 out.append(Patch(p.spec, p.kind, p.name, False, p.origin, (tuple(c.tolist()), tuple(n.tolist()))))
             continue
         if auto_symmetry and p.origin == "default" and wall_nodes.size and np.isin(geo.g[ids], wall_nodes).any():
             c, n, dev = _plane(geo.xyz[ids], geo.ndim)
-            if n is not None and dev <= geo.tol[ids].max():
+            if n is not None and dev <= PLANE_RTOL:
                 nn = ", ".join(f"{v:.6g}" for v in n)
                 what = "straight" if geo.ndim == 2 else "planar"
                 notes.append(f"symmetry (auto) {p.spec}: {what}, touches a wall, not classified; normal ({nn})")
