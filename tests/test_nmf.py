@@ -142,6 +142,12 @@ def test_types_and_kind_table():
     ("1\n1 5 5 4\nWALL 1 1 1 5\n", r"bad.nmf:4: WALL needs 6 integers"),
     ("1\n1 5 5 4\nONE_TO_ONE 1 3 1 5 1 4 1 4 1 4 1 4 FALSE\n", r"bad.nmf:4: ONE_TO_ONE sides differ in size"),
     ("1\n1 5 5 4\nONE_TO_ONE 1 3 1 5 1 4 1 4 1 5 1 4 MAYBE\n", r"bad.nmf:4: swap flag"),
+    ("1\n1 5 5 4\nWALL 1 1 1 5 1 5\nFARFIELD 1 1 3 5 1 2\n",
+     r"bad.nmf:5: overlaps the entry on line 4 \(block 1 face kmin, face 1 in the file\)"),
+    ("1\n1 5 5 4\nONE_TO_ONE 1 3 1 5 1 4 1 4 1 5 1 4 FALSE\nWALL 1 4 1 2 1 2\n",
+     r"bad.nmf:5: overlaps the entry on line 4 \(block 1 face imax, face 4"),
+    ("2\n1 5 5 4\n2 5 5 4\nONE_TO_ONE 1 4 1 5 1 4 2 3 1 5 1 4 FALSE\nONE_TO_ONE 1 4 1 3 1 4 2 3 1 3 1 4 FALSE\n",
+     r"bad.nmf:6: overlaps the entry on line 5 \(block 1 face imax"),
 ])
 def test_bad_files_name_file_and_line(tmp_path, body, match):
     path = tmp_path / "bad.nmf"

@@ -595,6 +595,90 @@ def test_json_round_trip_is_1_based_cgns_style(tmp_path):
     conn.to_json(path, overwrite=True)
 
 
+#: the example of docs/formats.md, written by hand (only two of the patches)
+HAND_JSON = """\
+{
+ "format": "tfi_quat.connectivity",
+ "version": 1,
+ "ndim": 3,
+ "blocks": [
+  [5, 5, 4],
+  [5, 5, 4]
+ ],
+ "interfaces": [
+  {"block": 1, "face": "imax", "donor": 2, "donor_face": "jmin", "PointRange": [[5, 1, 1], [5, 5, 4]], \
+"PointRangeDonor": [[1, 1, 4], [5, 1, 1]], "Transform": [2, 1, -3]}
+ ],
+ "patches": [
+  {"block": 1, "face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 4]], "kind": "wall", "name": null, \
+"collapsed": false, "origin": "user"},
+  {"block": 1, "face": "kmin", "PointRange": [[1, 1, 1], [5, 5, 1]], "kind": "symmetry", "name": null, \
+"collapsed": false, "origin": "auto", "plane": {"origin": [0.5375, 0.525, 0.0], "normal": [0.0, 0.0, 1.0]}}
+ ],
+ "notes": [
+  "symmetry (auto) 1:kmin:1-5,1-5: planar, touches a wall, not classified; normal (0, 0, 1)"
+ ]
+}
+"""
+
+
+def test_hand_written_json_of_the_documented_layout(tmp_path):
+    from pathlib import Path
+    docs = (Path(__file__).parent.parent / "docs" / "formats.md").read_text().splitlines()
+    assert all(line in docs for line in HAND_JSON.splitlines())      # the documented example
+    path = tmp_path / "hand.json"
+    path.write_text(HAND_JSON)
+    big = sheared_box(9, 5, 4)
+    g = Grid([np.asfortranarray(big[:5]), orient(big[4:], (1, 0, 2), (False, False, True))])
+    conn = Connectivity.from_json(path, g)
+    it, = conn.interfaces
+    assert it == connect(g).interfaces[0]
+    assert it.transform == (2, 1, -3) and it.slave_begin == (0, 0, 3)
+    assert it.point_range_donor == ((0, 0, 3), (4, 0, 0))
+    check_interfaces(g, conn, tol=0.0)
+    wall, sym = conn.patches
+    assert (wall.spec, wall.kind, wall.origin) == (PatchSpec(0, "jmin", ((0, 4), (0, 3))), "wall", "user")
+    assert sym.kind == "symmetry" and sym.plane == ((0.5375, 0.525, 0.0), (0.0, 0.0, 1.0))
+    assert conn.notes[0].startswith("symmetry (auto) 1:kmin")
+
+
+@pytest.mark.parametrize("old,new,match", [
+    ('"Transform": [2, 1, -3]', '"Transform": [2, 1, 3]', r"hand.json:10: interface 1: .*not onto the slave range"),
+    ('"Transform": [2, 1, -3]', '"Transform": [2, 2, 3]', r"hand.json:10: interface 1: .*signed permutation"),
+    ('"PointRange": [[5, 1, 1], [5, 5, 4]]', '"PointRange": [[5, 5, 4], [5, 1, 1]]',
+     r"hand.json:10: interface 1: .*first corner .*lowest corner"),
+    ('"PointRange": [[5, 1, 1], [5, 5, 4]]', '"PointRange": [[4, 1, 1], [4, 5, 4]]',
+     r"hand.json:10: interface 1: PointRange .* is not on face imax of block 1 \(index i should be 5\)"),
+    ('"donor": 2', '"donor": 3', r"hand.json:10: interface 1 \(donor\): block 3 does not exist"),
+    ('"face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 4]]', '"face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 9]]',
+     r"hand.json:13: patch 1: PointRange .* exceeds block 1 \(5 x 5 x 4\)"),
+    ('"kind": "wall"', '"kind": "moving"', r"hand.json:13: patch 1: .*unknown kind 'moving'"),
+    ('"kind": "wall", ', '', r"hand.json:13: patch 1: missing or bad entry: 'kind'"),
+    ('"face": "kmin", "PointRange": [[1, 1, 1], [5, 5, 1]]', '"face": "imax", "PointRange": [[5, 1, 1], [5, 3, 3]]',
+     r"hand.json:14: patch 2 overlaps interface 1 master side \(line 10\) on block 1 face imax"),
+    ('"ndim": 3', '"ndim": 4', r"hand.json: 'ndim' must be 2 or 3"),
+    ('"version": 1', '"version": 2', r"hand.json: file version 2 is newer"),
+    ('"notes": [', '"notes": [,', r"hand.json:16: not valid JSON"),
+])
+def test_bad_json_files_name_file_and_line(tmp_path, old, new, match):
+    text = HAND_JSON
+    assert old in text
+    path = tmp_path / "hand.json"
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(ConnectivityError, match=match):
+        Connectivity.from_json(path)
+
+
+def test_classify_refuses_overlapping_patches():
+    g = Grid([c_grid()])
+    conn = connect(g, walls=["1:jmin"])
+    bad = conn.with_patches(conn.patches + [Patch(PatchSpec(0, "jmin", ((0, 6), (0, 0))), "fixed")])
+    assert bad.overlaps() == [(("master", 0), ("patch", 4))]
+    assert conn.overlaps() == []
+    with pytest.raises(ConnectivityError, match=r"patch 1:jmin:1-7,1-1 overlaps master 1:jmin:1-5,1-1"):
+        classify(bad, g)
+
+
 def test_json_errors_name_the_entry(tmp_path):
     g = Grid([annulus(ni=17, nj=5, theta=2 * np.pi)])
     doc = json.loads(json.dumps(__import__("tfi_quat.topology.files", fromlist=["x"]).to_dict(connect(g))))

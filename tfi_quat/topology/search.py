@@ -649,6 +649,12 @@ def classify(conn: Connectivity, grid, walls=(), symmetry=(), fixed=(), default=
         Same interfaces, new patches and notes.
     """
     conn.check(grid)
+    overlaps = conn.overlaps()
+    if overlaps:
+        first, second = overlaps[0]
+        raise ConnectivityError(f"{second[0]} {conn.item_spec(second)} overlaps {first[0]} "
+                                f"{conn.item_spec(first)}: "
+                                "every boundary cell must belong to one patch or interface side")
     geo = _Geometry(grid, tol, rtol)
     notes: list[str] = []
     patches = _classify(geo, conn.interfaces, conn.patches, walls, symmetry, fixed, default,
