@@ -11,7 +11,7 @@ from tfi_quat.topology import Connectivity, connect
 from tfi_quat.topology.nmf import nmf_kind
 
 from conftest import sheared_box
-from test_topology import c_grid, check_interfaces, extrude, orient
+from test_topology import ORIENTS_3D, c_grid, check_interfaces, extrude, orient
 
 HAND_3D = """\
 # ===== Neutral Map File (hand-written) =====
@@ -86,9 +86,35 @@ OUTFLOW 1 2 1 4 1 1
     check_interfaces(g, conn)
 
 
-@pytest.mark.parametrize("perm,flips", [((0, 1, 2), (False, False, False)), ((1, 0, 2), (True, False, False)),
-                                        ((2, 0, 1), (False, True, True)), ((1, 2, 0), (True, True, False)),
-                                        ((2, 1, 0), (False, False, True))])
+@pytest.mark.parametrize("name,line,perm,flips,cut_axis", [
+    # block 1 imax (J, K) <-> block 2 imin (J, K), J reversed: S1 > E1 on the second side
+    ("reversed", "ONE_TO_ONE 1 4 1 5 1 4  2 3 5 1 1 4  FALSE", (0, 1, 2), (False, True, False), 0),
+    # j faces: primary K, secondary I; block 2's I reversed
+    ("j faces", "ONE_TO_ONE 1 6 1 4 1 9  2 5 1 4 9 1  FALSE", (0, 1, 2), (True, False, False), 1),
+    # block 1 imax (J, K) <-> block 2 jmin (K, I): J along I (swapped), K reversed
+    ("swapped and reversed", "ONE_TO_ONE 1 4 1 5 1 4  2 5 4 1 1 5  TRUE", (1, 0, 2), (False, False, True), 0),
+])
+def test_hand_written_one_to_one_lines_match_the_geometry(tmp_path, name, line, perm, flips, cut_axis):
+    """S/E of the second side are the indices matching the first side's start/end corners."""
+    big = sheared_box(9, 5, 4)
+    if cut_axis == 0:
+        a, b = np.asfortranarray(big[:5]), orient(big[4:], perm, flips)
+    else:
+        a, b = np.asfortranarray(big[:, :3]), orient(big[:, 2:], perm, flips)
+    g = Grid([a, b])
+    dims = "\n".join(f"{n + 1} {d[0]} {d[1]} {d[2]}" for n, d in enumerate(g.dims))
+    path = tmp_path / "one.nmf"
+    path.write_text(f"# {name}\n2\n{dims}\n{line}\n")
+    conn = Connectivity.from_nmf(path)
+    assert conn.interfaces == connect(g).interfaces
+    check_interfaces(g, conn, tol=0.0)
+    # the writer gives the same line back
+    conn.to_nmf(tmp_path / "back.nmf")
+    written = [ln.split() for ln in (tmp_path / "back.nmf").read_text().splitlines() if ln.startswith("ONE_TO_ONE")]
+    assert written == [line.split()]
+
+
+@pytest.mark.parametrize("perm,flips", ORIENTS_3D)
 def test_round_trip_connect_to_nmf_from_nmf(tmp_path, perm, flips):
     big = sheared_box(9, 5, 4)
     g = Grid([np.asfortranarray(big[:5]), orient(big[4:], perm, flips)])
