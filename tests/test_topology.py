@@ -264,6 +264,24 @@ def test_self_match_of_two_faces_of_one_block_with_swapped_axes(nk):
     covered_once(conn, g)
 
 
+def test_face_matching_itself_shifted_is_no_interface():
+    """A sector wound round three times: jmin matches itself shifted by one turn and by two; the
+    master and slave ranges of the first overlap (regression: it was taken), only the second is
+    an interface."""
+    m, nj = 4, 4
+    th = np.linspace(0, 6 * np.pi, 3 * m + 1)[:, None]
+    r = np.linspace(1, 2, nj)[None, :]
+    xyz = np.zeros((3 * m + 1, nj, 1, 3), order="F")
+    xyz[:, :, 0, 0] = r * np.cos(th)
+    xyz[:, :, 0, 1] = r * np.sin(th)
+    g = Grid([xyz])
+    conn = connect(g)
+    assert conn.overlaps() == []
+    assert [it.master.range for it in conn.interfaces if it.master.face == "jmin"] == [((0, 4), (0, 0))]
+    check_interfaces(g, conn)
+    covered_once(conn, g)
+
+
 def test_disc_centre_collapsed_to_a_point_2d():
     """Polar disc: i round the centre (seam imin-imax through the centre), jmin one point."""
     ni, nj = 13, 5

@@ -364,6 +364,8 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
             cm, cs = _cells_of(F1, m_rng), _cells_of(F2, s_rng)
             if claimed[fa][cm].any() or claimed[fb][cs].any():
                 continue
+            if fa == fb and all(x.start < y.stop and y.start < x.stop for x, y in zip(cm, cs)):
+                continue      # a face that matches itself shifted (a block wound round more than once)
             claimed[fa][cm] = True
             claimed[fb][cs] = True
             master = PatchSpec(F1.block, F1.face, m_rng)
