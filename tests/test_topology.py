@@ -551,6 +551,12 @@ def test_user_patch_on_an_interface_is_noted():
     conn = connect(g, walls=["1:jmin:1-5"])
     assert any("lies entirely on interfaces" in n for n in conn.notes)
     assert conn.kinds()["wall"] == []
+    # a range reaching into the wake cut is reduced, with a note; a whole face silently
+    conn = connect(g, walls=["1:jmin:3-19"])
+    assert [p.spec.range for p in conn.kinds()["wall"]] == [((4, 16), (0, 0))]
+    assert conn.notes == ["wall 1:jmin:3-19,1-1 is partly on interfaces: only its part off them is wall"]
+    conn = connect(g, walls=["1:jmin"])
+    assert [p.spec.range for p in conn.kinds()["wall"]] == [((4, 16), (0, 0))] and conn.notes == []
 
 
 def test_interface_validates_its_transform():

@@ -519,6 +519,9 @@ def _classify(geo: _Geometry, interfaces, base_patches, walls, symmetry, fixed, 
         owner[k][cs] = n
         if covered[k][cs].all():
             notes.append(f"{kind} {s} lies entirely on interfaces: ignored")
+        elif covered[k][cs].any() and s.range != ((0, fc.na - 1), (0, fc.nb - 1)):
+            # a whole face is reduced silently (that is what it means); a given range is reported
+            notes.append(f"{kind} {s} is partly on interfaces: only its part off them is {kind}")
         label[k][cs] = len(sources)
         sources.append(("user", s, kind))
 
