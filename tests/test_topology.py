@@ -841,3 +841,44 @@ def test_cli_main_connect_end_to_end(tmp_path, capsys, ext):
     err = capsys.readouterr().err
     assert err.startswith("tfi-quat connect: error: ") and "overlaps" in err
     assert main(["connect", str(grid_path), "--wall", "1:jmin", "-o", str(out_map), "--force"]) == 0
+
+
+def test_cli_main_connect_errors_are_one_line_with_status_2(tmp_path, capsys):
+    import tfi_quat
+    from tfi_quat.cli import main
+    grid_path = tmp_path / "c.x"
+    tfi_quat.write(grid_path, Grid([c_grid()]))
+    cases = [
+        ([str(tmp_path / "missing.x")], "missing.x"),
+        ([str(grid_path), "-o", str(tmp_path / "map.txt")], "unknown map extension '.txt': use .json or .nmf"),
+        ([str(grid_path), "--tol", "-1"], "tol must be a finite distance"),
+        ([str(grid_path), "--wall", "2:jmin"], "wall 2:jmin"),
+        ([str(grid_path), "--wall", "1:kmin"], "no k faces"),
+        ([str(grid_path), "--symmetry", "1:jmin:1-99"], "exceeds"),
+    ]
+    for argv, words in cases:
+        assert main(["connect", *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("tfi-quat connect: error: ") and err.count("\n") == 1 and words in err, (argv, err)
+
+
+def test_cli_main_connect_options_2d(tmp_path, capsys):
+    import tfi_quat
+    from tfi_quat.cli import main
+    from tfi_quat.topology.nmf import read_nmf
+    x, y = np.meshgrid(np.linspace(0, 2, 6), np.linspace(0, 1, 4) ** 2, indexing="ij")
+    g = Grid([np.stack([x, y + 0.1 * np.sin(x) * (1 - y)], -1)])
+    grid_path = tmp_path / "channel.x"
+    tfi_quat.write(grid_path, g)
+    assert main(["connect", str(grid_path), "--wall", "1:jmin"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("symmetry (auto)") == 2 and "symmetry  1      imin  1-4,1-1           auto" in out
+    nmf = tmp_path / "c.nmf"
+    assert main(["connect", str(grid_path), "--wall", "1:jmin", "--no-auto-symmetry", "--default", "free",
+                 "-o", str(nmf), "--nmf-faces", "2d"]) == 0
+    out = capsys.readouterr().out
+    assert "symmetry" not in out and "free      1      imin" in out and f"wrote {nmf}" in out
+    back = read_nmf(nmf)
+    assert {p.spec.face: p.kind for p in back.patches} == {"imin": "free", "imax": "free", "jmin": "wall",
+                                                           "jmax": "free"}
+    assert max(int(line.split()[2]) for line in nmf.read_text().splitlines() if line[:1] not in "# ") == 4
