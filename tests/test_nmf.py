@@ -114,6 +114,21 @@ def test_hand_written_one_to_one_lines_match_the_geometry(tmp_path, name, line, 
     assert written == [line.split()]
 
 
+def test_one_to_one_that_does_not_match_the_grid_names_file_and_line(tmp_path):
+    big = sheared_box(9, 5, 4)
+    g = Grid([np.asfortranarray(big[:5]), orient(big[4:], (0, 1, 2), (False, True, False))])
+    path = tmp_path / "wrong.nmf"
+    # J runs backwards on block 2; this line says forwards (a valid file, the wrong grid)
+    path.write_text("2\n1 5 5 4\n2 5 5 4\n# interfaces\nONE_TO_ONE 1 4 1 5 1 4  2 3 1 5 1 4  FALSE\n")
+    assert Connectivity.from_nmf(path).interfaces[0].transform == (1, 2, 3)      # no grid: not checked
+    with pytest.raises(ConnectivityError, match=r"wrong.nmf:5: ONE_TO_ONE: 1:imax:1-5,1-4 -> 2:imin:1-5,1-4 "
+                                                r"\[\+1,\+2,\+3\] does not match the grid: point \(5, 1, \d\) of block 1 "
+                                                r"is [0-9.]+ from its partner \(1, 1, \d\) of block 2"):
+        Connectivity.from_nmf(path, g)
+    with pytest.raises(ConnectivityError, match=r"wrong.nmf: block 2: connectivity is for 5 x 5 x 4"):
+        Connectivity.from_nmf(path, Grid([g[0].xyz, np.asfortranarray(big[3:])]))
+
+
 @pytest.mark.parametrize("perm,flips", ORIENTS_3D)
 def test_round_trip_connect_to_nmf_from_nmf(tmp_path, perm, flips):
     big = sheared_box(9, 5, 4)

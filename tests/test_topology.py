@@ -666,6 +666,20 @@ def test_hand_written_json_of_the_documented_layout(tmp_path):
     assert conn.notes[0].startswith("symmetry (auto) 1:kmin")
 
 
+def test_json_interface_that_does_not_match_the_grid(tmp_path):
+    path = tmp_path / "hand.json"
+    path.write_text(HAND_JSON)
+    big = sheared_box(9, 5, 4)
+    # block 2 without the reversed k of the documented example
+    g = Grid([np.asfortranarray(big[:5]), orient(big[4:], (1, 0, 2), (False, False, False))])
+    assert Connectivity.from_json(path).interfaces[0].transform == (2, 1, -3)
+    with pytest.raises(ConnectivityError, match=r"hand.json:10: interface 1: .* does not match the grid: point "
+                                                r"\(5, \d, \d\) of block 1 is [0-9.]+ from its partner \(\d, 1, \d\) of block 2"):
+        Connectivity.from_json(path, g)
+    with pytest.raises(ConnectivityError, match=r"hand.json: connectivity is for 2 block\(s\), the grid has 1"):
+        Connectivity.from_json(path, Grid([g[0].xyz]))
+
+
 @pytest.mark.parametrize("old,new,match", [
     ('"Transform": [2, 1, -3]', '"Transform": [2, 1, 3]', r"hand.json:10: interface 1: .*not onto the slave range"),
     ('"Transform": [2, 1, -3]', '"Transform": [2, 2, 3]', r"hand.json:10: interface 1: .*signed permutation"),
@@ -768,7 +782,7 @@ def test_cli_connect_run_reports_a_missing_grid(tmp_path):
         run(_cli_args([str(tmp_path / "nothing.x")]))
 
 
-def test_absolute_tolerance_bridges_a_small_gap():
+def test_absolute_tolerance_bridges_a_small_gap(tmp_path):
     big = sheared_box(9, 5, 4)
     a = np.asfortranarray(big[:5])
     b = np.asfortranarray(big[4:] + 1e-5)
@@ -776,6 +790,11 @@ def test_absolute_tolerance_bridges_a_small_gap():
     conn = connect(Grid([a, b]), tol=1e-4)
     assert len(conn.interfaces) == 1
     check_interfaces(Grid([a, b]), conn, tol=2e-5)
+    # such a map saved and read back with the grid passes the reader's check (a quarter cell)
+    conn.to_json(tmp_path / "gap.json")
+    conn.to_nmf(tmp_path / "gap.nmf")
+    assert Connectivity.from_json(tmp_path / "gap.json", Grid([a, b])) == conn
+    assert Connectivity.from_nmf(tmp_path / "gap.nmf", Grid([a, b])).interfaces == conn.interfaces
     with pytest.raises(ConnectivityError, match="tol"):
         connect(Grid([a, b]), tol=-1.0)
     with pytest.raises(ConnectivityError, match="rtol"):

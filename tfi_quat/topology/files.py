@@ -239,7 +239,9 @@ def _item(item, lines) -> tuple[str, int | None]:
     return name, (ln[n] if n < len(ln) else None)
 
 
-def read_json(path) -> Connectivity:
+def read_json(path, grid=None) -> Connectivity:
+    """Read a JSON connectivity file; with ``grid``, check its dimensions and that every
+    interface's points coincide (errors name the file and line)."""
     p = Path(os.fspath(path))
     text = p.read_text(encoding="utf-8")
     try:
@@ -247,7 +249,17 @@ def read_json(path) -> Connectivity:
     except json.JSONDecodeError as exc:
         raise ConnectivityError(f"{p}:{exc.lineno}: not valid JSON (column {exc.colno}): {exc.msg}") from None
     lines = {key: _entry_lines(text, key) for key in ("interfaces", "patches")}
-    return from_dict(doc, str(p), lines)
+    conn = from_dict(doc, str(p), lines)
+    if grid is not None:
+        from .search import check_interfaces
+        try:
+            conn.check(grid)
+        except ConnectivityError as exc:
+            raise ConnectivityError(f"{p}: {exc}") from None
+        ln = lines["interfaces"]
+        check_interfaces(conn, grid, lambda n: f"{p}:{ln[n]}: interface {n + 1}" if n < len(ln)
+                         else f"{p}: interface {n + 1}")
+    return conn
 
 
 # ------------------------------------------------------------------ table

@@ -475,12 +475,14 @@ class Connectivity:
 
     @classmethod
     def from_json(cls, path, grid=None) -> "Connectivity":
-        """Read a JSON connectivity file; with ``grid``, check it against the grid."""
+        """Read a JSON connectivity file; with ``grid``, check it against the grid.
+
+        The check: the block dimensions, and that the points of every interface
+        coincide (within a quarter of the local spacing; errors name the file and
+        line of the interface).
+        """
         from .files import read_json
-        conn = read_json(path)
-        if grid is not None:
-            conn.check(grid)
-        return conn
+        return read_json(path, grid)
 
     def to_nmf(self, path, *, overwrite: bool = False, convention: str = "3d") -> None:
         """Write a Neutral Map File (see ``docs/formats.md``).
@@ -500,7 +502,8 @@ class Connectivity:
         ----------
         path : str or path-like
         grid : Grid, optional
-            Check the file against the grid, and derive what the file does not
+            Check the file against the grid (dimensions; the points of every
+            ``ONE_TO_ONE`` coincide), and derive what the file does not
             hold (collapsed patches, symmetry planes, parts of faces the file
             leaves out, which get the kind ``fixed``).
         types : dict, optional
@@ -510,9 +513,8 @@ class Connectivity:
             Face numbering (see ``docs/formats.md``).
         """
         from .nmf import read_nmf
-        conn = read_nmf(path, types=types, convention=convention)
+        conn = read_nmf(path, types=types, convention=convention, grid=grid)
         if grid is not None:
-            conn.check(grid)
             from .search import classify
             conn = classify(conn, grid)
         return conn

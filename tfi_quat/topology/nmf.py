@@ -180,7 +180,7 @@ def _lines(path: Path):
             yield n, line
 
 
-def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
+def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connectivity:
     """Read a Neutral Map File (see the module docstring).
 
     Parameters
@@ -191,6 +191,9 @@ def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
         collapsed, interface); they take precedence over the built-in table.
     convention : {"auto", "3d", "2d"}
         Face numbering.
+    grid : Grid, optional
+        Check the file's dimensions against the grid, and that the points of
+        every ``ONE_TO_ONE`` coincide.
 
     Returns
     -------
@@ -352,4 +355,11 @@ def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
         spec = conn.item_spec(second)
         raise ConnectivityError(f"{p}:{line(second)}: overlaps the entry on line {line(first)} "
                                 f"(block {spec.block + 1} face {spec.face}, {table_inv[spec.face]} in the file)")
+    if grid is not None:
+        from .search import check_interfaces
+        try:
+            conn.check(grid)
+        except ConnectivityError as exc:
+            raise ConnectivityError(f"{p}: {exc}") from None
+        check_interfaces(conn, grid, lambda n: f"{p}:{lines_of['interface'][n]}: ONE_TO_ONE")
     return conn.sorted()

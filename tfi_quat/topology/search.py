@@ -33,7 +33,8 @@ from ..grid import FACES
 from ..spec import PatchSpec, parse_patch_spec
 from .model import KINDS, Connectivity, Interface, Patch, face_axes
 
-__all__ = ["connect", "classify", "node_labels", "DEFAULT_RTOL", "PLANE_RTOL"]
+__all__ = ["connect", "classify", "node_labels", "interface_mismatches", "check_interfaces", "DEFAULT_RTOL",
+           "PLANE_RTOL"]
 
 #: default matching tolerance relative to the smallest adjacent edge
 DEFAULT_RTOL = 1e-6
@@ -581,6 +582,84 @@ def _patch_ids(geo: _Geometry, spec: PatchSpec) -> np.ndarray:
     fc = geo.faces[geo.index[(spec.block, spec.face)]]
     (a0, a1), (b0, b1) = spec.range
     return geo.ids(fc)[a0:a1 + 1, b0:b1 + 1].ravel()
+
+
+# ------------------------------------------------------------ file checks
+def interface_mismatches(conn: Connectivity, grid, *, fraction: float = 0.25) -> list[tuple]:
+    """Interfaces whose master and slave points do not coincide.
+
+    A point pair is a mismatch when its distance exceeds ``fraction`` of the
+    smallest non-zero edge next to the master point on its face (and 16 units
+    in the last place of the coordinates): a wrong Transform, offset or swap
+    flag moves points by at least a cell, while tolerances that bridge small
+    gaps between blocks stay well below.
+
+    Parameters
+    ----------
+    conn : Connectivity
+        Checked against the grid's dimensions first.
+    grid : Grid
+
+    Returns
+    -------
+    list of tuple
+        ``(index, master_ijk, slave_ijk, distance, spacing)`` for the worst
+        point of each bad interface (0-based block indices).
+    """
+    conn.check(grid)
+    out = []
+    for n, it in enumerate(conn.interfaces):
+        s = it.master
+        blk = grid[s.block]
+        pts = blk.face(s.face)
+        (a0, a1), (b0, b1) = s.range
+        pts = pts[a0:a1 + 1, b0:b1 + 1]
+        ext = float(np.linalg.norm(np.subtract(*blk.bbox()[::-1]))) or 1.0
+        h = np.full(pts.shape[:2], np.inf)
+        for ax in (0, 1):
+            if pts.shape[ax] > 1:
+                e = np.linalg.norm(np.diff(pts, axis=ax), axis=-1)
+                e = np.where(e > 1e-10 * ext, e, np.inf)
+                lo = [slice(None)] * 2
+                hi = [slice(None)] * 2
+                lo[ax], hi[ax] = slice(None, -1), slice(1, None)
+                h[tuple(lo)] = np.minimum(h[tuple(lo)], e)
+                h[tuple(hi)] = np.minimum(h[tuple(hi)], e)
+        h[~np.isfinite(h)] = ext
+        lo, hi = it.point_range
+        ii = np.stack(np.meshgrid(*[np.arange(u, v + 1) for u, v in zip(lo, hi)], indexing="ij"), -1)
+        # (points of the range in face order a, b)
+        d_, ax_a, ax_b = face_axes(s.face)
+        ii = np.moveaxis(ii, (ax_a, ax_b), (0, 1)).reshape(pts.shape[:2] + (3,))
+        jj = it.slave_index(ii)
+        xm = blk.xyz[ii[..., 0], ii[..., 1], ii[..., 2]]
+        xs = grid[it.slave.block].xyz[jj[..., 0], jj[..., 1], jj[..., 2]]
+        dist = np.linalg.norm(xm - xs, axis=-1)
+        floor = 16 * np.finfo(np.float64).eps * np.maximum(np.abs(xm).max(axis=-1), np.abs(xs).max(axis=-1))
+        ratio = dist / np.maximum(fraction * h, floor)
+        if ratio.max() > 1:
+            w = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+            out.append((n, tuple(int(v) for v in ii[w]), tuple(int(v) for v in jj[w]), float(dist[w]),
+                        float(h[w])))
+    return out
+
+
+def check_interfaces(conn: Connectivity, grid, where=None) -> None:
+    """Raise :class:`ConnectivityError` for the first interface whose points do not coincide.
+
+    ``where(n)`` gives the message prefix for interface ``n`` (a file and line).
+    """
+    bad = interface_mismatches(conn, grid)
+    if bad:
+        n, mi, si, dist, h = bad[0]
+        it = conn.interfaces[n]
+        head = where(n) if where is not None else f"interface {n + 1}"
+        one = ", ".join(str(v + 1) for v in mi)
+        two = ", ".join(str(v + 1) for v in si)
+        raise ConnectivityError(
+            f"{head}: {it} does not match the grid: point ({one}) of block {it.master.block + 1} is "
+            f"{dist:.3g} from its partner ({two}) of block {it.slave.block + 1}, the spacing there is "
+            f"{h:.3g} (a wrong Transform, range or swap flag?)")
 
 
 # ------------------------------------------------------------------ public
