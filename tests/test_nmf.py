@@ -114,6 +114,23 @@ def test_hand_written_one_to_one_lines_match_the_geometry(tmp_path, name, line, 
     assert written == [line.split()]
 
 
+def test_faces_the_file_leaves_out_are_derived_with_the_grid(tmp_path):
+    g = Grid([extrude(c_grid(), nk=3)])
+    ni = g[0].dims[0]
+    path = tmp_path / "part.nmf"
+    # only the wake cut and the airfoil (j = 1: K primary, I secondary)
+    path.write_text(f"1\n1 {ni} 4 3\nONE_TO_ONE 1 5 1 3 1 5  1 5 1 3 {ni} {ni - 4}  FALSE\n"
+                    f"WALL 1 5 1 3 5 {ni - 4}\n")
+    bare = Connectivity.from_nmf(path)
+    assert len(bare.patches) == 1 and len(bare.interfaces) == 1
+    conn = Connectivity.from_nmf(path, g)
+    kinds = {p.spec.face: (p.kind, p.origin) for p in conn.patches}
+    assert kinds["jmin"] == ("wall", "file")
+    assert kinds["jmax"] == kinds["imin"] == kinds["imax"] == ("fixed", "default")
+    assert kinds["kmin"] == kinds["kmax"] == ("symmetry", "auto")         # planar and touching the wall
+    assert conn == connect(g, walls=["1:jmin"])
+
+
 def test_one_to_one_that_does_not_match_the_grid_names_file_and_line(tmp_path):
     big = sheared_box(9, 5, 4)
     g = Grid([np.asfortranarray(big[:5]), orient(big[4:], (0, 1, 2), (False, True, False))])
