@@ -415,6 +415,30 @@ def test_collapsed_axis_face_and_periodic_seam_3d():
     covered_once(conn, g)
 
 
+def test_axis_faces_of_two_half_o_blocks_are_not_an_interface():
+    """Two halves of an O-grid round the z axis: both imin faces lie on the axis (a line)."""
+    ni, nj, nk = 4, 5, 3
+    blocks = []
+    for t0 in (0.0, np.pi):
+        r = np.linspace(0, 1, ni)[:, None, None]
+        th = np.linspace(t0, t0 + np.pi, nj)[None, :, None]
+        z = np.linspace(0, 1, nk)[None, None, :]
+        xyz = np.zeros((ni, nj, nk, 3), order="F")
+        xyz[..., 0] = r * np.cos(th) + 0 * z
+        xyz[..., 1] = r * np.sin(th) + 0 * z
+        xyz[..., 2] = z + 0.05 * r ** 2 + 0 * th
+        blocks.append(xyz)
+    g = Grid(blocks)
+    conn = connect(g, walls=["1:imax", "2:imax"])
+    pairs = sorted((it.master.block, it.master.face, it.slave.block, it.slave.face) for it in conn.interfaces)
+    assert pairs == [(0, "jmax", 1, "jmin"), (0, "jmin", 1, "jmax")]
+    assert all(it.master.range == ((0, ni - 1), (0, nk - 1)) for it in conn.interfaces)   # axis rows included
+    check_interfaces(g, conn)
+    col = sorted((p.spec.block, p.spec.face) for p in conn.patches if p.collapsed)
+    assert col == [(0, "imin"), (1, "imin")]
+    covered_once(conn, g)
+
+
 def test_pole_faces_of_two_blocks_are_not_an_interface():
     # two pyramids with their imin faces collapsed onto the same apex
     ni, nj, nk = 4, 3, 3
