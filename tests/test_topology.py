@@ -470,6 +470,19 @@ def test_float_noise_of_1e15_still_matches():
     assert connect(Grid([a, b2])).interfaces == []
 
 
+@pytest.mark.parametrize("make", [lambda: c_grid(), lambda: extrude(c_grid(), nk=3),
+                                  lambda: annulus(ni=17, nj=5, theta=2 * np.pi), lambda: cone(9, 4)],
+                         ids=["c-grid", "c-grid-3d", "o-grid", "cone"])
+def test_self_matches_survive_1e15_noise(make):
+    xyz = make()
+    rng = np.random.default_rng(5)
+    noisy = np.asfortranarray(xyz * (1 + 1e-15 * rng.uniform(-1, 1, xyz.shape)))
+    exact = connect(Grid([xyz]), walls=["1:jmin"])
+    conn = connect(Grid([noisy]), walls=["1:jmin"])
+    assert conn == exact and len(conn.interfaces) == 1
+    check_interfaces(Grid([noisy]), conn, tol=1e-13)
+
+
 def test_round_off_of_large_coordinates_with_tiny_spacing_still_matches():
     # spacing ~3e-9 at coordinates ~1e3: rtol x spacing (3e-15) is below the round-off (~1e-12)
     rng = np.random.default_rng(2)
