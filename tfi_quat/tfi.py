@@ -47,6 +47,7 @@ loop, so it vectorises); they are exactly 0 and 1 at the ends.
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 from typing import Sequence
@@ -1340,17 +1341,23 @@ def _pair(faces, d, ncomp: int) -> np.ndarray:
     return out
 
 
-def _tables(dims, o, fd, fq, fs, hasn):
-    """Allocate and fill the O(surface) tables of the fused kernels.
+def _padded(dims, d):
+    """Shape of a table indexed like the faces normal to ``d``, first axis padded to >= 2:
+    a (1, 1, c) table would be typed C-contiguous and compile another specialisation of
+    every kernel."""
+    na, nb = _face_dims(dims, d)
+    return max(2, na), nb
 
-    Dummy tables are (2, 2, ·) so that their numba type (F layout) never
-    changes, which keeps one compiled specialisation per kernel.
+
+def _work_tables(dims, o, hasn, hasq):
+    """Allocate the tables :func:`_prep` fills: ``lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN``.
+
+    Dummy tables are (2, 2, ·) zeros, so that their numba type (F layout)
+    never changes, which keeps one compiled specialisation per kernel; the
+    volume kernels read the zeros of ``hD``/``hQ`` in 2-D.
     """
     L, M, N = o
-    hasq = fq is not None
-    # first axis padded to >= 2: a (1, 1, c) table would be typed C-contiguous and
-    # compile another specialisation of every kernel
-    sh = lambda d: (max(2, _face_dims(dims, d)[0]), _face_dims(dims, d)[1])  # noqa: E731
+    sh = functools.partial(_padded, dims)
     dummy = lambda c: np.zeros((2, 2, c), order="F")  # noqa: E731
     lineD = np.empty(sh(L) + (6,), order="F")
     gD = np.empty(sh(M) + (6,), order="F")
@@ -1363,6 +1370,14 @@ def _tables(dims, o, fd, fq, fs, hasn):
         fbN = np.empty(sh(N) + (16,), order="F") if hasn else dummy(16)
     else:
         lineQ, gQ, hQ, fbM, fbN = dummy(10), dummy(8), dummy(8), dummy(16), dummy(16)
+    return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
+
+
+def _tables(dims, o, fd, fq, fs, hasn):
+    """Allocate and fill the O(surface) tables of the fused kernels (see :func:`_work_tables`)."""
+    L, M, N = o
+    hasq = fq is not None
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _work_tables(dims, o, hasn, hasq)
     FL, FM = _pair(fd, L, 3), _pair(fd, M, 3)
     FN = _pair(fd, N, 3) if hasn else np.zeros((2, 2, 3, 2), order="F")
     if hasq:
