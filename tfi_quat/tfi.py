@@ -1623,10 +1623,10 @@ class GatherPlan:
     @property
     def nbytes(self) -> int:
         """Bytes held by the plan now (indices, face parameters, kept tables)."""
-        arrs = list(self._index) + [self._SM, self._SN]
+        arrs = {id(a): a for a in list(self._index) + [self._SM, self._SN]}
         for t in self._tab.values():
-            arrs.extend(t)
-        return int(sum(a.nbytes for a in arrs))
+            arrs.update((id(a), a) for a in t)
+        return int(sum(a.nbytes for a in arrs.values()))
 
     def __repr__(self) -> str:
         return (f"GatherPlan(dims={self.dims}, order={self.order}, n_index={self.n_index}, "
@@ -1636,34 +1636,43 @@ class GatherPlan:
         return self.order if self._hasn else self.order + (2,)
 
     def _new_tables(self, hasq: bool) -> tuple:
-        """Pair tables ``FL, FM, FN`` (and ``QL, QM, QN``) plus :func:`_work_tables`."""
+        """New tables: ``(FL, FM, FN, lineD, gD, hD)`` and ``(QL, QM, QN, lineQ, gQ, hQ, fbM,
+        fbN)`` (dummies for the baseline), the pair tables and :func:`_work_tables`."""
         L, M, N = o = self._o3()
         dims, hasn = self.dims, self._hasn
         pair = lambda d, c: np.empty(_face_dims(dims, d) + (c, 2), order="F")  # noqa: E731
         dummy = lambda c: np.zeros((2, 2, c, 2), order="F")  # noqa: E731
-        F = (pair(L, 3), pair(M, 3), pair(N, 3) if hasn else dummy(3))
+        lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _work_tables(dims, o, hasn, hasq)
+        tab_d = (pair(L, 3), pair(M, 3), pair(N, 3) if hasn else dummy(3), lineD, gD, hD)
         if hasq:
             Q = (pair(L, 4), pair(M, 4), pair(N, 4) if hasn else dummy(4))
         else:
             Q = (dummy(4),) * 3
-        return F + Q + _work_tables(dims, o, hasn, hasq)
+        return tab_d, Q + (lineQ, gQ, hQ, fbM, fbN)
+
+    def _tables(self, hasq: bool) -> tuple:
+        """The tables of a call: kept ones (Δ tables shared by both kinds of call) or new."""
+        if not self.keep_tables:
+            return self._new_tables(hasq)
+        tab_d, tab_q = self._tab.get("d"), self._tab.get(hasq)
+        if tab_q is None:
+            new_d, tab_q = self._new_tables(hasq)       # new_d: never touched if dropped
+            self._tab[hasq] = tab_q
+            if tab_d is None:
+                tab_d = self._tab["d"] = new_d
+        return tab_d, tab_q
 
     def _fill(self, gd, gq) -> tuple:
-        """Gather the faces' values and build the tables; returns the 8 work tables."""
+        """Gather the faces' values and build the tables; returns the 8 tables of the
+        volume kernels (``lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN``)."""
         hasq = gq is not None
-        tab = self._tab.get(hasq) if self.keep_tables else None
-        if tab is None:
-            tab = self._new_tables(hasq)
-            if self.keep_tables:
-                self._tab[hasq] = tab
-        FL, FM, FN, QL, QM, QN = tab[:6]
+        (FL, FM, FN, lineD, gD, hD), (QL, QM, QN, lineQ, gQ, hQ, fbM, fbN) = self._tables(hasq)
         L, M, N = self._o3()
         iL, iM, iN = self._index
         _gather(gd, gq if hasq else _NO_Q, hasq, self._hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN)
-        work = tab[6:]
         _prep(self._SM, self._SN, self.dims[M], self.dims[N], L, M, N, self._hasn,
-              FL, FM, FN, QL, QM, QN, hasq, *work)
-        return work
+              FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+        return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
 
 
 _NO_Q = np.zeros((1, 4))            # stands for g_q in the baseline (never read)
