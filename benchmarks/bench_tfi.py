@@ -11,7 +11,7 @@ roofline) and a plain copy.  Every figure is the best of ``--repeat`` runs
 The Deformer's case is timed beside it: face values as rows of global
 arrays, ``deform_block_gathered`` (faces gathered inside the compiled
 set-up, tables kept in its plan) against the old path (a numpy gather per
-face, then the tables of ``deform_block(..., check=False)``), whole call and
+face, then ``deform_block(..., check=False)``), whole call and the
 O(surface) tables alone.
 
 Usage::
@@ -147,20 +147,18 @@ def main(argv=None):
     gid, P = global_rows(xyz)
     gd, gq = dfun(P), qfun(P)
     plan = tfi.gather_plan(gid, s, order, face_s=fs)
-    L, M, N = order
 
     def old_tables(q):
-        # what the Deformer did before (deform_block(..., check=False) after per-face gathers)
+        # the O(surface) part of the old path: per-face gathers, then deform_block's tables
         fdg = tuple(gd[g] for g in gid)
         fqg = tuple(gq[g] for g in gid) if q else None
         return tfi._tables(dims, order, fdg, fqg, fs, True)
 
     def old_whole(q):
-        t = old_tables(q)
-        if q:
-            tfi._deform3_q(xyz, s, out, *c, *order, *t)
-        else:
-            tfi._deform3_d(xyz, s, out, *order, t[0], t[2], t[4])
+        # the old path as the Deformer took it
+        fdg = tuple(gd[g] for g in gid)
+        fqg = tuple(gq[g] for g in gid) if q else None
+        tfi.deform_block(xyz, s, fdg, fqg, c, order, out=out, face_s=fs, check=False)
 
     for q in (gq, None):
         tfi.deform_block_gathered(xyz, s, gd, q, plan, c, out)

@@ -1739,7 +1739,9 @@ def gather_plan(face_index, s, order, *, face_s=None, keep_tables: bool = True) 
         on every edge at every call, by construction).
     s : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
         The block's arclength parameters (:func:`arclength`): gives the block
-        size, and ``face_params(s)`` when ``face_s`` is not given.
+        size, and ``face_params(s)`` when ``face_s`` is not given.  The
+        parameters on the faces are copied into the plan: make a new plan if
+        ``s`` changes.
     order : sequence of 3 (or 2) int
         ``(L, M, N)`` (``(L, M)`` for a 2-D block, ``nk == 1``), a permutation
         (:func:`lead_order`).
