@@ -908,9 +908,10 @@ class Deformer:
         """Two-level: the centre field ``c`` on boundary points and the arms ``A = R_u - c``.
 
         Walls: ``c`` is the point itself.  Fixed points on the side faces of a
-        block (faces that are not ends of its leading direction): ``c`` is the
-        interpolant along the leading direction between the face's end edges,
-        so the side faces' own offsets from their edges do not become
+        block (faces that are not ends of its leading direction), near walls:
+        ``c`` is the interpolant along the leading direction between the face's
+        end edges (weight ``exp(-(d / 2 ell)^2)`` against the point itself), so
+        the side faces' own offsets from their edges do not become
         interpolation residuals that would carry un-rotated wall-layer
         offsets into the block.  Derived points (vertices, segments, patches):
         ``c`` is interpolated like every other field, then re-based to
