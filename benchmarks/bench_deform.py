@@ -29,12 +29,14 @@ METHODS = (("quaternion", "two-level"), ("quaternion", "samareh"), ("tfi", None)
 
 
 def _kept_bytes(d: Deformer) -> int:
-    """Bytes of the full-size arrays a Deformer keeps (blending parameters, arms)."""
+    """Bytes a Deformer keeps per block: blending parameters, arms, the kernels' kept tables."""
     n = 0
     for plan in d._blocks:
         n += plan.s.nbytes
         if plan.arm is not None:
             n += plan.arm.nbytes
+        if plan.gather is not None:
+            n += plan.gather.nbytes
     return n
 
 

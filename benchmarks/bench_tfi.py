@@ -8,6 +8,12 @@ bytes per point, exactly the volume stage's traffic, so its points/s is the
 roofline) and a plain copy.  Every figure is the best of ``--repeat`` runs
 (the machine is shared: the best run is the least disturbed one).
 
+The Deformer's case is timed beside it: face values as rows of global
+arrays, ``deform_block_gathered`` (faces gathered inside the compiled
+set-up, tables kept in its plan) against the old path (a numpy gather per
+face, then ``deform_block(..., check=False)``), whole call and the
+O(surface) tables alone.
+
 Usage::
 
     python3 benchmarks/bench_tfi.py                 # 10.1 M points (216^3)
@@ -54,6 +60,17 @@ def best(fn, repeat):
     return min(t)
 
 
+def best_interleaved(fns, repeat):
+    """Best time of each function, the functions run in turn (A/B under the same load)."""
+    t = [[] for _ in fns]
+    for _ in range(repeat):
+        for m, fn in enumerate(fns):
+            t0 = time.perf_counter()
+            fn()
+            t[m].append(time.perf_counter() - t0)
+    return [min(v) for v in t]
+
+
 def make_block(n):
     """A stretched, sheared, warped box with n^3 points (float64, F order)."""
     u = np.linspace(0.0, 1.0, n)
@@ -64,6 +81,25 @@ def make_block(n):
     xyz[..., 1] = 1.5 * j + 0.2 * k + 0.02 * i * i
     xyz[..., 2] = 1.0 * k + 0.1 * i * j
     return xyz
+
+
+def global_rows(xyz):
+    """The block's face points as rows of global arrays, as the Deformer numbers them.
+
+    Returns the six faces' row arrays (face ``f`` of shape ``Block.face(f).shape[:2]``;
+    points shared by faces share a row, rows in the order of the block points)
+    and the points of the rows (G, 3).
+    """
+    dims = xyz.shape[:3]
+    flat = np.arange(int(np.prod(dims))).reshape(dims, order="F")
+    keys = []
+    for f in range(6):
+        idx = [slice(None)] * 3
+        idx[f // 2] = dims[f // 2] - 1 if f % 2 else 0
+        keys.append(flat[tuple(idx)])
+    uk = np.unique(np.concatenate([k.ravel() for k in keys]))
+    rows = [np.searchsorted(uk, k).astype(np.int64) for k in keys]
+    return rows, xyz.reshape(-1, 3, order="F")[uk]
 
 
 def main(argv=None):
@@ -106,8 +142,35 @@ def main(argv=None):
     t_d = best(lambda: tfi.deform_block(xyz, s, fd, None, c, order, out=out, face_s=fs), args.repeat)
     t_q0 = best(lambda: tfi.deform_block(xyz, s, fd, fq, c, order, out=out), args.repeat)
 
-    # the volume loops alone, with the O(surface) tables built once (what the set-up costs)
+    # the Deformer's case: face values as rows of global arrays (G distinct face points)
     dims = xyz.shape[:3]
+    gid, P = global_rows(xyz)
+    gd, gq = dfun(P), qfun(P)
+    plan = tfi.gather_plan(gid, s, order, face_s=fs)
+
+    def old_tables(q):
+        # the O(surface) part of the old path: per-face gathers, then deform_block's tables
+        fdg = tuple(gd[g] for g in gid)
+        fqg = tuple(gq[g] for g in gid) if q else None
+        return tfi._tables(dims, order, fdg, fqg, fs, True)
+
+    def old_whole(q):
+        # the old path as the Deformer took it
+        fdg = tuple(gd[g] for g in gid)
+        fqg = tuple(gq[g] for g in gid) if q else None
+        tfi.deform_block(xyz, s, fdg, fqg, c, order, out=out, face_s=fs, check=False)
+
+    for q in (gq, None):
+        tfi.deform_block_gathered(xyz, s, gd, q, plan, c, out)
+    t_gq, t_oq, t_gd, t_od = best_interleaved([
+        lambda: tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, out), lambda: old_whole(True),
+        lambda: tfi.deform_block_gathered(xyz, s, gd, None, plan, c, out), lambda: old_whole(False)],
+        args.repeat)
+    t_tgq, t_toq, t_tgd, t_tod = best_interleaved([
+        lambda: plan._fill(gd, gq), lambda: old_tables(True),
+        lambda: plan._fill(gd, None), lambda: old_tables(False)], args.repeat)
+
+    # the volume loops alone, with the O(surface) tables built once (what the set-up costs)
     fdd, fqq = tfi._faces(fd, dims, 3, "fd"), tfi._faces(fq, dims, 4, "fq")
     tq = tfi._tables(dims, order, fdd, fqq, fs, True)
     td = tfi._tables(dims, order, fdd, None, fs, True)
@@ -132,17 +195,23 @@ def main(argv=None):
 
     def line(name, t, bpp):
         pps = npts / t
-        print(f"{name:<28s} {t * 1e3:9.2f} ms  {pps / 1e6:8.1f} M points/s  {bpp:3d} B/point  "
+        print(f"{name:<34s} {t * 1e3:9.2f} ms  {pps / 1e6:8.1f} M points/s  {bpp:3d} B/point  "
               f"{pps * bpp / 1e9:6.2f} GB/s  = {pps * bpp / bw:5.2f} x stream")
 
-    print(f"{'stream add c = a + b':<28s} {t_add * 1e3:9.2f} ms  {npts / t_add / 1e6:8.1f} M points/s  "
+    print(f"{'stream add c = a + b':<34s} {t_add * 1e3:9.2f} ms  {npts / t_add / 1e6:8.1f} M points/s  "
           f"{nbytes:3d} B/point  {bw / 1e9:6.2f} GB/s  (the roofline)")
-    print(f"{'stream copy':<28s} {t_copy * 1e3:9.2f} ms  {'':19s}  {'':9s}  {bw_copy / 1e9:6.2f} GB/s")
+    print(f"{'stream copy':<34s} {t_copy * 1e3:9.2f} ms  {'':19s}  {'':9s}  {bw_copy / 1e9:6.2f} GB/s")
     line("deform_block quaternion", t_q, nbytes)
     line("  same without face_s", t_q0, nbytes)
     line("deform_block baseline", t_d, nbytes)
     line("  quaternion loop only", t_kq, nbytes)
     line("  baseline loop only", t_kd, nbytes)
+    line("deform_block_gathered, whole call", t_gq, nbytes)
+    line("  old path, whole call", t_oq, nbytes)
+    line("  baseline, whole call", t_gd, nbytes)
+    line("  old path baseline", t_od, nbytes)
+    print(f"{'  tables (O(surface)):':<34s} quaternion {t_tgq * 1e3:.2f} ms (old path {t_toq * 1e3:.2f} ms), "
+          f"baseline {t_tgd * 1e3:.2f} ms (old {t_tod * 1e3:.2f} ms); plan {plan.nbytes / 1e6:.1f} MB")
     line("arclength set-up", t_arc, 24 * 2 + sb)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"load average at the end {load:.1f}")

@@ -137,3 +137,25 @@ def test_progress_bar_draws_on_a_terminal(monkeypatch):
 
 def test_formulation_names_match_the_library():
     assert _deform.FORMULATIONS == FORMULATIONS
+
+
+def test_connectivity_and_nmf_files(capsys, cgrid):
+    """A map written by 'tfi-quat connect' gives the same grid as the search; it is checked
+    against the grid it is used with."""
+    grid_path, case_path = cgrid
+    folder = grid_path.parent
+    argv = ["--wall", "1:jmin:65-193", "--fixed", "1:jmax", "--fixed", "1:imin", "--fixed", "1:imax"]
+    rc, so, se = run_cli(capsys, "deform", grid_path, *argv, "--rotate", "8", "-o", folder / "a.x")
+    assert rc == 0, se
+    for ext, opt in (("json", "--connectivity"), ("nmf", "--nmf")):
+        m = folder / f"map.{ext}"
+        rc, so, se = run_cli(capsys, "connect", grid_path, *argv, "-o", m)
+        assert rc == 0, se
+        rc, so, se = run_cli(capsys, "deform", grid_path, opt, m, "--rotate", "8", "-o", folder / f"b.{ext}.x")
+        assert rc == 0, se
+        assert tq.read(folder / f"b.{ext}.x") == tq.read(folder / "a.x")
+    other = folder / "other.x"
+    tq.write(other, tq.Grid([tq.Block(tq.read(grid_path)[0].xyz[::2].copy(order="F"))], ndim=2))
+    rc, so, se = run_cli(capsys, "deform", other, "--connectivity", folder / "map.json", "--rotate", "8",
+                         "-o", folder / "c.x")
+    assert rc == 2 and len(se.strip().splitlines()) == 1, se

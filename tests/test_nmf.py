@@ -11,7 +11,7 @@ from tfi_quat.topology import Connectivity, connect
 from tfi_quat.topology.nmf import nmf_kind
 
 from conftest import sheared_box
-from test_topology import c_grid, check_interfaces, extrude, orient
+from test_topology import ORIENTS_3D, c_grid, check_interfaces, extrude, orient
 
 HAND_3D = """\
 # ===== Neutral Map File (hand-written) =====
@@ -86,9 +86,67 @@ OUTFLOW 1 2 1 4 1 1
     check_interfaces(g, conn)
 
 
-@pytest.mark.parametrize("perm,flips", [((0, 1, 2), (False, False, False)), ((1, 0, 2), (True, False, False)),
-                                        ((2, 0, 1), (False, True, True)), ((1, 2, 0), (True, True, False)),
-                                        ((2, 1, 0), (False, False, True))])
+@pytest.mark.parametrize("name,line,perm,flips,cut_axis", [
+    # block 1 imax (J, K) <-> block 2 imin (J, K), J reversed: S1 > E1 on the second side
+    ("reversed", "ONE_TO_ONE 1 4 1 5 1 4  2 3 5 1 1 4  FALSE", (0, 1, 2), (False, True, False), 0),
+    # j faces: primary K, secondary I; block 2's I reversed
+    ("j faces", "ONE_TO_ONE 1 6 1 4 1 9  2 5 1 4 9 1  FALSE", (0, 1, 2), (True, False, False), 1),
+    # block 1 imax (J, K) <-> block 2 jmin (K, I): J along I (swapped), K reversed
+    ("swapped and reversed", "ONE_TO_ONE 1 4 1 5 1 4  2 5 4 1 1 5  TRUE", (1, 0, 2), (False, False, True), 0),
+])
+def test_hand_written_one_to_one_lines_match_the_geometry(tmp_path, name, line, perm, flips, cut_axis):
+    """S/E of the second side are the indices matching the first side's start/end corners."""
+    big = sheared_box(9, 5, 4)
+    if cut_axis == 0:
+        a, b = np.asfortranarray(big[:5]), orient(big[4:], perm, flips)
+    else:
+        a, b = np.asfortranarray(big[:, :3]), orient(big[:, 2:], perm, flips)
+    g = Grid([a, b])
+    dims = "\n".join(f"{n + 1} {d[0]} {d[1]} {d[2]}" for n, d in enumerate(g.dims))
+    path = tmp_path / "one.nmf"
+    path.write_text(f"# {name}\n2\n{dims}\n{line}\n")
+    conn = Connectivity.from_nmf(path)
+    assert conn.interfaces == connect(g).interfaces
+    check_interfaces(g, conn, tol=0.0)
+    # the writer gives the same line back
+    conn.to_nmf(tmp_path / "back.nmf")
+    written = [ln.split() for ln in (tmp_path / "back.nmf").read_text().splitlines() if ln.startswith("ONE_TO_ONE")]
+    assert written == [line.split()]
+
+
+def test_faces_the_file_leaves_out_are_derived_with_the_grid(tmp_path):
+    g = Grid([extrude(c_grid(), nk=3)])
+    ni = g[0].dims[0]
+    path = tmp_path / "part.nmf"
+    # only the wake cut and the airfoil (j = 1: K primary, I secondary)
+    path.write_text(f"1\n1 {ni} 4 3\nONE_TO_ONE 1 5 1 3 1 5  1 5 1 3 {ni} {ni - 4}  FALSE\n"
+                    f"WALL 1 5 1 3 5 {ni - 4}\n")
+    bare = Connectivity.from_nmf(path)
+    assert len(bare.patches) == 1 and len(bare.interfaces) == 1
+    conn = Connectivity.from_nmf(path, g)
+    kinds = {p.spec.face: (p.kind, p.origin) for p in conn.patches}
+    assert kinds["jmin"] == ("wall", "file")
+    assert kinds["jmax"] == kinds["imin"] == kinds["imax"] == ("fixed", "default")
+    assert kinds["kmin"] == kinds["kmax"] == ("symmetry", "auto")         # planar and touching the wall
+    assert conn == connect(g, walls=["1:jmin"])
+
+
+def test_one_to_one_that_does_not_match_the_grid_names_file_and_line(tmp_path):
+    big = sheared_box(9, 5, 4)
+    g = Grid([np.asfortranarray(big[:5]), orient(big[4:], (0, 1, 2), (False, True, False))])
+    path = tmp_path / "wrong.nmf"
+    # J runs backwards on block 2; this line says forwards (a valid file, the wrong grid)
+    path.write_text("2\n1 5 5 4\n2 5 5 4\n# interfaces\nONE_TO_ONE 1 4 1 5 1 4  2 3 1 5 1 4  FALSE\n")
+    assert Connectivity.from_nmf(path).interfaces[0].transform == (1, 2, 3)      # no grid: not checked
+    with pytest.raises(ConnectivityError, match=r"wrong.nmf:5: ONE_TO_ONE: 1:imax:1-5,1-4 -> 2:imin:1-5,1-4 "
+                                                r"\[\+1,\+2,\+3\] does not match the grid: point \(5, 1, \d\) of block 1 "
+                                                r"is [0-9.]+ from its partner \(1, 1, \d\) of block 2"):
+        Connectivity.from_nmf(path, g)
+    with pytest.raises(ConnectivityError, match=r"wrong.nmf: block 2: connectivity is for 5 x 5 x 4"):
+        Connectivity.from_nmf(path, Grid([g[0].xyz, np.asfortranarray(big[3:])]))
+
+
+@pytest.mark.parametrize("perm,flips", ORIENTS_3D)
 def test_round_trip_connect_to_nmf_from_nmf(tmp_path, perm, flips):
     big = sheared_box(9, 5, 4)
     g = Grid([np.asfortranarray(big[:5]), orient(big[4:], perm, flips)])
@@ -142,6 +200,12 @@ def test_types_and_kind_table():
     ("1\n1 5 5 4\nWALL 1 1 1 5\n", r"bad.nmf:4: WALL needs 6 integers"),
     ("1\n1 5 5 4\nONE_TO_ONE 1 3 1 5 1 4 1 4 1 4 1 4 FALSE\n", r"bad.nmf:4: ONE_TO_ONE sides differ in size"),
     ("1\n1 5 5 4\nONE_TO_ONE 1 3 1 5 1 4 1 4 1 5 1 4 MAYBE\n", r"bad.nmf:4: swap flag"),
+    ("1\n1 5 5 4\nWALL 1 1 1 5 1 5\nFARFIELD 1 1 3 5 1 2\n",
+     r"bad.nmf:5: overlaps the entry on line 4 \(block 1 face kmin, face 1 in the file\)"),
+    ("1\n1 5 5 4\nONE_TO_ONE 1 3 1 5 1 4 1 4 1 5 1 4 FALSE\nWALL 1 4 1 2 1 2\n",
+     r"bad.nmf:5: overlaps the entry on line 4 \(block 1 face imax, face 4"),
+    ("2\n1 5 5 4\n2 5 5 4\nONE_TO_ONE 1 4 1 5 1 4 2 3 1 5 1 4 FALSE\nONE_TO_ONE 1 4 1 3 1 4 2 3 1 3 1 4 FALSE\n",
+     r"bad.nmf:6: overlaps the entry on line 5 \(block 1 face imax"),
 ])
 def test_bad_files_name_file_and_line(tmp_path, body, match):
     path = tmp_path / "bad.nmf"

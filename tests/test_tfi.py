@@ -748,7 +748,7 @@ def test_volume_kernels_are_parallel_and_cached():
     """cache=True and parallel=True on the kernels of the volume stage (DESIGN 6), set in _jit."""
     from tfi_quat import _jit
     for k in (tfi._deform3_q, tfi._deform3_d, tfi._deform2_q, tfi._deform2_d, tfi._arclength_kernel,
-              tfi._prep, tfi._fields2):
+              tfi._prep, tfi._fields2, tfi._gather):
         if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
             assert k.py_func is k
             continue
@@ -819,3 +819,198 @@ def test_compiled_patch_kernel_equals_the_reference(lead, with_q):
         sign = np.sign(np.sum(q1 * q2, axis=-1))[..., None]
         np.testing.assert_allclose(q2 * sign, q1, rtol=0, atol=1e-13)
         np.testing.assert_allclose(np.linalg.norm(q2, axis=-1), 1.0, atol=1e-14)
+
+
+# ================================================================== faces from global arrays
+def global_rows(xyz, nfaces, seed):
+    """Rows of the block's face points in global arrays, as the Deformer's ``face_gid``.
+
+    One row per distinct face point (shared edges and corners share a row),
+    rows shuffled and a few left unused; returns the face index arrays (face
+    ``f`` of shape ``Block.face(f).shape[:2]``), the number of rows and each
+    row's point (unused rows: 0).
+    """
+    dims = xyz.shape[:3]
+    rng = np.random.default_rng(seed + 400)
+    flat = np.arange(int(np.prod(dims))).reshape(dims, order="F")
+    keys = []
+    for f in range(nfaces):
+        idx = [slice(None)] * 3
+        idx[f // 2] = dims[f // 2] - 1 if f % 2 else 0
+        keys.append(flat[tuple(idx)])
+    uk = np.unique(np.concatenate([k.ravel() for k in keys]))
+    G = uk.size + 3
+    row = rng.permutation(G)[:uk.size]
+    face_index = [row[np.searchsorted(uk, k)] for k in keys]
+    P = np.zeros((G, 3))
+    P[row] = xyz.reshape(-1, 3, order="F")[uk]
+    return face_index, G, P
+
+
+def global_values(P, seed, with_q):
+    """Δ and sign-scrambled unit Q at the global points (C order, as the Deformer's)."""
+    gd = np.ascontiguousarray(dfun(P, seed=seed))
+    if not with_q:
+        return gd, None
+    gq = qfun(P, seed=seed)
+    gq *= np.where(np.random.default_rng(seed + 500).random(len(P)) < 0.5, -1.0, 1.0)[:, None]
+    return gd, np.ascontiguousarray(gq)
+
+
+def gathered(g, face_index, side=False):
+    """The old path's per-face copies ``g[face_index[f]]`` (2-D sides as (n, c))."""
+    if g is None:
+        return None
+    return [g[f[:, 0]] if side else g[f] for f in face_index]
+
+
+@given(shapes_st, orders_st, seeds_st, st.booleans(), st.booleans())
+def test_deform_block_gathered_is_bit_identical_to_deform_block(shape, order, seed, with_q, in_place):
+    xyz = warped_block(shape, seed)
+    s = tfi.arclength(xyz)
+    face_index, G, P = global_rows(xyz, 6, seed)
+    gd, gq = global_values(P, seed, with_q)
+    c = np.array([0.3, -0.2, 0.5])
+    expect = tfi.deform_block(xyz, s, gathered(gd, face_index), gathered(gq, face_index), c, order,
+                              face_s=tfi.face_params(s))
+    plan = tfi.gather_plan(face_index, s, order)
+    assert plan.dims == shape and plan.order == order and plan.n_index <= G and plan.ndim == 3
+    work = xyz.copy(order="F")
+    out = tfi.deform_block_gathered(work, s, gd, gq, plan, c, out=work if in_place else None)
+    assert (out is work) == in_place
+    np.testing.assert_array_equal(out, expect)
+    if not in_place:
+        np.testing.assert_array_equal(work, xyz)
+
+
+@given(st.sampled_from([(7, 5), (2, 6), (5, 2), (1, 4), (4, 1)]), st.sampled_from([(0, 1), (1, 0)]),
+       seeds_st, st.booleans(), st.booleans())
+def test_deform_block_gathered_2d_is_bit_identical_to_deform_block_2d(shape, order, seed, with_q, flat):
+    xyz = block2d(*shape, seed=seed)
+    s = tfi.arclength(xyz)
+    face_index, G, P = global_rows(xyz, 4, seed)
+    gd, gq = global_values(P, seed, with_q)
+    c = np.array([0.3, 0.2, 0.0])
+    expect = tfi.deform_block_2d(xyz, s, gathered(gd, face_index, True), gathered(gq, face_index, True),
+                                 c, order)
+    plan = tfi.gather_plan([f[:, 0] for f in face_index] if flat else face_index, s, order,
+                           face_s=tfi.face_params(s))
+    assert plan.ndim == 2
+    np.testing.assert_array_equal(tfi.deform_block_gathered(xyz, s, gd, gq, plan, c), expect)
+    work = xyz.copy(order="F")
+    tfi.deform_block_gathered(work, s, gd, gq, plan, c, out=work)
+    np.testing.assert_array_equal(work, expect)
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_a_plan_reused_with_new_values_gives_each_step_its_own_result(keep):
+    """Tables kept in the plan are rebuilt from each call's values (quaternion and baseline
+    alternating, in place and not), in 3-D and 2-D."""
+    for xyz, nf, order in [(warped_block((6, 5, 4), 2), 6, (1, 2, 0)), (block2d(7, 5, 3), 4, (1, 0))]:
+        s = tfi.arclength(xyz)
+        face_index, G, P = global_rows(xyz, nf, 5)
+        plan = tfi.gather_plan(face_index, s, order, keep_tables=keep)
+        ref = tfi.deform_block if nf == 6 else tfi.deform_block_2d
+        out = np.empty_like(xyz, order="F")
+        for step, with_q in enumerate([True, True, False, True, False, False, True]):
+            gd, gq = global_values(P * (1.0 + 0.3 * step), step, with_q)
+            c = np.array([0.1 * step, 0.2, 0.0])
+            expect = ref(xyz, s, gathered(gd, face_index, nf == 4), gathered(gq, face_index, nf == 4),
+                         c, order)
+            if step % 3 == 2:
+                work = xyz.copy(order="F")
+                tfi.deform_block_gathered(work, s, gd, gq, plan, c, out=work)
+                np.testing.assert_array_equal(work, expect, err_msg=f"step {step}")
+            else:
+                tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, out=out)
+                np.testing.assert_array_equal(out, expect, err_msg=f"step {step}")
+            if step == 1:
+                kept = plan.nbytes
+            elif step == 2 and keep:      # the baseline shares the quaternion calls' Δ tables
+                assert plan.nbytes - kept < 4096, (kept, plan.nbytes)
+        assert (plan.nbytes > tfi.gather_plan(face_index, s, order).nbytes) == keep, repr(plan)
+
+
+def test_one_plan_shared_by_threads_gives_each_call_its_own_result():
+    from concurrent.futures import ThreadPoolExecutor
+
+    xyz = warped_block((9, 8, 7), 4)
+    s = tfi.arclength(xyz)
+    face_index, G, P = global_rows(xyz, 6, 6)
+    plan = tfi.gather_plan(face_index, s, (2, 0, 1))
+    values = [global_values(P * (1.0 + 0.2 * m), m, True) for m in range(8)]
+    expect = [tfi.deform_block(xyz, s, gathered(gd, face_index), gathered(gq, face_index), np.zeros(3),
+                               (2, 0, 1)) for gd, gq in values]
+    with ThreadPoolExecutor(4) as pool:
+        got = list(pool.map(lambda v: tfi.deform_block_gathered(xyz, s, *v, plan, np.zeros(3)), values))
+    for m in range(8):
+        np.testing.assert_array_equal(got[m], expect[m], err_msg=f"call {m}")
+
+
+def test_gather_kernel_uncompiled_equals_compiled():
+    xyz = warped_block((5, 4, 3), 1)
+    s = tfi.arclength(xyz)
+    face_index, G, P = global_rows(xyz, 6, 1)
+    gd, gq = global_values(P, 1, True)
+    plan = tfi.gather_plan(face_index, s, (1, 2, 0))
+    pairs = lambda: [t[:3] for t in plan._new_tables(True)]      # noqa: E731
+    a, b = sum(pairs(), ()), sum(pairs(), ())
+    tfi._gather(gd, gq, True, True, *plan._index, *a)
+    tfi._gather.py_func(gd, gq, True, True, *plan._index, *b)
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x, y)
+    # the pair tables hold the faces' values; the leading ones' quaternions sign-coherent
+    np.testing.assert_array_equal(a[0][..., 1], gd[face_index[3]])       # L = 1: jmax
+    np.testing.assert_array_equal(np.abs(a[3][..., 0]), np.abs(gq[face_index[2]]))
+    q0 = np.array(gq[face_index[2]], order="F")
+    tfi._coherent(q0)
+    np.testing.assert_array_equal(a[3][..., 0], q0)
+
+
+def test_gather_plan_and_deform_block_gathered_validate_arguments():
+    xyz = warped_block((4, 3, 2), 0)
+    s = tfi.arclength(xyz)
+    fi, G, P = global_rows(xyz, 6, 0)
+    gd, gq = global_values(P, 0, True)
+    c = np.zeros(3)
+    with pytest.raises(GridValueError, match="face_index: expected a sequence of 6"):
+        tfi.gather_plan(fi[:5], s, (0, 1, 2))
+    with pytest.raises(GridValueError, match=r"face_index\[3\] \(jmax\): expected shape \(4, 2\)"):
+        tfi.gather_plan(fi[:3] + [fi[3][:, :1]] + fi[4:], s, (0, 1, 2))
+    with pytest.raises(GridValueError, match=r"face_index\[0\] \(imin\): expected integers"):
+        tfi.gather_plan([fi[0] + 0.0] + fi[1:], s, (0, 1, 2))
+    with pytest.raises(GridValueError, match=r"face_index\[5\] \(kmax\): negative row -1"):
+        tfi.gather_plan(fi[:5] + [fi[5] * 0 - 1], s, (0, 1, 2))
+    bad = [f.copy() for f in fi]
+    bad[0][0, 0] = G                          # imin names another row than jmin on their edge
+    with pytest.raises(GridValueError, match="faces imin and jmin name different rows"):
+        tfi.gather_plan(bad, s, (0, 1, 2))
+    with pytest.raises(GridValueError, match="order: expected a permutation"):
+        tfi.gather_plan(fi, s, (0, 1, 1))
+    with pytest.raises(GridValueError, match="nk == 1"):
+        tfi.gather_plan(fi[:4], s, (0, 1))
+    with pytest.raises(GridValueError, match=r"s: expected an array"):
+        tfi.gather_plan(fi, s[..., 0], (0, 1, 2))
+    with pytest.raises(GridValueError, match=r"face_s: expected the 6 face arrays"):
+        tfi.gather_plan(fi, s, (0, 1, 2), face_s=tfi.face_params(s)[:4])
+    plan = tfi.gather_plan(fi, s, (0, 1, 2))
+    assert plan.n_index == 1 + max(int(f.max()) for f in fi)
+    with pytest.raises(GridValueError, match="plan: expected a GatherPlan"):
+        tfi.deform_block_gathered(xyz, s, gd, gq, fi, c)
+    with pytest.raises(GridValueError, match=r"xyz_u: the plan is for a block of \(4, 3, 2\)"):
+        tfi.deform_block_gathered(np.asfortranarray(xyz[:3]), s, gd, gq, plan, c)
+    with pytest.raises(GridValueError, match="xyz_u: expected a Fortran-ordered"):
+        tfi.deform_block_gathered(np.ascontiguousarray(xyz), s, gd, gq, plan, c)
+    with pytest.raises(GridValueError, match=r"s: expected shape \(4, 3, 2, 3\)"):
+        tfi.deform_block_gathered(xyz, s[:, :2], gd, gq, plan, c)
+    with pytest.raises(GridValueError, match=r"g_delta: the plan's faces use rows up to"):
+        tfi.deform_block_gathered(xyz, s, gd[:plan.n_index - 1], gq, plan, c)
+    with pytest.raises(GridValueError, match=r"g_q: expected a float64 array of shape \(G, 4\)"):
+        tfi.deform_block_gathered(xyz, s, gd, gq[:, :3], plan, c)
+    with pytest.raises(GridValueError, match=r"g_delta: expected a float64 array"):
+        tfi.deform_block_gathered(xyz, s, gd.astype(np.float32), gq, plan, c)
+    with pytest.raises(GridValueError, match="centre"):
+        tfi.deform_block_gathered(xyz, s, gd, gq, plan, [0, 0])
+    with pytest.raises(GridValueError, match="out: expected"):
+        tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, out=np.empty(xyz.shape))
+    assert "GatherPlan(dims=(4, 3, 2)" in repr(plan)

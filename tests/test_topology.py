@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from tfi_quat import ConnectivityError, Grid
 from tfi_quat.spec import PatchSpec
@@ -157,9 +156,25 @@ def test_auto_symmetry_2d_straight_side_next_to_wall():
 
 
 # ----------------------------------------------------------------- 3-D
-@given(perm=st.permutations([0, 1, 2]), flips=st.tuples(st.booleans(), st.booleans(), st.booleans()),
-       split=st.sampled_from([0, 1, 2]))
-def test_property_every_orientation_maps_points_onto_partners(perm, flips, split):
+#: every orientation of a block: the 6 permutations of its axes x the 8 reversals (48 signed permutations)
+ORIENTS_3D = [(p, f) for p in itertools.permutations(range(3)) for f in itertools.product((False, True), repeat=3)]
+#: 2-D: the 8 signed permutations of i and j (k stays k)
+ORIENTS_2D = [(p + (2,), f + (False,)) for p in itertools.permutations(range(2))
+              for f in itertools.product((False, True), repeat=2)]
+
+
+def expected_transform(perm, flips):
+    """Transform from a block to ``orient(block, perm, flips)``: master axis m runs along slave
+    axis perm^-1(m), reversed where that axis was flipped."""
+    inv = list(perm).index
+    return tuple((-1 if flips[inv(m)] else 1) * (inv(m) + 1) for m in range(3))
+
+
+@pytest.mark.parametrize("split", [0, 1, 2])
+@pytest.mark.parametrize("perm,flips", ORIENTS_3D)
+def test_every_orientation_3d_gives_its_transform(perm, flips, split):
+    """All 48 orientations x 3 interface directions, coordinates perturbed at 1e-15."""
+    rng = np.random.default_rng(100 * split + ORIENTS_3D.index((perm, flips)))
     big = sheared_box(7, 6, 5)
     cut = [3, 2, 2][split]
     lo = [slice(None)] * 3
@@ -168,16 +183,120 @@ def test_property_every_orientation_maps_points_onto_partners(perm, flips, split
     hi[split] = slice(cut, None)
     a = np.asfortranarray(big[tuple(lo)])
     b = orient(big[tuple(hi)], perm, flips)
+    b = np.asfortranarray(b * (1 + 1e-15 * rng.uniform(-1, 1, b.shape)))
     g = Grid([a, b])
     conn = connect(g)
-    assert len(conn.interfaces) == 1
-    it = conn.interfaces[0]
+    it, = conn.interfaces
     assert it.master.block == 0 and it.master.face == ("imax", "jmax", "kmax")[split]
+    assert it.transform == expected_transform(perm, flips)
+    check_interfaces(g, conn, tol=1e-13)
+    covered_once(conn, g)
+
+
+@pytest.mark.parametrize("split", [0, 1])
+@pytest.mark.parametrize("perm,flips", ORIENTS_2D)
+def test_every_orientation_2d_gives_its_transform(perm, flips, split):
+    rng = np.random.default_rng(10 * split + ORIENTS_2D.index((perm, flips)))
+    full = annulus(ni=9, nj=7)
+    a = np.asfortranarray(full[:5] if split == 0 else full[:, :4])
+    b = orient(full[4:] if split == 0 else full[:, 3:], perm, flips)
+    b = np.asfortranarray(b * (1 + 1e-15 * rng.uniform(-1, 1, b.shape)))
+    g = Grid([a, b])
+    conn = connect(g)
+    it, = conn.interfaces
+    assert it.transform == expected_transform(perm, flips) and it.transform[2] == 3
+    check_interfaces(g, conn, tol=1e-13)
+    covered_once(conn, g)
+
+
+def test_partial_faces_on_both_sides():
+    """Two boxes whose faces overlap in the middle of each (offsets in both running indices)."""
+    big = sheared_box(9, 11, 9)
+    a = np.asfortranarray(big[:5, 0:8, 1:6])
+    b = orient(big[4:, 3:11, 3:9], (2, 0, 1), (True, False, True))
+    g = Grid([a, b])
+    conn = connect(g, walls=["1:imax"])
+    it, = conn.interfaces
+    assert it.master == PatchSpec(0, "imax", ((3, 7), (2, 4)))
+    assert it.transform == expected_transform((2, 0, 1), (True, False, True))
     check_interfaces(g, conn, tol=0.0)
-    # the transform is the one of the construction: master axis m runs along slave axis perm^-1(m)
-    inv = list(perm).index
-    for m in range(3):
-        assert abs(it.transform[m]) == inv(m) + 1
+    covered_once(conn, g)
+    # the wall is what is left of 1:imax, an L shape, in rectangles
+    cells = np.zeros((7, 4), int)
+    cells[3:7, 2:4] += 1
+    for p in conn.patches:
+        if p.kind == "wall":
+            (a0, a1), (b0, b1) = p.spec.range
+            cells[a0:a1, b0:b1] += 1
+    assert (cells == 1).all()
+
+
+def cone(n=9, nk=1):
+    """A square of indices (u, v) wrapped round its corner (0, 1): side imin is glued to side jmax.
+
+    ``r = u + 1 - v``, ``theta = 2 pi u / r`` put (0, t) and (1 - t, 1) on the ray theta = 0 at the
+    same radius; extruded in z (slightly warped) when ``nk > 1``.
+    """
+    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    r = u + 1 - v
+    th = 2 * np.pi * np.divide(u, r, out=np.zeros_like(u), where=r > 0)
+    th[:, -1] = 2 * np.pi
+    xyz = np.zeros((n, n, nk, 3), order="F")
+    xyz[..., 0] = (r * np.cos(th))[..., None]
+    xyz[..., 1] = (r * np.sin(th))[..., None]
+    if nk > 1:
+        xyz[..., 2] = np.linspace(0, 1, nk)[None, None, :] + 0.1 * xyz[..., 0] ** 2
+    return xyz
+
+
+@pytest.mark.parametrize("nk", [1, 4])
+def test_self_match_of_two_faces_of_one_block_with_swapped_axes(nk):
+    """The seam of the cone includes its centre, a block point on both faces (regression: the
+    last cell of each side was left out as a patch)."""
+    n = 9
+    g = Grid([cone(n, nk)])
+    conn = connect(g, walls=["1:jmin"])
+    it, = conn.interfaces
+    assert it.is_self and (it.master.face, it.slave.face) == ("imin", "jmax")
+    assert it.transform == (2, -1, 3)
+    assert it.master.range == it.slave.range == ((0, n - 1), (0, nk - 1))
+    check_interfaces(g, conn, tol=1e-12)
+    covered_once(conn, g)
+
+
+def test_face_matching_itself_shifted_is_no_interface():
+    """A sector wound round three times: jmin matches itself shifted by one turn and by two; the
+    master and slave ranges of the first overlap (regression: it was taken), only the second is
+    an interface."""
+    m, nj = 4, 4
+    th = np.linspace(0, 6 * np.pi, 3 * m + 1)[:, None]
+    r = np.linspace(1, 2, nj)[None, :]
+    xyz = np.zeros((3 * m + 1, nj, 1, 3), order="F")
+    xyz[:, :, 0, 0] = r * np.cos(th)
+    xyz[:, :, 0, 1] = r * np.sin(th)
+    g = Grid([xyz])
+    conn = connect(g)
+    assert conn.overlaps() == []
+    assert [it.master.range for it in conn.interfaces if it.master.face == "jmin"] == [((0, 4), (0, 0))]
+    check_interfaces(g, conn)
+    covered_once(conn, g)
+
+
+def test_disc_centre_collapsed_to_a_point_2d():
+    """Polar disc: i round the centre (seam imin-imax through the centre), jmin one point."""
+    ni, nj = 13, 5
+    th = np.linspace(0, 2 * np.pi, ni)[:, None]
+    r = np.linspace(0, 1, nj)[None, :] ** 1.2
+    xyz = np.zeros((ni, nj, 1, 3), order="F")
+    xyz[:, :, 0, 0] = r * np.cos(th)
+    xyz[:, :, 0, 1] = r * np.sin(th)
+    g = Grid([xyz])
+    conn = connect(g, walls=["1:jmax"])
+    it, = conn.interfaces
+    assert (it.master.face, it.slave.face) == ("imin", "imax") and it.master.range == ((0, nj - 1), (0, 0))
+    check_interfaces(g, conn)
+    jmin = [p for _, p in conn.patches_on(0, "jmin")]
+    assert len(jmin) == 1 and jmin[0].collapsed and jmin[0].kind == "free"
     covered_once(conn, g)
 
 
@@ -296,6 +415,30 @@ def test_collapsed_axis_face_and_periodic_seam_3d():
     covered_once(conn, g)
 
 
+def test_axis_faces_of_two_half_o_blocks_are_not_an_interface():
+    """Two halves of an O-grid round the z axis: both imin faces lie on the axis (a line)."""
+    ni, nj, nk = 4, 5, 3
+    blocks = []
+    for t0 in (0.0, np.pi):
+        r = np.linspace(0, 1, ni)[:, None, None]
+        th = np.linspace(t0, t0 + np.pi, nj)[None, :, None]
+        z = np.linspace(0, 1, nk)[None, None, :]
+        xyz = np.zeros((ni, nj, nk, 3), order="F")
+        xyz[..., 0] = r * np.cos(th) + 0 * z
+        xyz[..., 1] = r * np.sin(th) + 0 * z
+        xyz[..., 2] = z + 0.05 * r ** 2 + 0 * th
+        blocks.append(xyz)
+    g = Grid(blocks)
+    conn = connect(g, walls=["1:imax", "2:imax"])
+    pairs = sorted((it.master.block, it.master.face, it.slave.block, it.slave.face) for it in conn.interfaces)
+    assert pairs == [(0, "jmax", 1, "jmin"), (0, "jmin", 1, "jmax")]
+    assert all(it.master.range == ((0, ni - 1), (0, nk - 1)) for it in conn.interfaces)   # axis rows included
+    check_interfaces(g, conn)
+    col = sorted((p.spec.block, p.spec.face) for p in conn.patches if p.collapsed)
+    assert col == [(0, "imin"), (1, "imin")]
+    covered_once(conn, g)
+
+
 def test_pole_faces_of_two_blocks_are_not_an_interface():
     # two pyramids with their imin faces collapsed onto the same apex
     ni, nj, nk = 4, 3, 3
@@ -325,6 +468,19 @@ def test_float_noise_of_1e15_still_matches():
     # a real gap (1e-5 against a spacing of about 0.25) is not matched
     b2 = np.asfortranarray(b + 1e-5)
     assert connect(Grid([a, b2])).interfaces == []
+
+
+@pytest.mark.parametrize("make", [lambda: c_grid(), lambda: extrude(c_grid(), nk=3),
+                                  lambda: annulus(ni=17, nj=5, theta=2 * np.pi), lambda: cone(9, 4)],
+                         ids=["c-grid", "c-grid-3d", "o-grid", "cone"])
+def test_self_matches_survive_1e15_noise(make):
+    xyz = make()
+    rng = np.random.default_rng(5)
+    noisy = np.asfortranarray(xyz * (1 + 1e-15 * rng.uniform(-1, 1, xyz.shape)))
+    exact = connect(Grid([xyz]), walls=["1:jmin"])
+    conn = connect(Grid([noisy]), walls=["1:jmin"])
+    assert conn == exact and len(conn.interfaces) == 1
+    check_interfaces(Grid([noisy]), conn, tol=1e-13)
 
 
 def test_round_off_of_large_coordinates_with_tiny_spacing_still_matches():
@@ -361,6 +517,50 @@ def test_extruded_c_grid_auto_symmetry_and_user_kinds():
     covered_once(conn2, g)
 
 
+def _box_with_bulge(eps, n=6):
+    """Unit box, wall jmin; its imin face (x = 0) bulges out by eps at its centre."""
+    u = np.linspace(0, 1, n)
+    X, Y, Z = np.meshgrid(u, u, u, indexing="ij")
+    bump = eps * np.sin(np.pi * Y) * np.sin(np.pi * Z) * (1 - X)
+    return Grid([np.asfortranarray(np.stack([X - bump, Y, Z], -1))])
+
+
+@pytest.mark.parametrize("tol", [None, 0.1])
+def test_auto_symmetry_planar_relative_to_the_patch_size(tol):
+    from tfi_quat.topology import PLANE_RTOL
+    assert PLANE_RTOL == 1e-6
+    flat = connect(_box_with_bulge(1e-8), walls=["1:jmin"], tol=tol)
+    p, = [p for _, p in flat.patches_on(0, "imin")]
+    assert (p.kind, p.origin) == ("symmetry", "auto")
+    np.testing.assert_allclose(p.plane[1], [1, 0, 0], atol=1e-6)
+    # a bulge of 1e-4 of the face is not a plane, whatever the matching tolerance
+    bent = connect(_box_with_bulge(1e-4), walls=["1:jmin"], tol=tol)
+    p, = [p for _, p in bent.patches_on(0, "imin")]
+    assert (p.kind, p.origin) == ("fixed", "default")
+    # a user symmetry patch on it is kept, with a note
+    sym = connect(_box_with_bulge(1e-4), walls=["1:jmin"], symmetry=["1:imin"], tol=tol)
+    p, = [p for _, p in sym.patches_on(0, "imin")]
+    assert p.kind == "symmetry" and p.plane is None
+    assert any("1:imin" in s and "not planar" in s for s in sym.notes)
+
+
+def test_auto_symmetry_needs_a_shared_point_with_a_wall():
+    g = _box_with_bulge(0.0)
+    # the wall is part of jmin away from imin: imin does not touch it
+    conn = connect(g, walls=["1:jmin:3-6,1-6"])
+    # (the rest of jmin is coplanar with the wall and touches it: symmetry too)
+    assert sorted(p.spec.face for p in conn.patches if p.origin == "auto") == ["imax", "jmin", "kmax", "kmin"]
+    assert not any("1:imin" in s for s in conn.notes)
+    # a wall on another block counts: the touching point is shared across the interface
+    big = np.asfortranarray(g[0].xyz)
+    g2 = Grid([np.asfortranarray(big[:3]), np.asfortranarray(big[2:])])
+    conn2 = connect(g2, walls=["2:jmin"])
+    auto = sorted((p.spec.block, p.spec.face) for p in conn2.patches if p.origin == "auto")
+    assert (0, "jmin") in auto and (0, "imin") not in auto
+    notes = [s for s in conn2.notes if s.startswith("symmetry (auto)")]
+    assert len(notes) == len(auto) and "-0" not in " ".join(notes)
+
+
 # ---------------------------------------------------------------- errors
 def test_user_patch_errors_name_block_face_and_range():
     g = Grid([sheared_box(5, 4, 3)])
@@ -388,6 +588,12 @@ def test_user_patch_on_an_interface_is_noted():
     conn = connect(g, walls=["1:jmin:1-5"])
     assert any("lies entirely on interfaces" in n for n in conn.notes)
     assert conn.kinds()["wall"] == []
+    # a range reaching into the wake cut is reduced, with a note; a whole face silently
+    conn = connect(g, walls=["1:jmin:3-19"])
+    assert [p.spec.range for p in conn.kinds()["wall"]] == [((4, 16), (0, 0))]
+    assert conn.notes == ["wall 1:jmin:3-19,1-1 is partly on interfaces: only its part off them is wall"]
+    conn = connect(g, walls=["1:jmin"])
+    assert [p.spec.range for p in conn.kinds()["wall"]] == [((4, 16), (0, 0))] and conn.notes == []
 
 
 def test_interface_validates_its_transform():
@@ -448,6 +654,104 @@ def test_json_round_trip_is_1_based_cgns_style(tmp_path):
     with pytest.raises(Exception, match="exists"):
         conn.to_json(path)
     conn.to_json(path, overwrite=True)
+
+
+#: the example of docs/formats.md, written by hand (only two of the patches)
+HAND_JSON = """\
+{
+ "format": "tfi_quat.connectivity",
+ "version": 1,
+ "ndim": 3,
+ "blocks": [
+  [5, 5, 4],
+  [5, 5, 4]
+ ],
+ "interfaces": [
+  {"block": 1, "face": "imax", "donor": 2, "donor_face": "jmin", "PointRange": [[5, 1, 1], [5, 5, 4]], \
+"PointRangeDonor": [[1, 1, 4], [5, 1, 1]], "Transform": [2, 1, -3]}
+ ],
+ "patches": [
+  {"block": 1, "face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 4]], "kind": "wall", "name": null, \
+"collapsed": false, "origin": "user"},
+  {"block": 1, "face": "kmin", "PointRange": [[1, 1, 1], [5, 5, 1]], "kind": "symmetry", "name": null, \
+"collapsed": false, "origin": "auto", "plane": {"origin": [0.5375, 0.525, 0.0], "normal": [0.0, 0.0, 1.0]}}
+ ],
+ "notes": [
+  "symmetry (auto) 1:kmin:1-5,1-5: planar, touches a wall, not classified; normal (0, 0, 1)"
+ ]
+}
+"""
+
+
+def test_hand_written_json_of_the_documented_layout(tmp_path):
+    from pathlib import Path
+    docs = (Path(__file__).parent.parent / "docs" / "formats.md").read_text().splitlines()
+    assert all(line in docs for line in HAND_JSON.splitlines())      # the documented example
+    path = tmp_path / "hand.json"
+    path.write_text(HAND_JSON)
+    big = sheared_box(9, 5, 4)
+    g = Grid([np.asfortranarray(big[:5]), orient(big[4:], (1, 0, 2), (False, False, True))])
+    conn = Connectivity.from_json(path, g)
+    it, = conn.interfaces
+    assert it == connect(g).interfaces[0]
+    assert it.transform == (2, 1, -3) and it.slave_begin == (0, 0, 3)
+    assert it.point_range_donor == ((0, 0, 3), (4, 0, 0))
+    check_interfaces(g, conn, tol=0.0)
+    wall, sym = conn.patches
+    assert (wall.spec, wall.kind, wall.origin) == (PatchSpec(0, "jmin", ((0, 4), (0, 3))), "wall", "user")
+    assert sym.kind == "symmetry" and sym.plane == ((0.5375, 0.525, 0.0), (0.0, 0.0, 1.0))
+    assert conn.notes[0].startswith("symmetry (auto) 1:kmin")
+
+
+def test_json_interface_that_does_not_match_the_grid(tmp_path):
+    path = tmp_path / "hand.json"
+    path.write_text(HAND_JSON)
+    big = sheared_box(9, 5, 4)
+    # block 2 without the reversed k of the documented example
+    g = Grid([np.asfortranarray(big[:5]), orient(big[4:], (1, 0, 2), (False, False, False))])
+    assert Connectivity.from_json(path).interfaces[0].transform == (2, 1, -3)
+    with pytest.raises(ConnectivityError, match=r"hand.json:10: interface 1: .* does not match the grid: point "
+                                                r"\(5, \d, \d\) of block 1 is [0-9.]+ from its partner \(\d, 1, \d\) of block 2"):
+        Connectivity.from_json(path, g)
+    with pytest.raises(ConnectivityError, match=r"hand.json: connectivity is for 2 block\(s\), the grid has 1"):
+        Connectivity.from_json(path, Grid([g[0].xyz]))
+
+
+@pytest.mark.parametrize("old,new,match", [
+    ('"Transform": [2, 1, -3]', '"Transform": [2, 1, 3]', r"hand.json:10: interface 1: .*not onto the slave range"),
+    ('"Transform": [2, 1, -3]', '"Transform": [2, 2, 3]', r"hand.json:10: interface 1: .*signed permutation"),
+    ('"PointRange": [[5, 1, 1], [5, 5, 4]]', '"PointRange": [[5, 5, 4], [5, 1, 1]]',
+     r"hand.json:10: interface 1: .*first corner .*lowest corner"),
+    ('"PointRange": [[5, 1, 1], [5, 5, 4]]', '"PointRange": [[4, 1, 1], [4, 5, 4]]',
+     r"hand.json:10: interface 1: PointRange .* is not on face imax of block 1 \(index i should be 5\)"),
+    ('"donor": 2', '"donor": 3', r"hand.json:10: interface 1 \(donor\): block 3 does not exist"),
+    ('"face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 4]]', '"face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 9]]',
+     r"hand.json:13: patch 1: PointRange .* exceeds block 1 \(5 x 5 x 4\)"),
+    ('"kind": "wall"', '"kind": "moving"', r"hand.json:13: patch 1: .*unknown kind 'moving'"),
+    ('"kind": "wall", ', '', r"hand.json:13: patch 1: missing or bad entry: 'kind'"),
+    ('"face": "kmin", "PointRange": [[1, 1, 1], [5, 5, 1]]', '"face": "imax", "PointRange": [[5, 1, 1], [5, 3, 3]]',
+     r"hand.json:14: patch 2 overlaps interface 1 master side \(line 10\) on block 1 face imax"),
+    ('"ndim": 3', '"ndim": 4', r"hand.json: 'ndim' must be 2 or 3"),
+    ('"version": 1', '"version": 2', r"hand.json: file version 2 is newer"),
+    ('"notes": [', '"notes": [,', r"hand.json:16: not valid JSON"),
+])
+def test_bad_json_files_name_file_and_line(tmp_path, old, new, match):
+    text = HAND_JSON
+    assert old in text
+    path = tmp_path / "hand.json"
+    path.write_text(text.replace(old, new, 1))
+    with pytest.raises(ConnectivityError, match=match):
+        Connectivity.from_json(path)
+
+
+def test_classify_refuses_overlapping_patches():
+    g = Grid([c_grid()])
+    conn = connect(g, walls=["1:jmin"])
+    bad = conn.with_patches(conn.patches + [Patch(PatchSpec(0, "jmin", ((0, 6), (0, 0))), "fixed")])
+    assert bad.overlaps() == [(("master", 0), ("patch", 4))]
+    assert conn.overlaps() == []
+    with pytest.raises(ConnectivityError, match=r"patch 1:jmin:1-7,1-1 overlaps master 1:jmin:1-5,1-1"):
+        classify(bad, g)
 
 
 def test_json_errors_name_the_entry(tmp_path):
@@ -515,7 +819,7 @@ def test_cli_connect_run_reports_a_missing_grid(tmp_path):
         run(_cli_args([str(tmp_path / "nothing.x")]))
 
 
-def test_absolute_tolerance_bridges_a_small_gap():
+def test_absolute_tolerance_bridges_a_small_gap(tmp_path):
     big = sheared_box(9, 5, 4)
     a = np.asfortranarray(big[:5])
     b = np.asfortranarray(big[4:] + 1e-5)
@@ -523,6 +827,11 @@ def test_absolute_tolerance_bridges_a_small_gap():
     conn = connect(Grid([a, b]), tol=1e-4)
     assert len(conn.interfaces) == 1
     check_interfaces(Grid([a, b]), conn, tol=2e-5)
+    # such a map saved and read back with the grid passes the reader's check (a quarter cell)
+    conn.to_json(tmp_path / "gap.json")
+    conn.to_nmf(tmp_path / "gap.nmf")
+    assert Connectivity.from_json(tmp_path / "gap.json", Grid([a, b])) == conn
+    assert Connectivity.from_nmf(tmp_path / "gap.nmf", Grid([a, b])).interfaces == conn.interfaces
     with pytest.raises(ConnectivityError, match="tol"):
         connect(Grid([a, b]), tol=-1.0)
     with pytest.raises(ConnectivityError, match="rtol"):
@@ -588,3 +897,44 @@ def test_cli_main_connect_end_to_end(tmp_path, capsys, ext):
     err = capsys.readouterr().err
     assert err.startswith("tfi-quat connect: error: ") and "overlaps" in err
     assert main(["connect", str(grid_path), "--wall", "1:jmin", "-o", str(out_map), "--force"]) == 0
+
+
+def test_cli_main_connect_errors_are_one_line_with_status_2(tmp_path, capsys):
+    import tfi_quat
+    from tfi_quat.cli import main
+    grid_path = tmp_path / "c.x"
+    tfi_quat.write(grid_path, Grid([c_grid()]))
+    cases = [
+        ([str(tmp_path / "missing.x")], "missing.x"),
+        ([str(grid_path), "-o", str(tmp_path / "map.txt")], "unknown map extension '.txt': use .json or .nmf"),
+        ([str(grid_path), "--tol", "-1"], "tol must be a finite distance"),
+        ([str(grid_path), "--wall", "2:jmin"], "wall 2:jmin"),
+        ([str(grid_path), "--wall", "1:kmin"], "no k faces"),
+        ([str(grid_path), "--symmetry", "1:jmin:1-99"], "exceeds"),
+    ]
+    for argv, words in cases:
+        assert main(["connect", *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert err.startswith("tfi-quat connect: error: ") and err.count("\n") == 1 and words in err, (argv, err)
+
+
+def test_cli_main_connect_options_2d(tmp_path, capsys):
+    import tfi_quat
+    from tfi_quat.cli import main
+    from tfi_quat.topology.nmf import read_nmf
+    x, y = np.meshgrid(np.linspace(0, 2, 6), np.linspace(0, 1, 4) ** 2, indexing="ij")
+    g = Grid([np.stack([x, y + 0.1 * np.sin(x) * (1 - y)], -1)])
+    grid_path = tmp_path / "channel.x"
+    tfi_quat.write(grid_path, g)
+    assert main(["connect", str(grid_path), "--wall", "1:jmin"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("symmetry (auto)") == 2 and "symmetry  1      imin  1-4,1-1           auto" in out
+    nmf = tmp_path / "c.nmf"
+    assert main(["connect", str(grid_path), "--wall", "1:jmin", "--no-auto-symmetry", "--default", "free",
+                 "-o", str(nmf), "--nmf-faces", "2d"]) == 0
+    out = capsys.readouterr().out
+    assert "symmetry" not in out and "free      1      imin" in out and f"wrote {nmf}" in out
+    back = read_nmf(nmf)
+    assert {p.spec.face: p.kind for p in back.patches} == {"imin": "free", "imax": "free", "jmin": "wall",
+                                                           "jmax": "free"}
+    assert max(int(line.split()[2]) for line in nmf.read_text().splitlines() if line[:1] not in "# ") == 4

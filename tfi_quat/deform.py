@@ -324,6 +324,7 @@ class _BlockPlan:
     face_gid: list[np.ndarray] = field(default_factory=list)   # per face (na, nb)
     face_s: tuple | None = None         # tfi.face_params(s)
     arm: np.ndarray | None = None       # two-level: A = R_u - TFI(c on the faces)
+    gather: object = None               # tfi.gather_plan: faces read from the global arrays
 
 
 @dataclass
@@ -867,7 +868,9 @@ class Deformer:
             fg = [self._face_gid[(b, f)] for f in faces]
             counts = [int(prescribed[g].sum()) for g in fg]
             order = tuple(int(x) for x in tfi.lead_order(counts))
-            plans.append(_BlockPlan(s, order, fg, tfi.face_params(s)))
+            plan = _BlockPlan(s, order, fg, tfi.face_params(s))
+            plan.gather = tfi.gather_plan(fg, s, order, face_s=plan.face_s)
+            plans.append(plan)
         self._blocks = plans
         # where each block's boundary points live, for the final scatter
         blk_of = np.searchsorted(self._offsets, self._copies_key, side="right") - 1
@@ -905,9 +908,10 @@ class Deformer:
         """Two-level: the centre field ``c`` on boundary points and the arms ``A = R_u - c``.
 
         Walls: ``c`` is the point itself.  Fixed points on the side faces of a
-        block (faces that are not ends of its leading direction): ``c`` is the
-        interpolant along the leading direction between the face's end edges,
-        so the side faces' own offsets from their edges do not become
+        block (faces that are not ends of its leading direction), near walls:
+        ``c`` is the interpolant along the leading direction between the face's
+        end edges (weight ``exp(-(d / 2 ell)^2)`` against the point itself), so
+        the side faces' own offsets from their edges do not become
         interpolation residuals that would carry un-rotated wall-layer
         offsets into the block.  Derived points (vertices, segments, patches):
         ``c`` is interpolated like every other field, then re-based to
@@ -972,13 +976,11 @@ class Deformer:
         der = self._derived
         damp[der] = np.exp(-(self._dwall[der] / (DAMP_FRACTION * self.rotation_length)) ** 2)
         self._dampf = damp
+        minus_c = np.negative(c)
         for blk, plan in zip(self.grid, self._blocks):
             # A = R_u - TFI(c): the baseline kernel with R_u as base and -c on the faces
-            fc = tuple(np.negative(c[g]) for g in plan.face_gid)
             arm = np.empty_like(blk.xyz, order="F")
-            kernel = tfi.deform_block if self.ndim == 3 else tfi.deform_block_2d
-            kernel(blk.xyz, plan.s, fc, None, _ORIGIN, plan.order, out=arm, face_s=plan.face_s,
-                   check=False)
+            tfi.deform_block_gathered(blk.xyz, plan.s, minus_c, None, plan.gather, _ORIGIN, out=arm)
             plan.arm = arm
 
     # -------------------------------------------------------------- a step
@@ -1151,17 +1153,13 @@ class Deformer:
     def _volumes(self, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None):
         """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``.
 
-        The face values are gathered from the global boundary arrays; they agree on
-        the faces' edges by construction, so the kernels skip their argument checks.
+        The face values are read from the global boundary arrays through each block's
+        :func:`tfi.gather_plan` (no per-face copies).
         """
         nblk = len(self.grid)
         total = total or nblk
-        kernel = tfi.deform_block if self.ndim == 3 else tfi.deform_block_2d
         for b, plan in enumerate(self._blocks):
-            fd = tuple(gdelta[g] for g in plan.face_gid)
-            fq = tuple(gq[g] for g in plan.face_gid) if gq is not None else None
-            kernel(bases[b], plan.s, fd, fq, centre, plan.order, out=outs[b], face_s=plan.face_s,
-                   check=False)
+            tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre, out=outs[b])
             if callback is not None:
                 callback(done0 + b + 1, total)
 

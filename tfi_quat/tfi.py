@@ -32,6 +32,10 @@ Public functions
     the fused volume stage ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``, computed
     point by point from O(surface) precomputed data, with no full-size Δ or Q
     arrays.
+:func:`gather_plan`, :func:`deform_block_gathered`
+    the same stage for a caller whose face values are rows of global arrays
+    (the Deformer): the faces are gathered inside the compiled set-up,
+    straight into the tables, which a :class:`GatherPlan` keeps between calls.
 
 Fused kernel layout
 -------------------
@@ -47,8 +51,10 @@ loop, so it vectorises); they are exactly 0 and 1 at the ends.
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
+import threading
 from typing import Sequence
 
 import numpy as np
@@ -66,6 +72,7 @@ __all__ = [
     "face_params", "lead_order", "interp_segment", "tfi_patch", "patch_params", "tfi_patch_fast",
     "tfi_block_fields",
     "deform_block", "deform_block_2d",
+    "GatherPlan", "gather_plan", "deform_block_gathered",
 ]
 
 #: storage type of the arclength parameters returned by :func:`arclength`.
@@ -514,6 +521,47 @@ def _prep(SM, SN, nm, nn, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, li
             for bp in prange(hD.shape[1]):
                 _prep_n(np.int64(bp), side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM,
                         hD, hQ, fbN)
+
+
+@jit(forceinline=True)
+def _gather_col(b, gd, gq, hasq, idx, F, Q):
+    """Column ``b`` of the pair tables ``F`` (na, nb, 3, 2) and ``Q`` (na, nb, 4, 2) from
+    the global rows ``idx[a, b, side]`` of ``gd`` (G, 3) and ``gq`` (G, 4)."""
+    for side in range(2):
+        for a in range(F.shape[0]):
+            g = idx[a, b, side]
+            for c in range(3):
+                F[a, b, c, side] = gd[g, c]
+            if hasq:
+                for c in range(4):
+                    Q[a, b, c, side] = gq[g, c]
+
+
+@pjit
+def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
+    """Fill the pair tables that :func:`_prep` takes straight from global arrays.
+
+    ``iL``/``iM``/``iN``: (≥ na, nb, 2) global rows of the two faces normal to
+    L, M, N (last index: low, high face); ``hasn`` False: 2-D (``FN``/``QN``
+    untouched); ``hasq`` False: baseline (``gq``, ``QL``.. untouched).  One
+    parallel loop over the face columns of all directions (one parallel
+    region: on a loaded machine each region can wait for a descheduled
+    thread); then the leading faces' quaternions are made sign-coherent in
+    place, as :func:`_tables` does.
+    """
+    nl = FL.shape[1]
+    nm = FM.shape[1]
+    ncol = nl + nm + (FN.shape[1] if hasn else 0)
+    for bp in prange(ncol):
+        b = np.int64(bp)
+        if b < nl:
+            _gather_col(b, gd, gq, hasq, iL, FL, QL)
+        elif b < nl + nm:
+            _gather_col(b - nl, gd, gq, hasq, iM, FM, QM)
+        else:
+            _gather_col(b - nl - nm, gd, gq, hasq, iN, FN, QN)
+    if hasq:
+        _coherent(QL[:, :, :, 0])
 
 
 # =================================================================== volume kernels
@@ -1340,17 +1388,23 @@ def _pair(faces, d, ncomp: int) -> np.ndarray:
     return out
 
 
-def _tables(dims, o, fd, fq, fs, hasn):
-    """Allocate and fill the O(surface) tables of the fused kernels.
+def _padded(dims, d):
+    """Shape of a table indexed like the faces normal to ``d``, first axis padded to >= 2:
+    a (1, 1, c) table would be typed C-contiguous and compile another specialisation of
+    every kernel."""
+    na, nb = _face_dims(dims, d)
+    return max(2, na), nb
 
-    Dummy tables are (2, 2, ·) so that their numba type (F layout) never
-    changes, which keeps one compiled specialisation per kernel.
+
+def _work_tables(dims, o, hasn, hasq):
+    """Allocate the tables :func:`_prep` fills: ``lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN``.
+
+    Dummy tables are (2, 2, ·) zeros, so that their numba type (F layout)
+    never changes, which keeps one compiled specialisation per kernel; the
+    volume kernels read the zeros of ``hD``/``hQ`` in 2-D.
     """
     L, M, N = o
-    hasq = fq is not None
-    # first axis padded to >= 2: a (1, 1, c) table would be typed C-contiguous and
-    # compile another specialisation of every kernel
-    sh = lambda d: (max(2, _face_dims(dims, d)[0]), _face_dims(dims, d)[1])  # noqa: E731
+    sh = functools.partial(_padded, dims)
     dummy = lambda c: np.zeros((2, 2, c), order="F")  # noqa: E731
     lineD = np.empty(sh(L) + (6,), order="F")
     gD = np.empty(sh(M) + (6,), order="F")
@@ -1363,6 +1417,14 @@ def _tables(dims, o, fd, fq, fs, hasn):
         fbN = np.empty(sh(N) + (16,), order="F") if hasn else dummy(16)
     else:
         lineQ, gQ, hQ, fbM, fbN = dummy(10), dummy(8), dummy(8), dummy(16), dummy(16)
+    return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
+
+
+def _tables(dims, o, fd, fq, fs, hasn):
+    """Allocate and fill the O(surface) tables of the fused kernels (see :func:`_work_tables`)."""
+    L, M, N = o
+    hasq = fq is not None
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _work_tables(dims, o, hasn, hasq)
     FL, FM = _pair(fd, L, 3), _pair(fd, M, 3)
     FN = _pair(fd, N, 3) if hasn else np.zeros((2, 2, 3, 2), order="F")
     if hasq:
@@ -1503,4 +1565,323 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
         _deform2_d(xyz_u, s, out, L, M, lineD, gD, hD)
     else:
         _deform2_q(xyz_u, s, out, c[0], c[1], c[2], L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    return out
+
+
+# ------------------------------------------------------------------ faces from global arrays
+class GatherPlan:
+    """What :func:`deform_block_gathered` needs of one block, set up once by :func:`gather_plan`.
+
+    Holds, per direction, the global rows of the two faces normal to it as
+    one ``(na, nb, 2)`` index array, the arclength parameters of the M and N
+    faces stacked the same way, and (``keep_tables=True``) the O(surface)
+    tables of the fused kernels, allocated on first use and overwritten on
+    every call.  Treat it as opaque; its public attributes are read-only
+    descriptions.
+
+    Attributes
+    ----------
+    dims : tuple of 3 int
+        The block's point counts ``(ni, nj, nk)``.
+    order : tuple of int
+        ``(L, M, N)`` or ``(L, M)``.
+    n_index : int
+        One more than the largest global row the faces use: the global arrays
+        must have at least this many rows.
+    keep_tables : bool
+        Whether the tables are kept between calls.
+
+    Notes
+    -----
+    Calls that share a plan run one at a time (a lock: with ``keep_tables``
+    they share the tables), so sharing a plan between threads is safe but
+    serialises them; make one plan per thread to deform one block from
+    several threads at once.  Kept tables take ~180 bytes per face point
+    with quaternions, ~70 for the baseline only (:attr:`nbytes`): 51 MB for
+    a 216³ block (0.21 of its coordinates), 0.7 of the coordinates of a 64³
+    block, 1.9 of a 24³ one.
+    """
+
+    __slots__ = ("dims", "order", "n_index", "keep_tables", "_index", "_SM", "_SN", "_hasn",
+                 "_tab", "_lock")
+
+    def __init__(self, dims, order, n_index, keep_tables, index, SM, SN):
+        self.dims = tuple(dims)
+        self.order = tuple(order)
+        self.n_index = int(n_index)
+        self.keep_tables = bool(keep_tables)
+        self._index = index
+        self._SM, self._SN = SM, SN
+        self._hasn = len(order) == 3
+        self._tab = {}
+        self._lock = threading.Lock()
+
+    @property
+    def ndim(self) -> int:
+        """2 or 3."""
+        return len(self.order)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the plan now (indices, face parameters, kept tables)."""
+        arrs = {id(a): a for a in list(self._index) + [self._SM, self._SN]}
+        for t in self._tab.values():
+            arrs.update((id(a), a) for a in t)
+        return int(sum(a.nbytes for a in arrs.values()))
+
+    def __repr__(self) -> str:
+        return (f"GatherPlan(dims={self.dims}, order={self.order}, n_index={self.n_index}, "
+                f"keep_tables={self.keep_tables}, nbytes={self.nbytes})")
+
+    def _o3(self):
+        return self.order if self._hasn else self.order + (2,)
+
+    def _new_tables(self, hasq: bool) -> tuple:
+        """New tables: ``(FL, FM, FN, lineD, gD, hD)`` and ``(QL, QM, QN, lineQ, gQ, hQ, fbM,
+        fbN)`` (dummies for the baseline), the pair tables and :func:`_work_tables`."""
+        L, M, N = o = self._o3()
+        dims, hasn = self.dims, self._hasn
+        pair = lambda d, c: np.empty(_face_dims(dims, d) + (c, 2), order="F")  # noqa: E731
+        dummy = lambda c: np.zeros((2, 2, c, 2), order="F")  # noqa: E731
+        lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _work_tables(dims, o, hasn, hasq)
+        tab_d = (pair(L, 3), pair(M, 3), pair(N, 3) if hasn else dummy(3), lineD, gD, hD)
+        if hasq:
+            Q = (pair(L, 4), pair(M, 4), pair(N, 4) if hasn else dummy(4))
+        else:
+            Q = (dummy(4),) * 3
+        return tab_d, Q + (lineQ, gQ, hQ, fbM, fbN)
+
+    def _tables(self, hasq: bool) -> tuple:
+        """The tables of a call: kept ones (Δ tables shared by both kinds of call) or new."""
+        if not self.keep_tables:
+            return self._new_tables(hasq)
+        tab_d, tab_q = self._tab.get("d"), self._tab.get(hasq)
+        if tab_q is None:
+            new_d, tab_q = self._new_tables(hasq)       # new_d: never touched if dropped
+            self._tab[hasq] = tab_q
+            if tab_d is None:
+                tab_d = self._tab["d"] = new_d
+        return tab_d, tab_q
+
+    def _fill(self, gd, gq) -> tuple:
+        """Gather the faces' values and build the tables; returns the 8 tables of the
+        volume kernels (``lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN``)."""
+        hasq = gq is not None
+        (FL, FM, FN, lineD, gD, hD), (QL, QM, QN, lineQ, gQ, hQ, fbM, fbN) = self._tables(hasq)
+        L, M, N = self._o3()
+        iL, iM, iN = self._index
+        _gather(gd, gq if hasq else _NO_Q, hasq, self._hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN)
+        _prep(self._SM, self._SN, self.dims[M], self.dims[N], L, M, N, self._hasn,
+              FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+        return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
+
+
+_NO_Q = np.zeros((1, 4))            # stands for g_q in the baseline (never read)
+
+
+def _check_face_index(face_index, dims, nd: int) -> tuple:
+    """Face index arrays as int64 ``(na, nb)``, non-negative, agreeing on shared edges."""
+    nf = 2 * nd
+    if face_index is None or isinstance(face_index, np.ndarray) or len(face_index) != nf:
+        _fail(f"face_index: expected a sequence of {nf} integer arrays (imin, imax, jmin, jmax"
+              f"{', kmin, kmax' if nd == 3 else ''})")
+    out = []
+    for f in range(nf):
+        want = _face_dims(dims, f // 2)
+        a = np.asarray(face_index[f])
+        if nd == 2 and a.shape == want[:1]:
+            a = a[:, None]
+        if a.shape != want:
+            _fail(f"face_index[{f}] ({FACES[f]}): expected shape {want}"
+                  f"{f' or {want[:1]}' if nd == 2 else ''}, got {a.shape}")
+        if a.dtype.kind not in "iu":
+            _fail(f"face_index[{f}] ({FACES[f]}): expected integers, got dtype {a.dtype}")
+        if a.size and int(a.min()) < 0:
+            _fail(f"face_index[{f}] ({FACES[f]}): negative row {int(a.min())}")
+        out.append(a.astype(np.int64))
+    for d1 in range(nd):
+        for d2 in range(d1 + 1, nd):
+            ax1 = [e for e in range(nd) if e != d1].index(d2)
+            ax2 = [e for e in range(nd) if e != d2].index(d1)
+            for s1 in range(2):
+                for s2 in range(2):
+                    f1, f2 = 2 * d1 + s1, 2 * d2 + s2
+                    e1 = out[f1][(slice(None),) * ax1 + (0 if s2 == 0 else dims[d2] - 1,)]
+                    e2 = out[f2][(slice(None),) * ax2 + (0 if s1 == 0 else dims[d1] - 1,)]
+                    if not np.array_equal(e1, e2):
+                        _fail(f"face_index: faces {FACES[f1]} and {FACES[f2]} name different "
+                              f"rows on their common edge")
+    return tuple(out)
+
+
+def _index_pair(faces, dims, d) -> np.ndarray:
+    """The rows of the low and high faces normal to ``d``: (≥ na, nb, 2) int64, F order."""
+    na, nb = _face_dims(dims, d)
+    idx = np.zeros(_padded(dims, d) + (2,), dtype=np.int64, order="F")
+    idx[:na, :, 0] = faces[2 * d]
+    idx[:na, :, 1] = faces[2 * d + 1]
+    return idx
+
+
+def gather_plan(face_index, s, order, *, face_s=None, keep_tables: bool = True) -> GatherPlan:
+    """Set up :func:`deform_block_gathered` for one block whose face values live in global arrays.
+
+    Done once per block (and direction order); the plan is then passed on
+    every call.
+
+    Parameters
+    ----------
+    face_index : sequence of 6 (3-D) or 4 (2-D) array_like of int
+        For each face imin, imax, jmin, jmax[, kmin, kmax], the row of each
+        of its points in the global arrays: face ``f`` of shape
+        ``Block.face(f).shape[:2]`` ``(na, nb)``; in 2-D the sides imin, imax
+        ``(nj, 1)`` or ``(nj,)`` and jmin, jmax ``(ni, 1)`` or ``(ni,)``.
+        Faces must name the same rows where they meet (then the values agree
+        on every edge at every call, by construction).
+    s : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        The block's arclength parameters (:func:`arclength`): gives the block
+        size, and ``face_params(s)`` when ``face_s`` is not given.  The
+        parameters on the faces are copied into the plan: make a new plan if
+        ``s`` changes.
+    order : sequence of 3 (or 2) int
+        ``(L, M, N)`` (``(L, M)`` for a 2-D block, ``nk == 1``), a permutation
+        (:func:`lead_order`).
+    face_s : tuple of 6 (or 4) ndarray, optional
+        ``face_params(s)``, if the caller already has it.
+    keep_tables : bool
+        Keep the O(surface) tables of the fused kernels in the plan between
+        calls (default): saves allocating them and faulting their pages in
+        on every call (~20 ms on a 216³ block when the heap has been
+        churned), at ~180 bytes per face point held for the plan's lifetime
+        (:attr:`GatherPlan.nbytes`).  ``False`` allocates them per call, as
+        :func:`deform_block` does (for many small blocks, where the kept
+        tables would outweigh the coordinates).
+
+    Returns
+    -------
+    plan : GatherPlan
+
+    Raises
+    ------
+    GridValueError
+        Wrong shapes or dtypes (the message names the argument and face),
+        negative rows, or faces that name different rows on a common edge.
+    """
+    if not isinstance(s, np.ndarray) or s.ndim != 4:
+        _fail(f"s: expected an array of shape (ni, nj, nk, 3), got {getattr(s, 'shape', type(s))}")
+    dims = s.shape[:3]
+    _check_s(s, dims)
+    nd = len(order) if hasattr(order, "__len__") else 0
+    if nd not in (2, 3):
+        _fail(f"order: expected (L, M, N) or (L, M), got {order!r}")
+    o = _check_order(order, nd)
+    if nd == 2 and dims[2] != 1:
+        _fail(f"s: a 2-D order needs nk == 1, got shape {s.shape}")
+    faces = _check_face_index(face_index, dims, nd)
+    fs = _check_face_s(face_s, s, dims, 2 * nd)
+    n_index = 1 + max(int(a.max(initial=-1)) for a in faces)
+    hasn = nd == 3
+    L, M, N = o if hasn else o + (2,)
+    index = (_index_pair(faces, dims, L), _index_pair(faces, dims, M),
+             _index_pair(faces, dims, N) if hasn else np.zeros((2, 2, 2), dtype=np.int64, order="F"))
+    SM = _pair(fs, M, 3)
+    SN = _pair(fs, N, 3) if hasn else np.zeros((2, 2, 3, 2), order="F")
+    return GatherPlan(dims, o, n_index, keep_tables, index, SM, SN)
+
+
+def _check_global(a, ncomp: int, n_index: int, name: str) -> np.ndarray:
+    if not isinstance(a, np.ndarray) or a.ndim != 2 or a.shape[1] != ncomp or a.dtype != np.float64:
+        _fail(f"{name}: expected a float64 array of shape (G, {ncomp}), got "
+              f"{getattr(a, 'shape', type(a).__name__)} {getattr(a, 'dtype', '')}")
+    if a.shape[0] < n_index:
+        _fail(f"{name}: the plan's faces use rows up to {n_index - 1}, got only {a.shape[0]} rows")
+    return a
+
+
+def deform_block_gathered(xyz_u, s, g_delta, g_q, plan, centre, out=None) -> np.ndarray:
+    """:func:`deform_block` (or :func:`deform_block_2d`) with the face values read from global arrays.
+
+    Gives bit for bit the result of ``deform_block(xyz_u, s, [g_delta[g] for
+    g in face_index], [g_q[g] for g in face_index], centre, order, out,
+    face_s=face_s)`` (``deform_block_2d`` for a 2-D plan), where
+    ``face_index``, ``order`` and ``face_s`` are those the plan was made
+    with, but gathers the faces inside the compiled set-up, straight into
+    the tables, with no per-face copies.
+
+    Only shapes and dtypes are checked (O(1)); the values are not: the
+    quaternions must be unit and finite (what :func:`deform_block` would
+    check).  Edge agreement holds by construction (:func:`gather_plan`).
+
+    Parameters
+    ----------
+    xyz_u : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Undeformed block coordinates (``nk == 1`` for a 2-D plan).
+    s : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Its arclength parameters, the array the plan was made with.
+    g_delta : ndarray, shape (G, 3), float64
+        Δ of every global point (``G >= plan.n_index``).
+    g_q : ndarray, shape (G, 4), float64, or None
+        Unit quaternions ``(w, x, y, z)`` of every global point; None for the
+        baseline (Q ≡ 1, ``R_d = R_u + Δ``).
+    plan : GatherPlan
+        From :func:`gather_plan` for this block.
+    centre : array_like, shape (3,)
+        Rotation centre ``c``.
+    out : ndarray, shape (ni, nj, nk, 3), float64, Fortran order, optional
+        Receives the result; may be ``xyz_u`` itself (in place).
+
+    Returns
+    -------
+    xyz_d : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        ``out`` if given.
+
+    Raises
+    ------
+    GridValueError
+        A wrong type, shape, dtype or memory order (the message names the
+        argument), or global arrays with fewer rows than the plan uses.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from tfi_quat import tfi
+    >>> u = np.linspace(0.0, 1.0, 4)
+    >>> xyz = np.asfortranarray(np.stack(np.meshgrid(u, u, u, indexing="ij"), -1))
+    >>> s = tfi.arclength(xyz)
+    >>> ids = np.arange(64).reshape(4, 4, 4, order="F")     # every point is its own row
+    >>> face_index = [ids[0], ids[-1], ids[:, 0], ids[:, -1], ids[:, :, 0], ids[:, :, -1]]
+    >>> plan = tfi.gather_plan(face_index, s, (0, 1, 2))     # once per block
+    >>> g_delta = np.zeros((64, 3))
+    >>> g_delta[:, 2] = 0.1                                  # lift every face by 0.1
+    >>> out = tfi.deform_block_gathered(xyz, s, g_delta, None, plan, np.zeros(3))
+    >>> bool(np.allclose(out, xyz + [0.0, 0.0, 0.1]))
+    True
+    """
+    if not isinstance(plan, GatherPlan):
+        _fail(f"plan: expected a GatherPlan from gather_plan(), got {type(plan).__name__}")
+    dims = plan.dims
+    _check_xyz(xyz_u, "xyz_u")
+    if xyz_u.shape[:3] != dims:
+        _fail(f"xyz_u: the plan is for a block of {dims} points, got shape {xyz_u.shape}")
+    _check_s(s, dims)
+    gd = _check_global(g_delta, 3, plan.n_index, "g_delta")
+    gq = None if g_q is None else _check_global(g_q, 4, plan.n_index, "g_q")
+    c = _check_centre(centre)
+    out = _check_out(out, dims)
+    with plan._lock:
+        lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = plan._fill(gd, gq)
+        if plan.ndim == 3:
+            L, M, N = plan.order
+            if gq is None:
+                _deform3_d(xyz_u, s, out, L, M, N, lineD, gD, hD)
+            else:
+                _deform3_q(xyz_u, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+                           fbM, fbN)
+        else:
+            L, M = plan.order
+            if gq is None:
+                _deform2_d(xyz_u, s, out, L, M, lineD, gD, hD)
+            else:
+                _deform2_q(xyz_u, s, out, c[0], c[1], c[2], L, M, lineD, lineQ, gD, gQ, hD, hQ,
+                           fbM, fbN)
     return out

@@ -116,7 +116,7 @@ def run(args) -> int:
         raise CaseError("give --nmf or --connectivity, not both")
     if args.nmf or args.connectivity:
         from ..topology import Connectivity
-        conn = Connectivity.from_nmf(args.nmf, grid) if args.nmf else Connectivity.from_json(args.connectivity)
+        conn = Connectivity.from_nmf(args.nmf, grid) if args.nmf else Connectivity.from_json(args.connectivity, grid)
     walls = [parse_patch_spec(w) for w in args.wall]
     sym = [parse_patch_spec(w) for w in args.symmetry]
     fixed = [parse_patch_spec(w) for w in args.fixed]

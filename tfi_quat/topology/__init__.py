@@ -11,7 +11,8 @@ read as JSON (:meth:`Connectivity.to_json`) or as a Neutral Map File
 from __future__ import annotations
 
 from .model import KINDS, Connectivity, FaceMap, Interface, Patch, face_axes
-from .search import DEFAULT_RTOL, classify, connect, node_labels
+from .search import (DEFAULT_RTOL, PLANE_RTOL, check_interfaces, classify, connect, interface_mismatches,
+                     node_labels)
 
-__all__ = ["connect", "classify", "node_labels", "Connectivity", "Interface", "Patch", "FaceMap", "KINDS",
-           "DEFAULT_RTOL", "face_axes"]
+__all__ = ["connect", "classify", "node_labels", "interface_mismatches", "check_interfaces", "Connectivity",
+           "Interface", "Patch", "FaceMap", "KINDS", "DEFAULT_RTOL", "PLANE_RTOL", "face_axes"]

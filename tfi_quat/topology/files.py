@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 from ..errors import ConnectivityError, OverwriteError
@@ -111,25 +112,77 @@ def _spec_from_range(where: str, block: int, face: str, pr, dims) -> PatchSpec:
     rng = ((min(lo[a], hi[a]), max(lo[a], hi[a])), (min(lo[b], hi[b]), max(lo[b], hi[b])))
     if min(rng[0][0], rng[1][0]) < 0:
         raise ConnectivityError(f"{where}: PointRange {pr} has indices below 1")
+    if rng[0][1] >= dims[block][a] or rng[1][1] >= dims[block][b]:
+        ni, nj, nk = dims[block]
+        raise ConnectivityError(f"{where}: PointRange {pr} exceeds block {block + 1} ({ni} x {nj} x {nk})")
     return PatchSpec(block, face, rng)
 
 
-def from_dict(doc: dict, where: str = "connectivity") -> Connectivity:
-    """Build a connectivity from its JSON document (see :func:`to_dict`)."""
+def _entry_lines(text: str, key: str) -> list[int]:
+    """1-based line numbers of the elements of the top-level array ``key`` in a JSON text.
+
+    Best effort (for error messages): an empty list when the array cannot be
+    located.
+    """
+    m = re.search(r'"%s"\s*:\s*\[' % re.escape(key), text)
+    if m is None:
+        return []
+    dec = json.JSONDecoder()
+    pos, out = m.end(), []
+    try:
+        while True:
+            pos = _WS.match(text, pos).end()
+            if text[pos] == "]":
+                return out
+            out.append(text.count("\n", 0, pos) + 1)
+            _, pos = dec.raw_decode(text, pos)
+            pos = _WS.match(text, pos).end()
+            if text[pos] == ",":
+                pos += 1
+    except (ValueError, IndexError):
+        return []
+
+
+_WS = re.compile(r"\s*")
+
+
+def from_dict(doc: dict, where: str = "connectivity", lines: dict | None = None) -> Connectivity:
+    """Build a connectivity from its JSON document (see :func:`to_dict`).
+
+    ``where`` names the source in error messages; ``lines`` maps
+    ``"interfaces"`` and ``"patches"`` to the line number of each entry
+    (errors then read ``FILE:LINE: interface N: ...``).
+    """
+    lines = lines or {}
+
+    def at(key: str, n: int) -> str:
+        ln = lines.get(key, [])
+        what = "interface" if key == "interfaces" else "patch"
+        return f"{where}:{ln[n]}: {what} {n + 1}" if n < len(ln) else f"{where}: {what} {n + 1}"
+
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ConnectivityError(f"{where}: not a tfi_quat connectivity file (format {FORMAT!r} expected)")
-    if int(doc.get("version", 0)) > VERSION:
-        raise ConnectivityError(f"{where}: file version {doc.get('version')} is newer than this reader ({VERSION})")
+    try:
+        version = int(doc.get("version", 0))
+    except (TypeError, ValueError):
+        raise ConnectivityError(f"{where}: bad 'version' {doc.get('version')!r}") from None
+    if version > VERSION:
+        raise ConnectivityError(f"{where}: file version {version} is newer than this reader ({VERSION})")
     try:
         ndim = int(doc["ndim"])
         dims = [tuple(int(n) for n in d) for d in doc["blocks"]]
     except (KeyError, TypeError, ValueError) as exc:
         raise ConnectivityError(f"{where}: missing or bad 'ndim'/'blocks': {exc}") from None
+    if ndim not in (2, 3):
+        raise ConnectivityError(f"{where}: 'ndim' must be 2 or 3, got {ndim}")
     if any(len(d) != 3 or min(d) < 1 for d in dims):
         raise ConnectivityError(f"{where}: 'blocks' must list [ni, nj, nk] >= 1 per block")
+    for key in ("interfaces", "patches"):
+        if not isinstance(doc.get(key, []), list):
+            raise ConnectivityError(f"{where}: '{key}' must be a list")
     itfs = []
     for n, it in enumerate(doc.get("interfaces", [])):
-        w = f"{where}: interface {n + 1}"
+        w = at("interfaces", n)
         try:
             mb, sb = int(it["block"]) - 1, int(it["donor"]) - 1
             master = _spec_from_range(w, mb, str(it["face"]), it["PointRange"], dims)
@@ -137,6 +190,8 @@ def from_dict(doc: dict, where: str = "connectivity") -> Connectivity:
             begin = tuple(int(v) - 1 for v in it["PointRange"][0])
             sbeg = tuple(int(v) - 1 for v in it["PointRangeDonor"][0])
             t = tuple(int(v) for v in it["Transform"])
+        except ConnectivityError:
+            raise
         except (KeyError, TypeError, ValueError) as exc:
             raise ConnectivityError(f"{w}: missing or bad entry: {exc}") from None
         if len(t) == 2:
@@ -144,10 +199,11 @@ def from_dict(doc: dict, where: str = "connectivity") -> Connectivity:
         try:
             itfs.append(Interface(master, slave, t, begin, sbeg))
         except ConnectivityError as exc:
-            raise ConnectivityError(f"{w}: {exc} (PointRange must run from the lowest corner)") from None
+            hint = " (PointRange must run from the lowest corner)" if "first corner" in str(exc) else ""
+            raise ConnectivityError(f"{w}: {exc}{hint}") from None
     pats = []
     for n, p in enumerate(doc.get("patches", [])):
-        w = f"{where}: patch {n + 1}"
+        w = at("patches", n)
         try:
             spec = _spec_from_range(w, int(p["block"]) - 1, str(p["face"]), p["PointRange"], dims)
             plane = p.get("plane")
@@ -155,21 +211,55 @@ def from_dict(doc: dict, where: str = "connectivity") -> Connectivity:
                 plane = (tuple(float(v) for v in plane["origin"]), tuple(float(v) for v in plane["normal"]))
             pats.append(Patch(spec, str(p["kind"]), p.get("name"), bool(p.get("collapsed", False)),
                               str(p.get("origin", "file")), plane))
+        except ConnectivityError as exc:
+            msg = str(exc)
+            raise ConnectivityError(msg if msg.startswith(w) else f"{w}: {msg}") from None
         except (KeyError, TypeError, ValueError) as exc:
             raise ConnectivityError(f"{w}: missing or bad entry: {exc}") from None
     try:
-        return Connectivity(itfs, pats, ndim, dims, doc.get("notes", []))
+        conn = Connectivity(itfs, pats, ndim, dims, doc.get("notes", []))
     except ConnectivityError as exc:
         raise ConnectivityError(f"{where}: {exc}") from None
+    overlaps = conn.overlaps()
+    if overlaps:
+        first, second = overlaps[0]
+        (a, la), (b, lb) = _item(second, lines), _item(first, lines)
+        spec = conn.item_spec(second)
+        raise ConnectivityError(f"{where}{f':{la}' if la else ''}: {a} overlaps {b}"
+                                f"{f' (line {lb})' if lb else ''} on block {spec.block + 1} face {spec.face}")
+    return conn
 
 
-def read_json(path) -> Connectivity:
+def _item(item, lines) -> tuple[str, int | None]:
+    """Name and line of an item of :meth:`Connectivity.overlaps`."""
+    role, n = item
+    ln = lines.get("patches" if role == "patch" else "interfaces", [])
+    side = "donor" if role == "slave" else "master"
+    name = f"patch {n + 1}" if role == "patch" else f"interface {n + 1} {side} side"
+    return name, (ln[n] if n < len(ln) else None)
+
+
+def read_json(path, grid=None) -> Connectivity:
+    """Read a JSON connectivity file; with ``grid``, check its dimensions and that every
+    interface's points coincide (errors name the file and line)."""
     p = Path(os.fspath(path))
+    text = p.read_text(encoding="utf-8")
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
+        doc = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise ConnectivityError(f"{p}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}") from None
-    return from_dict(doc, str(p))
+        raise ConnectivityError(f"{p}:{exc.lineno}: not valid JSON (column {exc.colno}): {exc.msg}") from None
+    lines = {key: _entry_lines(text, key) for key in ("interfaces", "patches")}
+    conn = from_dict(doc, str(p), lines)
+    if grid is not None:
+        from .search import check_interfaces
+        try:
+            conn.check(grid)
+        except ConnectivityError as exc:
+            raise ConnectivityError(f"{p}: {exc}") from None
+        ln = lines["interfaces"]
+        check_interfaces(conn, grid, lambda n: f"{p}:{ln[n]}: interface {n + 1}" if n < len(ln)
+                         else f"{p}: interface {n + 1}")
+    return conn
 
 
 # ------------------------------------------------------------------ table

@@ -63,6 +63,17 @@ def _face_to_ijk(face: str, dims, ab) -> np.ndarray:
     return out
 
 
+def _cell_slices(rng, na: int, nb: int) -> tuple[slice, slice]:
+    """Cells of a face range ``((a0, a1), (b0, b1))`` on a face of ``na x nb`` points.
+
+    The face has ``max(na - 1, 1) x max(nb - 1, 1)`` cells: a running index
+    with a single point (the k index of a 2-D side) counts one cell; a range
+    that is one line of points along an index with cells covers none.
+    """
+    (a0, a1), (b0, b1) = rng
+    return (slice(a0, a1) if na > 1 else slice(0, 1)), (slice(b0, b1) if nb > 1 else slice(0, 1))
+
+
 def _signed_perm(transform) -> np.ndarray:
     t = tuple(int(v) for v in transform)
     if len(t) != 3 or sorted(abs(v) for v in t) != [1, 2, 3]:
@@ -406,6 +417,38 @@ class Connectivity:
             prio[sl][better] = _PRIORITY[p.kind]
         return FaceMap(itf, role, pat)
 
+    def overlaps(self) -> list[tuple[tuple[str, int], tuple[str, int]]]:
+        """Pairs of items that cover a common boundary cell (an area, not only edge points).
+
+        Items are ``("patch", n)`` for ``patches[n]`` and ``("master", n)`` /
+        ``("slave", n)`` for the sides of ``interfaces[n]``; in each pair the
+        first item comes earlier in the order interfaces (master, slave), then
+        patches.  A connectivity made by :func:`~tfi_quat.topology.connect`
+        has none; the file readers refuse files that have some.
+        """
+        items = [(("master", n), it.master) for n, it in enumerate(self.interfaces)]
+        items += [(("slave", n), it.slave) for n, it in enumerate(self.interfaces)]
+        items.sort(key=lambda x: (x[0][1], x[0][0] != "master"))
+        items += [(("patch", n), p.spec) for n, p in enumerate(self.patches)]
+        owner: dict = {}
+        out = []
+        for k, (item, s) in enumerate(items):
+            key = (s.block, s.face)
+            if key not in owner:
+                na, nb = face_shape(self.dims[s.block], s.face)
+                owner[key] = np.full((max(na - 1, 1), max(nb - 1, 1)), -1, dtype=np.int64)
+            cells = owner[key][_cell_slices(s.range, *face_shape(self.dims[s.block], s.face))]
+            taken = cells[cells >= 0]
+            if taken.size:
+                out.append((items[int(taken[0])][0], item))
+            cells[cells < 0] = k
+        return out
+
+    def item_spec(self, item: tuple[str, int]) -> PatchSpec:
+        """The range of an item ``("patch", n)``, ``("master", n)`` or ``("slave", n)``."""
+        role, n = item
+        return self.patches[n].spec if role == "patch" else getattr(self.interfaces[n], role)
+
     def kinds(self) -> dict[str, list[Patch]]:
         """Patches grouped by kind."""
         out: dict[str, list[Patch]] = {k: [] for k in KINDS}
@@ -432,12 +475,14 @@ class Connectivity:
 
     @classmethod
     def from_json(cls, path, grid=None) -> "Connectivity":
-        """Read a JSON connectivity file; with ``grid``, check it against the grid."""
+        """Read a JSON connectivity file; with ``grid``, check it against the grid.
+
+        The check: the block dimensions, and that the points of every interface
+        coincide (within a quarter of the local spacing; errors name the file and
+        line of the interface).
+        """
         from .files import read_json
-        conn = read_json(path)
-        if grid is not None:
-            conn.check(grid)
-        return conn
+        return read_json(path, grid)
 
     def to_nmf(self, path, *, overwrite: bool = False, convention: str = "3d") -> None:
         """Write a Neutral Map File (see ``docs/formats.md``).
@@ -457,7 +502,8 @@ class Connectivity:
         ----------
         path : str or path-like
         grid : Grid, optional
-            Check the file against the grid, and derive what the file does not
+            Check the file against the grid (dimensions; the points of every
+            ``ONE_TO_ONE`` coincide), and derive what the file does not
             hold (collapsed patches, symmetry planes, parts of faces the file
             leaves out, which get the kind ``fixed``).
         types : dict, optional
@@ -467,9 +513,8 @@ class Connectivity:
             Face numbering (see ``docs/formats.md``).
         """
         from .nmf import read_nmf
-        conn = read_nmf(path, types=types, convention=convention)
+        conn = read_nmf(path, types=types, convention=convention, grid=grid)
         if grid is not None:
-            conn.check(grid)
             from .search import classify
             conn = classify(conn, grid)
         return conn

@@ -180,7 +180,7 @@ def _lines(path: Path):
             yield n, line
 
 
-def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
+def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connectivity:
     """Read a Neutral Map File (see the module docstring).
 
     Parameters
@@ -191,6 +191,9 @@ def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
         collapsed, interface); they take precedence over the built-in table.
     convention : {"auto", "3d", "2d"}
         Face numbering.
+    grid : Grid, optional
+        Check the file's dimensions against the grid, and that the points of
+        every ``ONE_TO_ONE`` coincide.
 
     Returns
     -------
@@ -266,7 +269,9 @@ def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
         convention = "2d" if flat and used and max(used) <= 4 else "3d"
     ndim = 2 if flat else 3
     table = NMF_FACES_2D if convention == "2d" else NMF_FACES_3D
+    table_inv = {v: f"face {k}" for k, v in table.items()}
     interfaces, patches, notes = [], [], []
+    lines_of = {"interface": [], "patch": []}
 
     def side(ln, b, f, s1, e1, s2, e2):
         where = f"{p}:{ln}"
@@ -299,6 +304,7 @@ def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
                 continue
             k = "free" if kind == "collapsed" else kind
             patches.append(Patch(spec, k, name, kind == "collapsed", "file"))
+            lines_of["patch"].append(ln)
             continue
         s_1, face1, st1, en1, pa1, sa1 = side(ln, *nums[:6])
         s_2, face2, st2, en2, pa2, sa2 = side(ln, *nums[6:12])
@@ -335,8 +341,25 @@ def read_nmf(path, *, types=None, convention: str = "auto") -> Connectivity:
             notes.append(f"{p}:{ln}: ONE_TO_ONE on k faces of a 2-D grid ignored")
             continue
         interfaces.append(it)
+        lines_of["interface"].append(ln)
     try:
         conn = Connectivity(interfaces, patches, ndim, dims, notes)
     except ConnectivityError as exc:
         raise ConnectivityError(f"{p}: {exc}") from None
+    overlaps = conn.overlaps()
+    if overlaps:
+        first, second = overlaps[0]
+
+        def line(item):
+            return lines_of["patch" if item[0] == "patch" else "interface"][item[1]]
+        spec = conn.item_spec(second)
+        raise ConnectivityError(f"{p}:{line(second)}: overlaps the entry on line {line(first)} "
+                                f"(block {spec.block + 1} face {spec.face}, {table_inv[spec.face]} in the file)")
+    if grid is not None:
+        from .search import check_interfaces
+        try:
+            conn.check(grid)
+        except ConnectivityError as exc:
+            raise ConnectivityError(f"{p}: {exc}") from None
+        check_interfaces(conn, grid, lambda n: f"{p}:{lines_of['interface'][n]}: ONE_TO_ONE")
     return conn.sorted()

@@ -33,10 +33,14 @@ from ..grid import FACES
 from ..spec import PatchSpec, parse_patch_spec
 from .model import KINDS, Connectivity, Interface, Patch, face_axes
 
-__all__ = ["connect", "classify", "node_labels", "DEFAULT_RTOL"]
+__all__ = ["connect", "classify", "node_labels", "interface_mismatches", "check_interfaces", "DEFAULT_RTOL",
+           "PLANE_RTOL"]
 
 #: default matching tolerance relative to the smallest adjacent edge
 DEFAULT_RTOL = 1e-6
+#: a patch is planar (a straight side in 2-D) when no point is farther from its best plane
+#: than this fraction of the patch's extent -- the test the Deformer applies to symmetry patches
+PLANE_RTOL = 1e-6
 
 # the eight signed permutations of two face axes: q = M @ p + off
 _MS = [np.array(m, dtype=np.int64) for m in (
@@ -361,6 +365,8 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
             cm, cs = _cells_of(F1, m_rng), _cells_of(F2, s_rng)
             if claimed[fa][cm].any() or claimed[fb][cs].any():
                 continue
+            if fa == fb and all(x.start < y.stop and y.start < x.stop for x, y in zip(cm, cs)):
+                continue      # a face that matches itself shifted (a block wound round more than once)
             claimed[fa][cm] = True
             claimed[fb][cs] = True
             master = PatchSpec(F1.block, F1.face, m_rng)
@@ -394,9 +400,12 @@ def _group_rectangles(geo, F1: _Face, F2: _Face, M, off):
     QB = M[1, 0] * A + M[1, 1] * B + off[1]
     inr = (QA >= 0) & (QA < F2.na) & (QB >= 0) & (QB < F2.nb)
     ids2 = F2.off + np.where(inr, QA + F2.na * QB, 0)
-    ok = inr & (geo.g[ids1] == geo.g[ids2]) & (geo.bp[ids1] != geo.bp[ids2])
+    ok = inr & (geo.g[ids1] == geo.g[ids2])
     if F1 is F2:
-        ok &= geo.cface[ids1] != geo.cface[ids2]
+        # a point of a face matching itself, or an in-face neighbour, is a fold: no interface
+        ok &= (geo.bp[ids1] != geo.bp[ids2]) & (geo.cface[ids1] != geo.cface[ids2])
+    # on two faces of one block, a block point the map sends to itself (their common edge,
+    # e.g. the centre of a block wrapped round a point) belongs to both sides
     act_a, act_b = F1.active
     cell = ok
     if act_a:
@@ -441,16 +450,22 @@ def _as_specs(items, what: str, grid) -> list[PatchSpec]:
 
 
 def _plane(points: np.ndarray, ndim: int):
-    """Best plane ``(origin, normal, max deviation)``; in 2-D the plane contains the z axis."""
+    """Best plane ``(origin, normal, deviation)``: normal None when the points span no plane.
+
+    ``deviation`` is the largest distance of a point from the plane relative to
+    the points' extent (the largest side of their bounding box).  In 2-D the
+    points are a side, in order, and the plane is the line through its two
+    ends (and the z axis).
+    """
     c = points.mean(axis=0)
     x = points - c
+    size = float(np.ptp(points, axis=0).max()) if len(points) else 0.0
     if ndim == 2:
-        xy = x[:, :2]
-        if not np.any(xy):
+        # the chord between the side's end points (as the Deformer measures it)
+        t = points[-1, :2] - points[0, :2]
+        if not np.any(t):
             return c, None, np.inf
-        _, _, vt = np.linalg.svd(xy, full_matrices=False)
-        t = vt[0]
-        n = np.array([-t[1], t[0], 0.0])
+        n = np.array([-t[1], t[0], 0.0]) / np.hypot(t[0], t[1])
     else:
         if len(points) < 3:
             return c, None, np.inf
@@ -458,10 +473,11 @@ def _plane(points: np.ndarray, ndim: int):
         if len(s) < 3 or s[1] <= 0:
             return c, None, np.inf
         n = vt[2]
-    # a reproducible sign: largest component positive
+    # a reproducible sign: largest component positive; no negative zeros
     if n[np.argmax(np.abs(n))] < 0:
         n = -n
-    return c, n, float(np.max(np.abs(x @ n)))
+    n = n + 0.0
+    return c, n, float(np.max(np.abs(x @ n))) / size
 
 
 def _classify(geo: _Geometry, interfaces, base_patches, walls, symmetry, fixed, default,
@@ -504,6 +520,9 @@ def _classify(geo: _Geometry, interfaces, base_patches, walls, symmetry, fixed, 
         owner[k][cs] = n
         if covered[k][cs].all():
             notes.append(f"{kind} {s} lies entirely on interfaces: ignored")
+        elif covered[k][cs].any() and s.range != ((0, fc.na - 1), (0, fc.nb - 1)):
+            # a whole face is reduced silently (that is what it means); a given range is reported
+            notes.append(f"{kind} {s} is partly on interfaces: only its part off them is {kind}")
         label[k][cs] = len(sources)
         sources.append(("user", s, kind))
 
@@ -539,15 +558,16 @@ def _classify(geo: _Geometry, interfaces, base_patches, walls, symmetry, fixed, 
         ids = _patch_ids(geo, p.spec)
         if p.kind == "symmetry":
             c, n, dev = _plane(geo.xyz[ids], geo.ndim)
-            if n is None or dev > geo.tol[ids].max():
-                notes.append(f"symmetry {p.spec} is not planar (largest deviation {dev:.3g})")
+            if n is None or dev > PLANE_RTOL:
+                notes.append(f"symmetry {p.spec} is not planar (points up to {dev:.3g} of its size "
+                             f"off the best plane, more than {PLANE_RTOL:g})")
                 out.append(p)
             else:
                 out.append(Patch(p.spec, p.kind, p.name, False, p.origin, (tuple(c.tolist()), tuple(n.tolist()))))
             continue
         if auto_symmetry and p.origin == "default" and wall_nodes.size and np.isin(geo.g[ids], wall_nodes).any():
             c, n, dev = _plane(geo.xyz[ids], geo.ndim)
-            if n is not None and dev <= geo.tol[ids].max():
+            if n is not None and dev <= PLANE_RTOL:
                 nn = ", ".join(f"{v:.6g}" for v in n)
                 what = "straight" if geo.ndim == 2 else "planar"
                 notes.append(f"symmetry (auto) {p.spec}: {what}, touches a wall, not classified; normal ({nn})")
@@ -562,6 +582,84 @@ def _patch_ids(geo: _Geometry, spec: PatchSpec) -> np.ndarray:
     fc = geo.faces[geo.index[(spec.block, spec.face)]]
     (a0, a1), (b0, b1) = spec.range
     return geo.ids(fc)[a0:a1 + 1, b0:b1 + 1].ravel()
+
+
+# ------------------------------------------------------------ file checks
+def interface_mismatches(conn: Connectivity, grid, *, fraction: float = 0.25) -> list[tuple]:
+    """Interfaces whose master and slave points do not coincide.
+
+    A point pair is a mismatch when its distance exceeds ``fraction`` of the
+    smallest non-zero edge next to the master point on its face (and 16 units
+    in the last place of the coordinates): a wrong Transform, offset or swap
+    flag moves points by at least a cell, while tolerances that bridge small
+    gaps between blocks stay well below.
+
+    Parameters
+    ----------
+    conn : Connectivity
+        Checked against the grid's dimensions first.
+    grid : Grid
+
+    Returns
+    -------
+    list of tuple
+        ``(index, master_ijk, slave_ijk, distance, spacing)`` for the worst
+        point of each bad interface (0-based block indices).
+    """
+    conn.check(grid)
+    out = []
+    for n, it in enumerate(conn.interfaces):
+        s = it.master
+        blk = grid[s.block]
+        pts = blk.face(s.face)
+        (a0, a1), (b0, b1) = s.range
+        pts = pts[a0:a1 + 1, b0:b1 + 1]
+        ext = float(np.linalg.norm(np.subtract(*blk.bbox()[::-1]))) or 1.0
+        h = np.full(pts.shape[:2], np.inf)
+        for ax in (0, 1):
+            if pts.shape[ax] > 1:
+                e = np.linalg.norm(np.diff(pts, axis=ax), axis=-1)
+                e = np.where(e > 1e-10 * ext, e, np.inf)
+                lo = [slice(None)] * 2
+                hi = [slice(None)] * 2
+                lo[ax], hi[ax] = slice(None, -1), slice(1, None)
+                h[tuple(lo)] = np.minimum(h[tuple(lo)], e)
+                h[tuple(hi)] = np.minimum(h[tuple(hi)], e)
+        h[~np.isfinite(h)] = ext
+        lo, hi = it.point_range
+        ii = np.stack(np.meshgrid(*[np.arange(u, v + 1) for u, v in zip(lo, hi)], indexing="ij"), -1)
+        # (points of the range in face order a, b)
+        d_, ax_a, ax_b = face_axes(s.face)
+        ii = np.moveaxis(ii, (ax_a, ax_b), (0, 1)).reshape(pts.shape[:2] + (3,))
+        jj = it.slave_index(ii)
+        xm = blk.xyz[ii[..., 0], ii[..., 1], ii[..., 2]]
+        xs = grid[it.slave.block].xyz[jj[..., 0], jj[..., 1], jj[..., 2]]
+        dist = np.linalg.norm(xm - xs, axis=-1)
+        floor = 16 * np.finfo(np.float64).eps * np.maximum(np.abs(xm).max(axis=-1), np.abs(xs).max(axis=-1))
+        ratio = dist / np.maximum(fraction * h, floor)
+        if ratio.max() > 1:
+            w = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+            out.append((n, tuple(int(v) for v in ii[w]), tuple(int(v) for v in jj[w]), float(dist[w]),
+                        float(h[w])))
+    return out
+
+
+def check_interfaces(conn: Connectivity, grid, where=None) -> None:
+    """Raise :class:`ConnectivityError` for the first interface whose points do not coincide.
+
+    ``where(n)`` gives the message prefix for interface ``n`` (a file and line).
+    """
+    bad = interface_mismatches(conn, grid)
+    if bad:
+        n, mi, si, dist, h = bad[0]
+        it = conn.interfaces[n]
+        head = where(n) if where is not None else f"interface {n + 1}"
+        one = ", ".join(str(v + 1) for v in mi)
+        two = ", ".join(str(v + 1) for v in si)
+        raise ConnectivityError(
+            f"{head}: {it} does not match the grid: point ({one}) of block {it.master.block + 1} is "
+            f"{dist:.3g} from its partner ({two}) of block {it.slave.block + 1}, the spacing there is "
+            f"{h:.3g} (a wrong Transform, range or swap flag?)")
 
 
 # ------------------------------------------------------------------ public
@@ -635,6 +733,12 @@ def classify(conn: Connectivity, grid, walls=(), symmetry=(), fixed=(), default=
         Same interfaces, new patches and notes.
     """
     conn.check(grid)
+    overlaps = conn.overlaps()
+    if overlaps:
+        first, second = overlaps[0]
+        raise ConnectivityError(f"{second[0]} {conn.item_spec(second)} overlaps {first[0]} "
+                                f"{conn.item_spec(first)}: "
+                                "every boundary cell must belong to one patch or interface side")
     geo = _Geometry(grid, tol, rtol)
     notes: list[str] = []
     patches = _classify(geo, conn.interfaces, conn.patches, walls, symmetry, fixed, default,
