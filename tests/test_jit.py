@@ -58,3 +58,15 @@ def test_kernel_tests_pass_uncompiled():
     tail = (res.stdout + res.stderr)[-3000:]
     assert res.returncode == 0, tail
     assert " passed" in res.stdout and "failed" not in res.stdout and "skipped" not in res.stdout, tail
+
+
+def test_serial_below_runs_small_work_on_one_thread():
+    import numba
+    from tfi_quat._jit import ENABLED, SERIAL_BELOW, serial_below
+    assert ENABLED           # the suite runs compiled (test_kernel_tests_pass_uncompiled: a subprocess)
+    before = numba.get_num_threads()
+    with serial_below(SERIAL_BELOW - 1):
+        assert numba.get_num_threads() == 1
+    assert numba.get_num_threads() == before
+    with serial_below(SERIAL_BELOW):
+        assert numba.get_num_threads() == before

@@ -52,7 +52,7 @@ import numpy as np
 
 from . import quaternion as qa
 from . import tfi
-from ._jit import jit
+from ._jit import jit, serial_below
 from .blending import wall_layer_block, wall_layer_line
 from .errors import CaseError, DeformationError
 from .fit import constrain_to_planes, fit_rigid
@@ -864,7 +864,8 @@ class Deformer:
         prescribed = self._kind >= FIXED
         faces = _faces_of(self.ndim)
         for b, blk in enumerate(self.grid):
-            s = self._block_params(b, blk)
+            with serial_below(blk.npoints):
+                s = self._block_params(b, blk)
             fg = [self._face_gid[(b, f)] for f in faces]
             counts = [int(prescribed[g].sum()) for g in fg]
             order = tuple(int(x) for x in tfi.lead_order(counts))
@@ -980,7 +981,8 @@ class Deformer:
         for blk, plan in zip(self.grid, self._blocks):
             # A = R_u - TFI(c): the baseline kernel with R_u as base and -c on the faces
             arm = np.empty_like(blk.xyz, order="F")
-            tfi.deform_block_gathered(blk.xyz, plan.s, minus_c, None, plan.gather, _ORIGIN, out=arm)
+            with serial_below(blk.npoints):
+                tfi.deform_block_gathered(blk.xyz, plan.s, minus_c, None, plan.gather, _ORIGIN, out=arm)
             plan.arm = arm
 
     # -------------------------------------------------------------- a step
@@ -1036,6 +1038,10 @@ class Deformer:
 
     def _wall_quaternions(self, rd: np.ndarray) -> np.ndarray:
         """Merged boundary quaternions ``(n_wall, 4)`` of the wall points moved to ``rd``."""
+        with serial_below(self._wall_gids.size):
+            return self._wall_quaternions_now(rd)
+
+    def _wall_quaternions_now(self, rd: np.ndarray) -> np.ndarray:
         from .boundary import boundary_motion
         nw = self._wall_gids.size
         if self._wall_local is None:
@@ -1098,7 +1104,8 @@ class Deformer:
         for p in self._patches:
             d = np.ascontiguousarray(gdelta[p.gid])
             q = np.ascontiguousarray(gq[p.gid]) if gq is not None else None
-            tfi.tfi_patch_fast(d, q, p.params, p.lead)
+            with serial_below(p.gid.size):
+                tfi.tfi_patch_fast(d, q, p.params, p.lead)
             gdelta[p.wgid] = d[p.write]
             if q is not None:
                 gq[p.wgid] = q[p.write]
@@ -1159,7 +1166,8 @@ class Deformer:
         nblk = len(self.grid)
         total = total or nblk
         for b, plan in enumerate(self._blocks):
-            tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre, out=outs[b])
+            with serial_below(self.grid[b].npoints):
+                tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre, out=outs[b])
             if callback is not None:
                 callback(done0 + b + 1, total)
 
@@ -1217,7 +1225,8 @@ class Deformer:
         for p in self._patches:
             d = K[p.gid]
             q = gq[p.gid]
-            tfi.tfi_patch_fast(d, q, p.params, p.lead)
+            with serial_below(p.gid.size):
+                tfi.tfi_patch_fast(d, q, p.params, p.lead)
             g = p.wgid
             gq[g] = q[p.write]
             _damp_towards_identity(gq, g, damp[g])
