@@ -213,20 +213,6 @@ def _merge_quaternions(gid, q, acc, count):
 
 
 @jit
-def _damp_towards_identity(gq, idx, f):
-    """``q <- slerp(1, q, f)`` for the listed points (``f`` in [0, 1])."""
-    one = np.array([1.0, 0.0, 0.0, 0.0])
-    tmp = np.empty(4)
-    for m in range(idx.shape[0]):
-        p = idx[m]
-        if f[m] >= 1.0:
-            continue
-        qa.kslerp(one, gq[p], f[m], tmp)
-        for c in range(4):
-            gq[p, c] = tmp[c]
-
-
-@jit
 def _rebase_gaps(c, left, right, ptr, pts, s, target, shift):
     """Set-up twin of the two-level :func:`_fill_gaps` for the centres: interpolate, then re-base."""
     for g in range(left.shape[0]):
@@ -276,6 +262,60 @@ def _scatter_rows(src, gid, local, dst):
             dst[r, c] = src[g, c]
 
 
+@jit
+def _patch_sides(gd, gq, gid, d, q, use_q):
+    """Fill the four sides of a patch's work arrays from the global arrays."""
+    na, nb = gid.shape
+    for a in range(na):
+        for b in (0, nb - 1):
+            g = gid[a, b]
+            for c in range(3):
+                d[a, b, c] = gd[g, c]
+            if use_q:
+                for c in range(4):
+                    q[a, b, c] = gq[g, c]
+    for b in range(1, nb - 1):
+        for a in (0, na - 1):
+            g = gid[a, b]
+            for c in range(3):
+                d[a, b, c] = gd[g, c]
+            if use_q:
+                for c in range(4):
+                    q[a, b, c] = gq[g, c]
+
+
+@jit
+def _patch_writeback(d, q, wpos, wgid, gd, gq, use_q, damp, shift):
+    """Copy a patch's interior values back to the global arrays; with ``damp``/``shift``
+    (two-level, length G; else empty) Q is faded and K re-based as in :func:`_fill_gaps`."""
+    nb = d.shape[1]
+    local = damp.shape[0] > 0
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    tmp = np.empty(4)
+    tmp2 = np.empty(4)
+    r = np.empty(3)
+    for m in range(wpos.shape[0]):
+        a = wpos[m] // nb
+        b = wpos[m] - a * nb
+        g = wgid[m]
+        for c in range(3):
+            gd[g, c] = d[a, b, c]
+        if not use_q:
+            continue
+        for c in range(4):
+            tmp[c] = q[a, b, c]
+        if local:
+            if damp[g] < 1.0:
+                qa.kslerp(one, tmp, damp[g], tmp2)
+                for c in range(4):
+                    tmp[c] = tmp2[c]
+            qa.krotate(tmp, shift[g], r)
+            for c in range(3):
+                gd[g, c] += r[c]
+        for c in range(4):
+            gq[g, c] = tmp[c]
+
+
 # ------------------------------------------------------------- set-up data
 def _twist_about(q: np.ndarray, n: np.ndarray) -> np.ndarray:
     """The rotation of each ``q`` about the unit axis ``n`` (swing-twist split)."""
@@ -307,6 +347,9 @@ class _PatchTFI:
     face: str = ""
     params: tuple | None = None   # tfi.patch_params(s), for the compiled patch kernel
     wgid: np.ndarray | None = None   # gid[write], cached
+    wpos: np.ndarray | None = None   # flat (C order) positions of the written points in the patch
+    bufd: np.ndarray | None = None   # (na, nb, 3) work array, reused every step
+    bufq: np.ndarray | None = None   # (na, nb, 4)
 
 
 @dataclass
@@ -841,8 +884,10 @@ class Deformer:
             write = np.zeros(g.shape, dtype=bool)
             idx = np.argwhere(inner)[np.sort(first)]
             write[idx[:, 0], idx[:, 1]] = True
+            wpos = np.flatnonzero(write.ravel())
             patches.append(_PatchTFI(g, s, lead, write, r.block, r.face, params=tfi.patch_params(s),
-                                     wgid=g[write]))
+                                     wgid=g.ravel()[wpos], wpos=wpos,
+                                     bufd=np.empty(g.shape + (3,)), bufq=np.empty(g.shape + (4,))))
             known[flat] = True
         self._patches = patches
         self._derived = np.flatnonzero(self._kind < FIXED)
@@ -1101,14 +1146,13 @@ class Deformer:
                    gq is not None, _NONE, _NONE3)
 
     def _patch_stage(self, gdelta, gq) -> None:
+        use_q = gq is not None
+        gqa = gq if use_q else np.empty((1, 4))
         for p in self._patches:
-            d = np.ascontiguousarray(gdelta[p.gid])
-            q = np.ascontiguousarray(gq[p.gid]) if gq is not None else None
+            _patch_sides(gdelta, gqa, p.gid, p.bufd, p.bufq, use_q)
             with serial_below(p.gid.size):
-                tfi.tfi_patch_fast(d, q, p.params, p.lead)
-            gdelta[p.wgid] = d[p.write]
-            if q is not None:
-                gq[p.wgid] = q[p.write]
+                tfi.tfi_patch_fast(p.bufd, p.bufq if use_q else None, p.params, p.lead)
+            _patch_writeback(p.bufd, p.bufq, p.wpos, p.wgid, gdelta, gqa, use_q, _NONE, _NONE3)
 
     def _symmetry_stage(self, gdelta, gq) -> None:
         """Symmetry points: on their plane, rotating about its normal only.
@@ -1223,14 +1267,10 @@ class Deformer:
             _fill_gaps(K, gq, *self._gaps, True, damp, shift)
         t2 = time.perf_counter()
         for p in self._patches:
-            d = K[p.gid]
-            q = gq[p.gid]
+            _patch_sides(K, gq, p.gid, p.bufd, p.bufq, True)
             with serial_below(p.gid.size):
-                tfi.tfi_patch_fast(d, q, p.params, p.lead)
-            g = p.wgid
-            gq[g] = q[p.write]
-            _damp_towards_identity(gq, g, damp[g])
-            K[g] = d[p.write] + qa.rotate(gq[g], shift[g])
+                tfi.tfi_patch_fast(p.bufd, p.bufq, p.params, p.lead)
+            _patch_writeback(p.bufd, p.bufq, p.wpos, p.wgid, K, gq, True, damp, shift)
         sym = self._sym_gids
         if sym.size:
             n = self._sym_normal
