@@ -184,13 +184,18 @@ def _fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
             if not use_q:
                 continue
             qa.kslerp(gq[a], gq[b], t, tmp)
-            if local and damp[p] < 1.0:
-                qa.kslerp(one, tmp, damp[p], tmp2)
-                for c in range(4):
-                    tmp[c] = tmp2[c]
+            if local:
+                f = damp[p]
+                if f <= 0.0:
+                    tmp[0] = 1.0
+                    tmp[1] = tmp[2] = tmp[3] = 0.0
+                elif f < 1.0:
+                    qa.kslerp(one, tmp, f, tmp2)
+                    for c in range(4):
+                        tmp[c] = tmp2[c]
             for c in range(4):
                 gq[p, c] = tmp[c]
-            if local:
+            if local and (shift[p, 0] != 0.0 or shift[p, 1] != 0.0 or shift[p, 2] != 0.0):
                 qa.krotate(tmp, shift[p], r)
                 for c in range(3):
                     K[p, c] += r[c]
@@ -305,13 +310,18 @@ def _patch_writeback(d, q, wpos, wgid, gd, gq, use_q, damp, shift):
         for c in range(4):
             tmp[c] = q[a, b, c]
         if local:
-            if damp[g] < 1.0:
-                qa.kslerp(one, tmp, damp[g], tmp2)
+            f = damp[g]
+            if f <= 0.0:
+                tmp[0] = 1.0
+                tmp[1] = tmp[2] = tmp[3] = 0.0
+            elif f < 1.0:
+                qa.kslerp(one, tmp, f, tmp2)
                 for c in range(4):
                     tmp[c] = tmp2[c]
-            qa.krotate(tmp, shift[g], r)
-            for c in range(3):
-                gd[g, c] += r[c]
+            if shift[g, 0] != 0.0 or shift[g, 1] != 0.0 or shift[g, 2] != 0.0:
+                qa.krotate(tmp, shift[g], r)
+                for c in range(3):
+                    gd[g, c] += r[c]
         for c in range(4):
             gq[g, c] = tmp[c]
 
