@@ -160,6 +160,23 @@ class StepTimings:
 
 
 # ------------------------------------------------------------- kernels
+@jit(inline="always")
+def _fade_and_rebase(q, f, shift, k, one, tmp2, r):
+    """Two-level: ``q <- slerp(1, q, f)`` in place (exact at f = 0 and 1) and ``k += rot(q, shift)``
+    (``k``, ``shift``: rows of K and of the re-basing shifts)."""
+    if f <= 0.0:
+        q[0] = 1.0
+        q[1] = q[2] = q[3] = 0.0
+    elif f < 1.0:
+        qa.kslerp(one, q, f, tmp2)
+        for c in range(4):
+            q[c] = tmp2[c]
+    if shift[0] != 0.0 or shift[1] != 0.0 or shift[2] != 0.0:
+        qa.krotate(q, shift, r)
+        for c in range(3):
+            k[c] += r[c]
+
+
 @jit
 def _fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
     """Segments, gap by gap (a gap's ends may be points of earlier gaps): K linear and Q
@@ -185,20 +202,9 @@ def _fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
                 continue
             qa.kslerp(gq[a], gq[b], t, tmp)
             if local:
-                f = damp[p]
-                if f <= 0.0:
-                    tmp[0] = 1.0
-                    tmp[1] = tmp[2] = tmp[3] = 0.0
-                elif f < 1.0:
-                    qa.kslerp(one, tmp, f, tmp2)
-                    for c in range(4):
-                        tmp[c] = tmp2[c]
+                _fade_and_rebase(tmp, damp[p], shift[p], K[p], one, tmp2, r)
             for c in range(4):
                 gq[p, c] = tmp[c]
-            if local and (shift[p, 0] != 0.0 or shift[p, 1] != 0.0 or shift[p, 2] != 0.0):
-                qa.krotate(tmp, shift[p], r)
-                for c in range(3):
-                    K[p, c] += r[c]
 
 
 @jit
@@ -310,18 +316,7 @@ def _patch_writeback(d, q, wpos, wgid, gd, gq, use_q, damp, shift):
         for c in range(4):
             tmp[c] = q[a, b, c]
         if local:
-            f = damp[g]
-            if f <= 0.0:
-                tmp[0] = 1.0
-                tmp[1] = tmp[2] = tmp[3] = 0.0
-            elif f < 1.0:
-                qa.kslerp(one, tmp, f, tmp2)
-                for c in range(4):
-                    tmp[c] = tmp2[c]
-            if shift[g, 0] != 0.0 or shift[g, 1] != 0.0 or shift[g, 2] != 0.0:
-                qa.krotate(tmp, shift[g], r)
-                for c in range(3):
-                    gd[g, c] += r[c]
+            _fade_and_rebase(tmp, damp[g], shift[g], gd[g], one, tmp2, r)
         for c in range(4):
             gq[g, c] = tmp[c]
 

@@ -30,3 +30,17 @@ def check_output(path, force: bool, inputs=()) -> Path:
                                      "(use --force)")
         raise OverwriteError(f"{out}: exists; refusing to overwrite it (use --force)")
     return out
+
+
+def walls_arg(args, case) -> list:
+    """``--walls`` patches (1-based text), else the case file's walls, else none."""
+    from ..spec import parse_patch_spec
+    walls = []
+    for text in args.walls:
+        try:
+            walls.append(parse_patch_spec(text))
+        except CaseError as exc:
+            raise CaseError(f"--walls: {exc}") from None
+    if not walls and case is not None:
+        walls = list(case.walls)
+    return walls

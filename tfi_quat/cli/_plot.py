@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import CaseError, GridValueError
-from ._common import case_and_grid, check_output
+from ._common import case_and_grid, walls_arg, check_output
 
 HELP = "draw a grid (2-D: zoom windows, reference overlaid; 3-D: wall surface and cuts) into a PNG"
 DESCRIPTION = """Draw GRID into FIG (PNG, or another format matplotlib knows from the extension).
@@ -71,7 +71,6 @@ def add_args(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from .. import io
     from ..plot import grid_figure, save_figure
-    from ..spec import parse_patch_spec
 
     case, path = case_and_grid(args)
     if args.layers is not None and args.layers < 1:
@@ -79,14 +78,7 @@ def run(args) -> int:
     if args.dpi < 10:
         raise CaseError(f"--dpi must be >= 10, got {args.dpi}")
     check_output(args.output, args.force, inputs=[path, args.ref, args.case])
-    walls = []
-    for text in args.walls:
-        try:
-            walls.append(parse_patch_spec(text))
-        except CaseError as exc:
-            raise CaseError(f"--walls: {exc}") from None
-    if not walls and case is not None:
-        walls = list(case.walls)
+    walls = walls_arg(args, case)
     grid = io.read(path)
     ref = io.read(args.ref) if args.ref else None
     title = args.title

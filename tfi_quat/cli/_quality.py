@@ -7,7 +7,7 @@ import argparse
 import json
 
 from ..errors import CaseError, GridValueError
-from ._common import case_and_grid
+from ._common import case_and_grid, walls_arg
 
 HELP = "grid quality: volumes, Jacobians, skewness, aspect ratio, negative cells, near-wall orthogonality"
 DESCRIPTION = """Measure the quality of GRID: per block and over the grid, the min, mean and
@@ -43,19 +43,11 @@ def add_args(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from .. import io
     from ..quality import quality_report
-    from ..spec import parse_patch_spec
 
     case, path = case_and_grid(args)
     if args.layers < 1:
         raise CaseError(f"--layers must be >= 1, got {args.layers}")
-    walls = []
-    for text in args.walls:
-        try:
-            walls.append(parse_patch_spec(text))
-        except CaseError as exc:
-            raise CaseError(f"--walls: {exc}") from None
-    if not walls and case is not None:
-        walls = list(case.walls)
+    walls = walls_arg(args, case)
     grid = io.read(path)
     ref = io.read(args.ref) if args.ref else None
     try:
