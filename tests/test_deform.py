@@ -243,3 +243,34 @@ def test_unknown_formulation_and_misplaced_options_are_errors():
     with pytest.raises(CaseError, match="rotation_length"):
         Deformer(grid, walls=walls, rotation_length=-1.0)
     Deformer(grid, walls=walls, formulation="samareh", blending="linear")
+
+
+def test_two_wall_bodies_get_their_own_rigid_fits():
+    """A channel whose lower and upper walls move apart rigidly (two bodies: the side faces
+    between them are fixed): each body's fit takes its own motion exactly, so the residual
+    is zero; walls exact, no negative cells, the middle moves half way."""
+    grid, _, _, _ = G.channel()
+    d = Deformer(grid, walls=["1:jmin", "1:jmax"], fixed=["1:imin", "1:imax"])
+    assert len(d._bodies) == 2
+
+    def move(p):
+        p = np.array(p, dtype=np.float64)
+        lower = p[:, 1] < 0.5
+        p[lower, 1] -= 0.04
+        p[~lower, 1] += 0.04
+        return p
+
+    fits, y = d._fits(d._wall_targets(move))
+    for q, t in fits:
+        np.testing.assert_allclose(q, [1.0, 0.0, 0.0, 0.0], atol=1e-14)
+        assert abs(abs(t[1]) - 0.04) < 1e-14 and abs(t[0]) < 1e-14
+    np.testing.assert_allclose(y[d._wall_gids], d._P[d._wall_gids], atol=1e-14)   # no residual
+    out = d.deform(move)
+    x, r = out[0].xyz, grid[0].xyz
+    np.testing.assert_allclose(x[:, 0, 0, 1], r[:, 0, 0, 1] - 0.04, atol=1e-14)
+    np.testing.assert_allclose(x[:, -1, 0, 1], r[:, -1, 0, 1] + 0.04, atol=1e-14)
+    assert not negative_cells(out, grid)
+    mid = x.shape[1] // 2
+    ni = x.shape[0]
+    dy = x[ni // 2, mid, 0, 1] - r[ni // 2, mid, 0, 1]
+    assert abs(dy) < 0.02                       # between the two walls' motions
