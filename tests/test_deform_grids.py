@@ -16,7 +16,7 @@ import pytest
 import tfi_quat as tq
 from tfi_quat import quaternion as qa
 from tfi_quat.case import Motion, load_case
-from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.deform import Deformer, _face_ijk, rigid_motion
 from tfi_quat.quality import orthogonality_change, volume_ratio_summary
 from tfi_quat.spec import parse_patch_spec
 
@@ -124,7 +124,6 @@ def test_walls_fixed_symmetry_interfaces(name, method, formulation):
             assert prev == xx.tobytes(), f"copies of boundary point {P[g]} differ"
     assert len(seen) == d.n_global
     for itf in d.connectivity.interfaces:       # through the connectivity's own index maps
-        from tfi_quat.deform import _face_ijk
         m = itf.master
         mi = _face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
         si = np.asarray(itf.slave_index(mi)).reshape(-1, 3)
@@ -133,7 +132,6 @@ def test_walls_fixed_symmetry_interfaces(name, method, formulation):
         assert np.array_equal(a, bb), f"interface {itf} not bit-identical"
     for spec in sym:
         p = parse_patch_spec(spec).resolve(grid)
-        from tfi_quat.deform import _face_ijk
         ijk = _face_ijk(grid[p.block].dims, p.face, p.range).reshape(-1, 3)
         before = grid[p.block].xyz[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         after = out[p.block].xyz[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
