@@ -510,7 +510,6 @@ class Deformer:
             self._build_bodies()
             self._build_arms()
         self._buffers = None
-        self._wall_local = None
         self._lock = threading.Lock()
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
@@ -708,6 +707,10 @@ class Deformer:
             else:
                 self._walls.append(_Wall(p.spec, g, halo, mirror))
         self._wall_gids = np.flatnonzero(self._kind == WALL)
+        where = np.full(self.n_global, -1, dtype=np.int64)
+        where[self._wall_gids] = np.arange(self._wall_gids.size)
+        # each wall patch's points as indices into the merged wall arrays
+        self._wall_local = [np.ascontiguousarray(where[w.gid].ravel()) for w in self._walls]
 
     def _build_rects(self) -> None:
         rects: list[_Rect] = []
@@ -864,9 +867,6 @@ class Deformer:
                           np.concatenate([[0], np.cumsum([x[2].size for x in gaps])]).astype(np.int64),
                           np.concatenate([x[2] for x in gaps]).astype(np.int64),
                           np.concatenate([x[3] for x in gaps]).astype(np.float64))
-            left, right, ptr, pts, _ = self._gaps
-            n = np.diff(ptr)
-            self._gap_ends = (np.repeat(left, n), np.repeat(right, n))
         else:
             self._gaps = None
         patches: list[_PatchTFI] = []
@@ -1094,10 +1094,6 @@ class Deformer:
     def _wall_quaternions_now(self, rd: np.ndarray) -> np.ndarray:
         from .boundary import boundary_motion
         nw = self._wall_gids.size
-        if self._wall_local is None:
-            where = np.full(self.n_global, -1, dtype=np.int64)
-            where[self._wall_gids] = np.arange(nw)
-            self._wall_local = [np.ascontiguousarray(where[w.gid].ravel()) for w in self._walls]
         acc = np.zeros((nw, 4))
         count = np.zeros(nw, dtype=np.int64)
         plane = np.array([0.0, 0.0, 1.0]) if self.ndim == 2 else None
