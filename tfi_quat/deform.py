@@ -273,26 +273,26 @@ def _scatter_rows(src, gid, local, dst):
             dst[r, c] = src[g, c]
 
 
+@jit(inline="always")
+def _take_point(gd, gq, g, d, q, a, b, use_q):
+    """Patch work-array entry ``(a, b)`` from global point ``g``."""
+    for c in range(3):
+        d[a, b, c] = gd[g, c]
+    if use_q:
+        for c in range(4):
+            q[a, b, c] = gq[g, c]
+
+
 @jit
 def _patch_sides(gd, gq, gid, d, q, use_q):
     """Fill the four sides of a patch's work arrays from the global arrays."""
     na, nb = gid.shape
     for a in range(na):
         for b in (0, nb - 1):
-            g = gid[a, b]
-            for c in range(3):
-                d[a, b, c] = gd[g, c]
-            if use_q:
-                for c in range(4):
-                    q[a, b, c] = gq[g, c]
+            _take_point(gd, gq, gid[a, b], d, q, a, b, use_q)
     for b in range(1, nb - 1):
         for a in (0, na - 1):
-            g = gid[a, b]
-            for c in range(3):
-                d[a, b, c] = gd[g, c]
-            if use_q:
-                for c in range(4):
-                    q[a, b, c] = gq[g, c]
+            _take_point(gd, gq, gid[a, b], d, q, a, b, use_q)
 
 
 @jit
