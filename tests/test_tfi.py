@@ -624,13 +624,7 @@ def test_near_zero_blend_falls_back_to_rotation_vectors():
     ni, nj = 5, 5
     xyz = block2d(ni, nj, 1)
     s = tfi.arclength(xyz)
-    ident = np.array([1.0, 0, 0, 0])
-    half = np.array([0.0, 0, 0, 1.0])
-    jmin = np.tile(half, (ni, 1))
-    jmax = np.tile(-half, (ni, 1))
-    jmin[0] = jmin[-1] = jmax[0] = jmax[-1] = ident
-    fq = [np.tile(ident, (nj, 1)), np.tile(ident, (nj, 1)), jmin, jmax]
-    fd = [np.zeros((nj, 3)), np.zeros((nj, 3)), np.zeros((ni, 3)), np.zeros((ni, 3))]
+    fd, fq = _half_turn_sides(ni, nj, np.zeros(3))
     c = np.zeros(3)
     out = tfi.deform_block_2d(xyz, s, fd, fq, c, (0, 1))
     D, Q = tfi.tfi_block_fields(fd, fq, s, (0, 1))
