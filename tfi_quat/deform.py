@@ -909,6 +909,13 @@ class Deformer:
             self._sym_point = np.array([self._sym_planes[p][0] for p in planes])
             self._sym_normal = np.array([self._sym_planes[p][1] for p in planes])
 
+    def _onto_symmetry(self, p: np.ndarray) -> np.ndarray:
+        """Positions of the symmetry points (rows as in ``_sym_gids``) projected onto their
+        planes, in place."""
+        n = self._sym_normal
+        p -= np.sum((p - self._sym_point) * n, axis=1, keepdims=True) * n
+        return p
+
     def _build_blocks(self) -> None:
         plans = []
         prescribed = self._kind >= FIXED
@@ -1172,7 +1179,7 @@ class Deformer:
             pos = c + gdelta[sym] + qa.rotate(gq[sym], arm)
         else:
             pos = self._P[sym] + gdelta[sym]
-        pos -= np.sum((pos - self._sym_point) * n, axis=1, keepdims=True) * n
+        self._onto_symmetry(pos)
         if gq is None:
             gdelta[sym] = pos - self._P[sym]
             return
@@ -1184,8 +1191,7 @@ class Deformer:
         """Boundary positions: symmetry points on their plane, fixed points at rest, walls exact."""
         sym = self._sym_gids
         if sym.size:
-            off = np.sum((pos[sym] - self._sym_point) * self._sym_normal, axis=1)
-            pos[sym] -= off[:, None] * self._sym_normal
+            pos[sym] = self._onto_symmetry(pos[sym])
         fixed = self._kind == FIXED
         pos[fixed] = self._P[fixed]
         wall = self._wall_gids
@@ -1276,7 +1282,7 @@ class Deformer:
         if sym.size:
             n = self._sym_normal
             ps = K[sym] + qa.rotate(gq[sym], A[sym])
-            ps -= np.sum((ps - self._sym_point) * n, axis=1, keepdims=True) * n
+            self._onto_symmetry(ps)
             tw = _twist_about(gq[sym], n)
             gq[sym] = tw
             K[sym] = ps - qa.rotate(tw, A[sym])
@@ -1387,8 +1393,7 @@ class Deformer:
             _positions_global(gdelta, gq, self.centre, self._derived, pos)
         sym = self._sym_gids
         if sym.size:
-            off = np.sum((pos[sym] - self._sym_point) * self._sym_normal, axis=1)
-            pos[sym] -= off[:, None] * self._sym_normal
+            pos[sym] = self._onto_symmetry(pos[sym])
         pos[wall] = rd[wall]
         t3 = time.perf_counter()
         outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
