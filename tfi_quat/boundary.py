@@ -744,6 +744,13 @@ def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo
         c = _vector3(centre, "centre")
     na = shape[0]
     nb = 1 if curve else shape[1]
+    q, delta = _motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb)
+    return q.reshape(shape + (4,)), delta.reshape(shape + (3,))
+
+
+def _motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb):
+    """:func:`boundary_motion` on validated input (as :func:`_prepare` returns it): ``q``
+    (na, nb, 4) and ``delta`` (na, nb, 3).  The Deformer calls it with halos it builds once."""
     q = np.empty((na, nb, 4))
     delta = np.empty((na, nb, 3))
     ok = np.empty((na, nb), dtype=np.uint8)
@@ -752,7 +759,7 @@ def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo
         _fill_degenerate(Pu, Pd, oi, oj, c, q, delta, ok)
         _align_rows_serial(q)
     _align_columns(q)
-    return q.reshape(shape + (4,)), delta.reshape(shape + (3,))
+    return q, delta
 
 
 def surface_normals(r, halo=None, plane_normal=None):

@@ -168,9 +168,14 @@ def _fade_and_rebase(q, f, shift, k, one, tmp2, r):
         q[0] = 1.0
         q[1] = q[2] = q[3] = 0.0
     elif f < 1.0:
-        qa.kslerp(one, q, f, tmp2)
-        for c in range(4):
-            q[c] = tmp2[c]
+        # slerp(1, q, f) along the short arc, with the volume kernels' polynomial weights
+        sg = -1.0 if q[0] < 0.0 else 1.0
+        w2, sw = tfi._slerp_angle(1.0, 0.0, 0.0, 0.0, sg * q[0], sg * q[1], sg * q[2], sg * q[3])
+        wa, wb = tfi._slerp_weights(f, w2, sw)
+        wb *= sg
+        q[0] = wa + wb * q[0]
+        for c in range(1, 4):
+            q[c] = wb * q[c]
     if shift[0] != 0.0 or shift[1] != 0.0 or shift[2] != 0.0:
         qa.krotate(q, shift, r)
         for c in range(3):
@@ -264,6 +269,27 @@ def _positions_global(gdelta, gq, centre, idx, pos):
 
 
 @jit
+def _halo_points(X, hidx, mirror, po, pn, out):
+    """``out[h] = X[hidx[h]]``, mirrored across plane ``mirror[h]`` (``po``, ``pn``: plane
+    points and unit normals) where that is >= 0, NaN where ``hidx[h] < 0``."""
+    for h in range(hidx.shape[0]):
+        g = hidx[h]
+        if g < 0:
+            for c in range(3):
+                out[h, c] = np.nan
+            continue
+        for c in range(3):
+            out[h, c] = X[g, c]
+        s = mirror[h]
+        if s >= 0:
+            d = 0.0
+            for c in range(3):
+                d += (out[h, c] - po[s, c]) * pn[s, c]
+            for c in range(3):
+                out[h, c] -= 2.0 * d * pn[s, c]
+
+
+@jit
 def _scatter_rows(src, gid, local, dst):
     """``dst[local[m]] = src[gid[m]]`` (dst: a block's points as (n, 3), any layout)."""
     for m in range(gid.shape[0]):
@@ -274,65 +300,219 @@ def _scatter_rows(src, gid, local, dst):
 
 
 @jit(inline="always")
-def _take_point(gd, gq, g, d, q, a, b, use_q):
-    """Patch work-array entry ``(a, b)`` from global point ``g``."""
-    for c in range(3):
-        d[a, b, c] = gd[g, c]
-    if use_q:
-        for c in range(4):
-            q[a, b, c] = gq[g, c]
+def _lm_flat(lead, nb, l, m):
+    """Flat (C order) position in an (na, nb) patch of the point ``l`` along the leading
+    direction on line ``m``."""
+    if lead == 0:
+        return l * nb + m
+    return m * nb + l
 
 
 @jit
-def _patch_sides(gd, gq, gid, d, q, use_q):
-    """Fill the four sides of a patch's work arrays from the global arrays."""
-    na, nb = gid.shape
-    for a in range(na):
-        for b in (0, nb - 1):
-            _take_point(gd, gq, gid[a, b], d, q, a, b, use_q)
-    for b in range(1, nb - 1):
-        for a in (0, na - 1):
-            _take_point(gd, gq, gid[a, b], d, q, a, b, use_q)
+def _patch_level(gd, gq, use_q, meta, gidf, sf, wf, damp, shift):
+    """Every derived patch of one level: 2-D Soni TFI of (Δ, Q) from the patch's four
+    sides, read from and written to the global arrays ``gd`` (G, 3), ``gq`` (G, 4).
 
-
-@jit
-def _patch_writeback(d, q, wpos, wgid, gd, gq, use_q, damp, shift):
-    """Copy a patch's interior values back to the global arrays; with ``damp``/``shift``
-    (two-level, length G; else empty) Q is faded and K re-based as in :func:`_fill_gaps`."""
-    nb = d.shape[1]
-    local = damp.shape[0] > 0
+    ``meta[p] = (offset, na, nb, lead)``; ``gidf``, ``sf`` (n, 2), ``wf``: the patches'
+    global ids, blending parameters and write flags, flat in C order.  The formulas are
+    :func:`tfi_quat.tfi.tfi_patch_fast`'s (slerp along the leading direction, hemisphere
+    aligned residuals of the two other sides, normalised; the rotation-vector blend where
+    the norm falls below ``QNORM_MIN``).  Patches only read their sides, which earlier
+    levels define, so their order does not matter.  ``damp``/``shift`` (two-level, length
+    G; else empty): Q is faded and K re-based as in :func:`_fill_gaps`.
+    """
     one = np.array([1.0, 0.0, 0.0, 0.0])
-    tmp = np.empty(4)
+    local = damp.shape[0] > 0
     tmp2 = np.empty(4)
     r = np.empty(3)
-    for m in range(wpos.shape[0]):
-        a = wpos[m] // nb
-        b = wpos[m] - a * nb
-        g = wgid[m]
+    q = np.empty(4)
+    nofb = np.zeros((1, 1, 16))
+    qmin = tfi.QNORM_MIN
+    for p in range(meta.shape[0]):
+        off, na, nb, lead = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3]
+        if lead == 0:
+            nl, nm = na, nb
+        else:
+            nl, nm = nb, na
+        lineD = np.empty((nm, 1, 6))        # tables laid out as tfi's (index, 0, component)
+        lineQ = np.empty((nm, 1, 10))
+        resD = np.empty((nl, 1, 6))
+        resQ = np.empty((nl, 1, 8))
+        fb = np.empty((nl, 1, 16))
+        # lines of the leading direction: end values, aligned end quaternions, slerp angle
+        for m in range(nm):
+            g0 = gidf[off + _lm_flat(lead, nb, 0, m)]
+            g1 = gidf[off + _lm_flat(lead, nb, nl - 1, m)]
+            for c in range(3):
+                lineD[m, 0, c] = gd[g0, c]
+                lineD[m, 0, 3 + c] = gd[g1, c]
+            if use_q:
+                d = gq[g0, 0] * gq[g1, 0] + gq[g0, 1] * gq[g1, 1] + gq[g0, 2] * gq[g1, 2] + \
+                    gq[g0, 3] * gq[g1, 3]
+                sg = -1.0 if d < 0.0 else 1.0
+                for c in range(4):
+                    lineQ[m, 0, c] = gq[g0, c]
+                    lineQ[m, 0, 4 + c] = sg * gq[g1, c]
+                lq = lineQ[m, 0]
+                w2, sw = tfi._slerp_angle(lq[0], lq[1], lq[2], lq[3], lq[4], lq[5], lq[6], lq[7])
+                lq[8] = w2
+                lq[9] = sw
+        # residuals F - U on the two other sides
+        for side in range(2):
+            m = 0 if side == 0 else nm - 1
+            for l in range(nl):
+                f = off + _lm_flat(lead, nb, l, m)
+                g = gidf[f]
+                t = sf[f, lead]
+                x, y, z = tfi._u_d(lineD, m, 0, t)
+                rd = resD[l, 0]
+                rd[3 * side] = gd[g, 0] - x
+                rd[3 * side + 1] = gd[g, 1] - y
+                rd[3 * side + 2] = gd[g, 2] - z
+                if use_q:
+                    qw, qx, qy, qz = tfi._u_q(lineQ, m, 0, t)
+                    d = qw * gq[g, 0] + qx * gq[g, 1] + qy * gq[g, 2] + qz * gq[g, 3]
+                    sg = -1.0 if d < 0.0 else 1.0
+                    rq = resQ[l, 0]
+                    o = 4 * side
+                    rq[o] = sg * gq[g, 0] - qw
+                    rq[o + 1] = sg * gq[g, 1] - qx
+                    rq[o + 2] = sg * gq[g, 2] - qy
+                    rq[o + 3] = sg * gq[g, 3] - qz
+                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                    fl = fb[l, 0]
+                    o = 8 * side
+                    fl[o] = qw / n
+                    fl[o + 1] = qx / n
+                    fl[o + 2] = qy / n
+                    fl[o + 3] = qz / n
+                    for c in range(4):
+                        fl[o + 4 + c] = sg * gq[g, c]
+        # the interior points this patch defines
+        for m in range(1, nm - 1):
+            for l in range(1, nl - 1):
+                f = off + _lm_flat(lead, nb, l, m)
+                if not wf[f]:
+                    continue
+                g = gidf[f]
+                t = sf[f, lead]
+                sm = sf[f, 1 - lead]
+                dx, dy, dz = tfi._v_d(lineD, m, 0, t, resD, l, 0, sm)
+                gd[g, 0] = dx
+                gd[g, 1] = dy
+                gd[g, 2] = dz
+                if not use_q:
+                    continue
+                qw, qx, qy, qz = tfi._v_q(lineQ, m, 0, t, resQ, l, 0, sm)
+                n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                if n < qmin:
+                    qw, qx, qy, qz = tfi._fallback_q(lineQ, m, 0, t, fb, l, 0, sm, nofb, 0, 0,
+                                                     0.0, False)
+                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                q[0] = qw / n
+                q[1] = qx / n
+                q[2] = qy / n
+                q[3] = qz / n
+                if local:
+                    _fade_and_rebase(q, damp[g], shift[g], gd[g], one, tmp2, r)
+                for c in range(4):
+                    gq[g, c] = q[c]
+
+
+@jit
+def _rigid_blend(phi, idx, Db, Rb, gd, gq):
+    """The rigid part of the two-level formulation on the listed points (rows of ``phi``):
+    ``Δ = Σ_b φ_b Δ_b`` and ``Q = exp(Σ_b φ_b v_b)`` (``v_b``: the rotation vector of body
+    ``b``'s fitted rotation, ``Δ_b`` its translation in Samareh's form)."""
+    nb = Db.shape[0]
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        dx = dy = dz = 0.0
+        vx = vy = vz = 0.0
+        for b in range(nb):
+            f = phi[m, b]
+            dx += f * Db[b, 0]
+            dy += f * Db[b, 1]
+            dz += f * Db[b, 2]
+            vx += f * Rb[b, 0]
+            vy += f * Rb[b, 1]
+            vz += f * Rb[b, 2]
+        gd[p, 0] = dx
+        gd[p, 1] = dy
+        gd[p, 2] = dz
+        th = math.sqrt(vx * vx + vy * vy + vz * vz)
+        h = 0.5 * th
+        if th > 1e-8:
+            f = math.sin(h) / th
+        else:
+            f = 0.5 - th * th / 48.0
+        gq[p, 0] = math.cos(h)
+        gq[p, 1] = f * vx
+        gq[p, 2] = f * vy
+        gq[p, 3] = f * vz
+
+
+@jit
+def _onto_planes(pos, idx, point, normal):
+    """``pos[idx[m]]`` projected onto the plane (``point[m]``, unit ``normal[m]``), in place."""
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        d = 0.0
         for c in range(3):
-            gd[g, c] = d[a, b, c]
-        if not use_q:
-            continue
-        for c in range(4):
-            tmp[c] = q[a, b, c]
-        if local:
-            _fade_and_rebase(tmp, damp[g], shift[g], gd[g], one, tmp2, r)
-        for c in range(4):
-            gq[g, c] = tmp[c]
+            d += (pos[p, c] - point[m, c]) * normal[m, c]
+        for c in range(3):
+            pos[p, c] -= d * normal[m, c]
+
+
+@jit
+def _symmetry_fix(F, gq, use_q, X, carm, idx, point, normal):
+    """Symmetry points: on their plane, rotating about its normal only.
+
+    The position ``carm + F + rot(q, X - carm)`` is projected onto the plane; ``q``
+    is reduced to its rotation about the normal (its twist; 1 if it has none) and
+    ``F`` recomputed so that the projected position is kept.  (Local fields:
+    ``F = K``, ``X = A``, ``carm = 0``; Samareh's: ``F = Δ``, ``X = R_u``, ``carm = c``;
+    ``use_q`` False: Q ≡ 1.)
+    """
+    arm = np.empty(3)
+    r = np.empty(3)
+    pos = np.empty(3)
+    tw = np.empty(4)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        for c in range(3):
+            arm[c] = X[p, c] - carm[c]
+        if use_q:
+            qa.krotate(gq[p], arm, r)
+        else:
+            for c in range(3):
+                r[c] = arm[c]
+        d = 0.0
+        for c in range(3):
+            pos[c] = carm[c] + F[p, c] + r[c]
+            d += (pos[c] - point[m, c]) * normal[m, c]
+        for c in range(3):
+            pos[c] -= d * normal[m, c]
+        if use_q:
+            u = gq[p, 1] * normal[m, 0] + gq[p, 2] * normal[m, 1] + gq[p, 3] * normal[m, 2]
+            tw[0] = gq[p, 0]
+            for c in range(3):
+                tw[1 + c] = u * normal[m, c]
+            n = math.sqrt(tw[0] * tw[0] + tw[1] * tw[1] + tw[2] * tw[2] + tw[3] * tw[3])
+            if n == 0.0:
+                tw[0] = 1.0
+                tw[1] = tw[2] = tw[3] = 0.0
+            else:
+                for c in range(4):
+                    tw[c] /= n
+            for c in range(4):
+                gq[p, c] = tw[c]
+            qa.krotate(tw, arm, r)
+        for c in range(3):
+            F[p, c] = pos[c] - carm[c] - r[c]
 
 
 # ------------------------------------------------------------- set-up data
-def _twist_about(q: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """The rotation of each ``q`` about the unit axis ``n`` (swing-twist split)."""
-    tw = np.empty_like(q)
-    tw[:, 0] = q[:, 0]
-    tw[:, 1:] = n * np.sum(q[:, 1:] * n, axis=1, keepdims=True)
-    norm = np.linalg.norm(tw, axis=1)
-    tw[norm == 0.0] = [1.0, 0.0, 0.0, 0.0]
-    norm[norm == 0.0] = 1.0
-    return tw / norm[:, None]
-
-
 @dataclass
 class _Rect:
     block: int
@@ -350,11 +530,7 @@ class _PatchTFI:
     write: np.ndarray          # bool (na, nb): interior points this patch defines
     block: int = 0
     face: str = ""
-    params: tuple | None = None   # tfi.patch_params(s), for the compiled patch kernel
     wgid: np.ndarray | None = None   # gid[write], cached
-    wpos: np.ndarray | None = None   # flat (C order) positions of the written points in the patch
-    bufd: np.ndarray | None = None   # (na, nb, 3) work array, reused every step
-    bufq: np.ndarray | None = None   # (na, nb, 4)
 
 
 @dataclass
@@ -363,6 +539,10 @@ class _Wall:
     gid: np.ndarray            # (na, nb) or (n,) for 2-D curves
     halo: np.ndarray           # (na+2, nb+2) or (n+2,), -1 where no neighbour
     mirror: np.ndarray         # same shape: symmetry plane whose mirror image of halo is used, or -1
+    hidx: np.ndarray | None = None      # halo, flat (C order)
+    hmirror: np.ndarray | None = None   # mirror, flat
+    pshape: tuple = ()                  # shape of the padded halo points
+    pu: np.ndarray | None = None        # undeformed halo points (NaN where no neighbour)
 
 
 @dataclass
@@ -508,8 +688,10 @@ class Deformer:
         self._build_blocks()
         if two:
             self._build_bodies()
+            self._build_rigid_weights()
             self._build_arms()
         self._buffers = None
+        self._rd = self._y = None
         self._lock = threading.Lock()
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
@@ -534,7 +716,15 @@ class Deformer:
                 full[(b, f)] = key
                 keys.append(key.ravel())
         allkeys = np.concatenate(keys)
-        ukeys, inv = np.unique(allkeys, return_inverse=True)
+        total = int(self._offsets[-1])
+        if total <= 32 * allkeys.size:
+            # a marker per grid point beats sorting the keys (the copies of edge points)
+            mark = np.zeros(total, dtype=bool)
+            mark[allkeys] = True
+            ukeys = np.flatnonzero(mark)
+            del mark
+        else:
+            ukeys = np.unique(allkeys)
         nb = ukeys.size
         # coordinates of each boundary point
         P = np.empty((nb, 3))
@@ -639,12 +829,21 @@ class Deformer:
                 edges.append(np.stack([g[:, :-1].ravel(), g[:, 1:].ravel()], 1))
         E = np.concatenate(edges) if edges else np.empty((0, 2), dtype=np.int64)
         E = E[E[:, 0] != E[:, 1]]
-        E = np.unique(np.sort(E, axis=1), axis=0)
+        E = np.sort(E, axis=1)
+        G = np.int64(self.n_global)
+        key = np.unique(E[:, 0] * G + E[:, 1])
+        E = np.stack([key // G, key % G], axis=1)
         self._wall_edges = E
+        # neighbour sets of the points on the patches' edges (the only ones `across` asks for)
+        on_edge = np.zeros(self.n_global, dtype=bool)
+        for p in walls:
+            g = self._rect_gid(p.spec)
+            for side in (g[0], g[-1], g[:, 0], g[:, -1]):
+                on_edge[side] = True
         nbr: dict[int, set[int]] = {}
-        for a, b in E:
-            nbr.setdefault(int(a), set()).add(int(b))
-            nbr.setdefault(int(b), set()).add(int(a))
+        for a, b in E[on_edge[E[:, 0]] | on_edge[E[:, 1]]].tolist():
+            nbr.setdefault(a, set()).add(b)
+            nbr.setdefault(b, set()).add(a)
         P = self._P
 
         def across(p: int, inner: int, exclude) -> int:
@@ -711,6 +910,17 @@ class Deformer:
         where[self._wall_gids] = np.arange(self._wall_gids.size)
         # each wall patch's points as indices into the merged wall arrays
         self._wall_local = [np.ascontiguousarray(where[w.gid].ravel()) for w in self._walls]
+        # the halos as boundary_motion takes them (padded, NaN where no neighbour, mirror
+        # images across symmetry planes), undeformed ones built here, deformed ones per step
+        npl = len(self._sym_planes)
+        self._plane_o = np.array([o for o, _ in self._sym_planes]).reshape(npl, 3)
+        self._plane_n = np.array([n for _, n in self._sym_planes]).reshape(npl, 3)
+        for w in self._walls:
+            w.hidx = np.ascontiguousarray(w.halo.ravel())
+            w.hmirror = np.ascontiguousarray(w.mirror.ravel())
+            w.pshape = (w.halo.shape[0], 1, 3) if curve else w.halo.shape + (3,)
+            w.pu = np.empty(w.pshape)
+            _halo_points(P, w.hidx, w.hmirror, self._plane_o, self._plane_n, w.pu.reshape(-1, 3))
 
     def _build_rects(self) -> None:
         rects: list[_Rect] = []
@@ -752,7 +962,21 @@ class Deformer:
         self.rotation_length = ell
         # every weight built from d is below 1e-8 beyond 20 ell (omega = exp(-d / ell)): a
         # bounded query; points farther away get d = inf, weight 0
-        d, near = cKDTree(W).query(P, distance_upper_bound=20.0 * ell, workers=-1)
+        bound = 20.0 * ell
+        # only points inside a wall patch's bounding box grown by the bound can be closer
+        cand = np.zeros(P.shape[0], dtype=bool)
+        for w in self._walls:
+            x = P[w.gid.ravel()]
+            lo = x.min(axis=0) - bound
+            hi = x.max(axis=0) + bound
+            cand |= np.all((P >= lo) & (P <= hi), axis=1)
+        ci = np.flatnonzero(cand)
+        d = np.full(P.shape[0], np.inf)
+        near = np.zeros(P.shape[0], dtype=np.int64)
+        if ci.size:
+            dc, nc = cKDTree(W).query(P[ci], distance_upper_bound=bound, workers=-1)
+            d[ci] = dc
+            near[ci] = nc
         far = ~np.isfinite(d)
         d[self._kind == WALL] = 0.0
         near[far] = 0
@@ -889,12 +1113,21 @@ class Deformer:
             write = np.zeros(g.shape, dtype=bool)
             idx = np.argwhere(inner)[np.sort(first)]
             write[idx[:, 0], idx[:, 1]] = True
-            wpos = np.flatnonzero(write.ravel())
-            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face, params=tfi.patch_params(s),
-                                     wgid=g.ravel()[wpos], wpos=wpos,
-                                     bufd=np.empty(g.shape + (3,)), bufq=np.empty(g.shape + (4,))))
+            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face, wgid=g[write]))
             known[flat] = True
         self._patches = patches
+        # the patches packed for _patch_level (one compiled call per level)
+        meta = np.zeros((len(patches), 4), dtype=np.int64)
+        off = 0
+        for m, p in enumerate(patches):
+            meta[m] = (off, p.gid.shape[0], p.gid.shape[1], p.lead)
+            off += p.gid.size
+        cat = lambda xs, sh, dt: (np.concatenate(xs) if xs else np.zeros(sh, dtype=dt))  # noqa: E731
+        self._plevel = (meta,
+                        np.ascontiguousarray(cat([p.gid.ravel() for p in patches], (0,), np.int64)),
+                        np.ascontiguousarray(cat([p.s.reshape(-1, 2) for p in patches], (0, 2),
+                                                 np.float64)),
+                        np.ascontiguousarray(cat([p.write.ravel() for p in patches], (0,), bool)))
         self._derived = np.flatnonzero(self._kind < FIXED)
         if not known.all():
             g = int(np.flatnonzero(~known)[0])
@@ -904,17 +1137,19 @@ class Deformer:
     def _build_symmetry(self) -> None:
         sym = np.flatnonzero((self._sym_of >= 0) & (self._kind == SYMMETRY))
         self._sym_gids = sym
-        if sym.size:
-            planes = self._sym_of[sym]
-            self._sym_point = np.array([self._sym_planes[p][0] for p in planes])
-            self._sym_normal = np.array([self._sym_planes[p][1] for p in planes])
+        planes = self._sym_of[sym]
+        self._sym_point = np.zeros((sym.size, 3))
+        self._sym_normal = np.zeros((sym.size, 3))
+        for m, pl in enumerate(self._sym_planes):
+            sel = planes == m
+            self._sym_point[sel] = pl[0]
+            self._sym_normal[sel] = pl[1]
+        self._fixed_gids = np.flatnonzero(self._kind == FIXED)
 
-    def _onto_symmetry(self, p: np.ndarray) -> np.ndarray:
-        """Positions of the symmetry points (rows as in ``_sym_gids``) projected onto their
-        planes, in place."""
-        n = self._sym_normal
-        p -= np.sum((p - self._sym_point) * n, axis=1, keepdims=True) * n
-        return p
+    def _onto_symmetry(self, pos: np.ndarray) -> None:
+        """The symmetry points of the global array ``pos`` (G, 3) projected onto their planes,
+        in place."""
+        _onto_planes(pos, self._sym_gids, self._sym_point, self._sym_normal)
 
     def _build_blocks(self) -> None:
         plans = []
@@ -961,6 +1196,31 @@ class Deformer:
             axis, tproj = constrain_to_planes(normals)
             bodies.append(_Body(gids, axis, tproj))
         self._bodies = bodies
+
+    def _build_rigid_weights(self) -> None:
+        """Two-level: the weight ``φ_b`` of each wall body's rigid motion on every derived point.
+
+        ``φ_b`` is Samareh's hierarchy (vertices, segments, patches) applied to the
+        scalar that is 1 on the walls of body ``b`` and 0 on every other prescribed
+        point.  A step blends the bodies' fitted motions with it in closed form
+        (:func:`_rigid_blend`): ``Δ = Σ φ_b Δ_b`` is exactly what the hierarchy gives
+        for uniform ``Δ_b``, and ``Q = exp(Σ φ_b v_b)`` blends the rotations the same
+        way, so the rigid part costs no interpolation per step.
+        """
+        G = self.n_global
+        der = self._derived
+        nb = len(self._bodies)
+        phi = np.empty((der.size, nb))
+        for b0 in range(0, nb, 3):
+            F = np.zeros((G, 3))
+            chunk = self._bodies[b0:b0 + 3]
+            for k, body in enumerate(chunk):
+                F[body.gids, k] = 1.0
+            self._vertex_stage(F, None)
+            self._segment_stage(F, None)
+            self._patch_stage(F, None)
+            phi[:, b0:b0 + len(chunk)] = F[der, :len(chunk)]
+        self._phi = phi
 
     def _build_arms(self) -> None:
         """Two-level: the centre field ``c`` on boundary points and the arms ``A = R_u - c``.
@@ -1023,10 +1283,10 @@ class Deformer:
             rebase(free, decay[:, None] * (w @ c[src]) + (1.0 - decay)[:, None] * P[free])
         if self._gaps is not None:
             _rebase_gaps(c, *self._gaps, target, shift)
-        for pt in self._patches:
-            d = np.ascontiguousarray(c[pt.gid])
-            tfi.tfi_patch_fast(d, None, pt.params, pt.lead)
-            rebase(pt.wgid, d[pt.write])
+        if self._patches:
+            _patch_level(c, np.empty((1, 4)), False, *self._plevel, _NONE, _NONE3)
+            wg = self._plevel[1][self._plevel[3]]
+            rebase(wg, c[wg].copy())
         self._c = c
         self._cshift = shift
         self._arm = P - c
@@ -1051,7 +1311,9 @@ class Deformer:
     def _wall_targets(self, moved) -> np.ndarray:
         """Deformed positions of every global point (only wall rows are meaningful)."""
         G = self.n_global
-        rd = self._P.copy()
+        if self._rd is None:
+            self._rd = self._P.copy()      # only the wall rows change (a step holds the lock)
+        rd = self._rd
         wall = self._wall_gids
         if callable(moved):
             new = np.asarray(moved(self._P[wall].copy()), dtype=np.float64)
@@ -1099,26 +1361,19 @@ class Deformer:
             return self._wall_quaternions_now(rd)
 
     def _wall_quaternions_now(self, rd: np.ndarray) -> np.ndarray:
-        from .boundary import boundary_motion
+        from .boundary import _motion_padded
         nw = self._wall_gids.size
         acc = np.zeros((nw, 4))
         count = np.zeros(nw, dtype=np.int64)
-        plane = np.array([0.0, 0.0, 1.0]) if self.ndim == 2 else None
-        nan3 = np.full(3, np.nan)
-        P = self._P
+        curve = self.ndim == 2
+        e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
         for w, lid in zip(self._walls, self._wall_local):
-            hu = np.where((w.halo >= 0)[..., None], P[np.maximum(w.halo, 0)], nan3)
-            hd = np.where((w.halo >= 0)[..., None], rd[np.maximum(w.halo, 0)], nan3)
-            m = w.mirror >= 0
-            if m.any():
-                for sp in np.unique(w.mirror[m]):
-                    o, n = self._sym_planes[sp]
-                    sel = w.mirror == sp
-                    hu[sel] -= 2.0 * ((hu[sel] - o) @ n)[:, None] * n
-                    hd[sel] -= 2.0 * ((hd[sel] - o) @ n)[:, None] * n
-            q, _ = boundary_motion(P[w.gid], rd[w.gid], self.centre, plane_normal=plane,
-                                   halo_u=hu, halo_d=hd)
-            _merge_quaternions(lid, np.ascontiguousarray(q.reshape(-1, 4)), acc, count)
+            pd = np.empty(w.pshape)
+            _halo_points(rd, w.hidx, w.hmirror, self._plane_o, self._plane_n, pd.reshape(-1, 3))
+            na = w.pshape[0] - 2
+            nb = 1 if curve else w.pshape[1] - 2
+            q, _ = _motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, self.centre, na, nb)
+            _merge_quaternions(lid, q.reshape(-1, 4), acc, count)
         acc /= np.linalg.norm(acc, axis=1, keepdims=True)
         return acc
 
@@ -1156,43 +1411,21 @@ class Deformer:
     def _patch_stage(self, gdelta, gq) -> None:
         use_q = gq is not None
         gqa = gq if use_q else np.empty((1, 4))
-        for p in self._patches:
-            _patch_sides(gdelta, gqa, p.gid, p.bufd, p.bufq, use_q)
-            with serial_below(p.gid.size):
-                tfi.tfi_patch_fast(p.bufd, p.bufq if use_q else None, p.params, p.lead)
-            _patch_writeback(p.bufd, p.bufq, p.wpos, p.wgid, gdelta, gqa, use_q, _NONE, _NONE3)
+        _patch_level(gdelta, gqa, use_q, *self._plevel, _NONE, _NONE3)
 
     def _symmetry_stage(self, gdelta, gq) -> None:
-        """Symmetry points: on their plane, rotating about its normal only.
-
-        The position from the interpolated (delta, q) is projected onto the
-        plane; then q is reduced to its rotation about the plane normal (its
-        "twist") and delta recomputed so that the projected position is kept.
-        """
-        sym = self._sym_gids
-        if sym.size == 0:
-            return
-        n = self._sym_normal
-        c = self.centre
-        arm = self._P[sym] - c
-        if gq is not None:
-            pos = c + gdelta[sym] + qa.rotate(gq[sym], arm)
-        else:
-            pos = self._P[sym] + gdelta[sym]
-        self._onto_symmetry(pos)
-        if gq is None:
-            gdelta[sym] = pos - self._P[sym]
-            return
-        tw = _twist_about(gq[sym], n)
-        gq[sym] = tw
-        gdelta[sym] = pos - c - qa.rotate(tw, arm)
+        """Symmetry points of Samareh's fields (:func:`_symmetry_fix`): on their plane,
+        rotating about its normal only."""
+        if self._sym_gids.size:
+            use_q = gq is not None
+            _symmetry_fix(gdelta, gq if use_q else np.empty((1, 4)), use_q, self._P,
+                          self.centre if use_q else _ORIGIN, self._sym_gids, self._sym_point,
+                          self._sym_normal)
 
     def _finish_boundary(self, pos, rd) -> np.ndarray:
         """Boundary positions: symmetry points on their plane, fixed points at rest, walls exact."""
-        sym = self._sym_gids
-        if sym.size:
-            pos[sym] = self._onto_symmetry(pos[sym])
-        fixed = self._kind == FIXED
+        self._onto_symmetry(pos)
+        fixed = self._fixed_gids
         pos[fixed] = self._P[fixed]
         wall = self._wall_gids
         pos[wall] = rd[wall]
@@ -1226,7 +1459,9 @@ class Deformer:
     def _fits(self, rd):
         """Per wall body: (q, t) of the best rigid motion and the pulled-back residual targets."""
         P = self._P
-        y = P.copy()
+        if self._y is None:
+            self._y = P.copy()             # only the wall rows change
+        y = self._y
         fits = []
         for body in self._bodies:
             g = body.gids
@@ -1251,13 +1486,14 @@ class Deformer:
             self._buffers = (K, ql, gd, qg, pos)
         return self._buffers
 
-    def _local_fields(self, y):
-        """The residual motion: K and Q on every boundary point, positions in the work buffer."""
+    def _local_fields(self, y, qwall):
+        """The residual motion: K and Q on every boundary point (``qwall``: the wall
+        quaternions of the residual targets ``y``), positions in the work buffer."""
         P = self._P
         A = self._arm
         wall = self._wall_gids
         K, gq, _, _, pos = self._work()
-        gq[wall] = self._wall_quaternions(y)
+        gq[wall] = qwall
         K[wall] = y[wall]                   # walls: A = 0
         damp = self._dampf
         shift = self._cshift
@@ -1273,33 +1509,32 @@ class Deformer:
         if self._gaps is not None:
             _fill_gaps(K, gq, *self._gaps, True, damp, shift)
         t2 = time.perf_counter()
-        for p in self._patches:
-            _patch_sides(K, gq, p.gid, p.bufd, p.bufq, True)
-            with serial_below(p.gid.size):
-                tfi.tfi_patch_fast(p.bufd, p.bufq, p.params, p.lead)
-            _patch_writeback(p.bufd, p.bufq, p.wpos, p.wgid, K, gq, True, damp, shift)
-        sym = self._sym_gids
-        if sym.size:
-            n = self._sym_normal
-            ps = K[sym] + qa.rotate(gq[sym], A[sym])
-            self._onto_symmetry(ps)
-            tw = _twist_about(gq[sym], n)
-            gq[sym] = tw
-            K[sym] = ps - qa.rotate(tw, A[sym])
+        _patch_level(K, gq, True, *self._plevel, damp, shift)
+        if self._sym_gids.size:
+            _symmetry_fix(K, gq, True, A, _ORIGIN, self._sym_gids, self._sym_point,
+                          self._sym_normal)
         _positions_local(K, gq, A, self._derived, pos)
         pos[wall] = y[wall]
         return K, gq, pos, t2 - t1, time.perf_counter() - t2
 
     def _global_fields(self, fits):
-        """The rigid part: Samareh's hierarchy with each body's uniform (Δ, Q)."""
+        """The rigid part: each body's (Δ_b, Q_b) on its walls, blended in closed form on the
+        derived points with the weights of :meth:`_build_rigid_weights`."""
         c = self.centre
         _, _, gdelta, gq, _ = self._work()
-        for body, (q, t) in zip(self._bodies, fits):
+        nb = len(self._bodies)
+        Db = np.empty((nb, 3))
+        Qb = np.empty((nb, 4))
+        for b, (body, (q, t)) in enumerate(zip(self._bodies, fits)):
             # c + Δ + rot(q, x - c) = rot(q, x) + t
-            gdelta[body.gids] = t + qa.rotate(q, c) - c
+            Db[b] = t + qa.rotate(q, c) - c
+            Qb[b] = q
+            gdelta[body.gids] = Db[b]
             gq[body.gids] = q
-        ts, tf = self._samareh_fields(gdelta, gq)
-        return gdelta, gq, ts, tf
+        t1 = time.perf_counter()
+        _rigid_blend(self._phi, self._derived, Db, qa.log(Qb), gdelta, gq)
+        self._symmetry_stage(gdelta, gq)
+        return gdelta, gq, 0.0, time.perf_counter() - t1
 
     def deform(self, moved, *, callback: Callable[[int, int], None] | None = None) -> Grid:
         """Deform the grid for new wall positions.
@@ -1377,11 +1612,12 @@ class Deformer:
         tiny = 1e-14 * self._scale
         local = bool(np.max(np.abs(y[wall] - P[wall]), initial=0.0) > tiny)
         rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
+        qwall = self._wall_quaternions(y) if local else None
         t1 = time.perf_counter()
         ts = tf = 0.0
         pos = self._work()[4]
         if local:
-            K, gql, pos, a, b = self._local_fields(y)
+            K, gql, pos, a, b = self._local_fields(y, qwall)
             ts += a
             tf += b
         else:
@@ -1391,9 +1627,7 @@ class Deformer:
             ts += a
             tf += b
             _positions_global(gdelta, gq, self.centre, self._derived, pos)
-        sym = self._sym_gids
-        if sym.size:
-            pos[sym] = self._onto_symmetry(pos[sym])
+        self._onto_symmetry(pos)
         pos[wall] = rd[wall]
         t3 = time.perf_counter()
         outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
