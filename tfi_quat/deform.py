@@ -347,13 +347,21 @@ def _patch_level(gd, gq, use_q, meta, gidf, sf, wf, damp, shift):
                 lineD[m, 0, c] = gd[g0, c]
                 lineD[m, 0, 3 + c] = gd[g1, c]
             if use_q:
-                d = gq[g0, 0] * gq[g1, 0] + gq[g0, 1] * gq[g1, 1] + gq[g0, 2] * gq[g1, 2] + \
-                    gq[g0, 3] * gq[g1, 3]
+                lq = lineQ[m, 0]
+                # the lines' first ends in one hemisphere, neighbour to neighbour (as tfi's
+                # _coherent does for the leading face), then each second end aligned to its first
+                s0 = 1.0
+                if m > 0:
+                    d = lineQ[m - 1, 0, 0] * gq[g0, 0] + lineQ[m - 1, 0, 1] * gq[g0, 1] + \
+                        lineQ[m - 1, 0, 2] * gq[g0, 2] + lineQ[m - 1, 0, 3] * gq[g0, 3]
+                    if d < 0.0:
+                        s0 = -1.0
+                for c in range(4):
+                    lq[c] = s0 * gq[g0, c]
+                d = lq[0] * gq[g1, 0] + lq[1] * gq[g1, 1] + lq[2] * gq[g1, 2] + lq[3] * gq[g1, 3]
                 sg = -1.0 if d < 0.0 else 1.0
                 for c in range(4):
-                    lineQ[m, 0, c] = gq[g0, c]
-                    lineQ[m, 0, 4 + c] = sg * gq[g1, c]
-                lq = lineQ[m, 0]
+                    lq[4 + c] = sg * gq[g1, c]
                 w2, sw = tfi._slerp_angle(lq[0], lq[1], lq[2], lq[3], lq[4], lq[5], lq[6], lq[7])
                 lq[8] = w2
                 lq[9] = sw

@@ -1,0 +1,275 @@
+"""The Deformer's compiled per-step kernels against independent references.
+
+``_patch_level`` against :func:`tfi_quat.tfi.tfi_patch` (the reference 2-D TFI),
+``_rigid_blend`` and the fade against ``scipy.spatial.transform``, the symmetry
+fix and the halo gather against their definitions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation, Slerp
+
+from tfi_quat import quaternion as qa
+from tfi_quat import tfi
+from tfi_quat import deform as D
+from tfi_quat.deform import Deformer, rigid_motion
+
+import _deform_grids as G
+
+
+def _wxyz(r: Rotation) -> np.ndarray:
+    x = r.as_quat()                      # scipy: (x, y, z, w)
+    return np.concatenate([x[..., 3:], x[..., :3]], axis=-1)
+
+
+def _surface(na, nb, seed):
+    rng = np.random.default_rng(seed)
+    u = np.cumsum(rng.uniform(0.5, 1.5, na))
+    v = np.cumsum(rng.uniform(0.5, 1.5, nb))
+    U, V = np.meshgrid(u / u[-1], v / v[-1], indexing="ij")
+    return np.stack([U + 0.1 * np.sin(3 * V), V + 0.05 * U * U, 0.2 * U * V], -1)
+
+
+def _fields(x, seed):
+    rng = np.random.default_rng(seed)
+    d = np.sin(x @ rng.normal(size=(3, 3)))
+    rv = 0.8 * np.tanh(x @ rng.normal(size=(3, 3)))
+    q = _wxyz(Rotation.from_rotvec(rv.reshape(-1, 3))).reshape(x.shape[:2] + (4,))
+    q *= np.where(rng.uniform(size=x.shape[:2] + (1,)) < 0.3, -1.0, 1.0)   # mixed hemispheres
+    return d, q
+
+
+def _pack(patches, G_):
+    """patches: list of (gid (na, nb), s (na, nb, 2), lead, write (na, nb))."""
+    meta = np.array([(0, 0, 0, 0)] * len(patches), dtype=np.int64)
+    off = 0
+    for m, (g, s, lead, w) in enumerate(patches):
+        meta[m] = (off, g.shape[0], g.shape[1], lead)
+        off += g.size
+    return (meta, np.concatenate([p[0].ravel() for p in patches]),
+            np.ascontiguousarray(np.concatenate([p[1].reshape(-1, 2) for p in patches])),
+            np.concatenate([p[3].ravel() for p in patches]))
+
+
+@given(na=st.integers(3, 9), nb=st.integers(3, 9), seed=st.integers(0, 10_000))
+@settings(max_examples=40, deadline=None)
+def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
+    """Two patches (both leading directions) in one call, global ids scattered at random:
+    interiors equal tfi.tfi_patch's to round-off, sides and unwritten points untouched."""
+    rng = np.random.default_rng(seed)
+    shapes = [(na, nb, 0), (nb + 1, na, 1)]
+    n_tot = sum(a * b for a, b, _ in shapes)
+    perm = rng.permutation(n_tot + 5)
+    gd = rng.normal(size=(n_tot + 5, 3))
+    gq = _wxyz(Rotation.random(n_tot + 5, random_state=seed))
+    patches, refs = [], []
+    off = 0
+    for a, b, lead in shapes:
+        x = _surface(a, b, seed + a)
+        s = tfi.arclength_surface(x)
+        g = perm[off:off + a * b].reshape(a, b)
+        off += a * b
+        d, q = _fields(x, seed + b)
+        gd[g] = d
+        gq[g] = q
+        write = np.zeros((a, b), dtype=bool)
+        write[1:-1, 1:-1] = rng.uniform(size=(a - 2, b - 2)) < 0.8
+        patches.append((g, s, lead, write))
+        dr, qr = d.copy(), q.copy()
+        tfi.tfi_patch(dr, qr, s, lead=lead)
+        refs.append((dr, qr))
+    gd0, gq0 = gd.copy(), gq.copy()
+    D._patch_level(gd, gq, True, *_pack(patches, n_tot), D._NONE, D._NONE3)
+    touched = np.zeros(len(gd), dtype=bool)
+    for (g, s, lead, write), (dr, qr) in zip(patches, refs):
+        np.testing.assert_allclose(gd[g[write]], dr[write], rtol=0, atol=1e-13)
+        np.testing.assert_allclose(gq[g[write]], qr[write], rtol=0, atol=1e-13)
+        touched[g[write]] = True
+    np.testing.assert_array_equal(gd[~touched], gd0[~touched])
+    np.testing.assert_array_equal(gq[~touched], gq0[~touched])
+    # translations only (method="tfi"): the same interpolation of Δ, Q untouched
+    gd2, gq2 = gd0.copy(), gq0.copy()
+    D._patch_level(gd2, gq2, False, *_pack(patches, n_tot), D._NONE, D._NONE3)
+    np.testing.assert_array_equal(gd2, gd)
+    np.testing.assert_array_equal(gq2, gq0)
+
+
+def test_patch_level_takes_the_rotation_vector_fallback():
+    """Sides a = 0, a = na-1 at rest, b-sides turned +180 and -180 deg about z: the
+    hemisphere-aligned correction cancels the slerp value on the middle row, where the
+    fallback must run; the result equals tfi_patch's and stays unit."""
+    na, nb = 5, 5
+    x = _surface(na, nb, 1)
+    x[..., 2] = 0.0
+    u = np.linspace(0.0, 1.0, na)
+    x[..., 0] = u[:, None]
+    x[..., 1] = u[None, :]
+    s = tfi.arclength_surface(x)
+    d = np.zeros((na, nb, 3))
+    q = np.zeros((na, nb, 4))
+    q[..., 0] = 1.0
+    q[:, 0] = [0.0, 0.0, 0.0, 1.0]
+    q[:, -1] = [0.0, 0.0, 0.0, -1.0]
+    q[0, :] = q[-1, :] = [1.0, 0.0, 0.0, 0.0]
+    g = np.arange(na * nb).reshape(na, nb)
+    write = np.zeros((na, nb), dtype=bool)
+    write[1:-1, 1:-1] = True
+    gd, gq = d.reshape(-1, 3).copy(), q.reshape(-1, 4).copy()
+    D._patch_level(gd, gq, True, *_pack([(g, s, 1, write)], na * nb), D._NONE, D._NONE3)
+    dr, qr = d.copy(), q.copy()
+    tfi.tfi_patch(dr, qr, s, lead=1)
+    np.testing.assert_allclose(gq.reshape(na, nb, 4), qr, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.linalg.norm(gq, axis=1), 1.0, rtol=0, atol=1e-13)
+
+
+def test_fade_and_rebase_against_scipy_slerp():
+    """Two-level write-back: Q <- slerp(1, Q, damp) (scipy's Slerp as the oracle, either
+    hemisphere) and K <- K + rot(Q_faded, shift)."""
+    rng = np.random.default_rng(4)
+    n = 200
+    q = _wxyz(Rotation.random(n, random_state=5))
+    f = rng.uniform(-0.2, 1.2, n)
+    f[:5] = [0.0, 1.0, 0.5, 1e-9, 1.0 - 1e-9]
+    shift = rng.normal(size=(n, 3))
+    shift[:10] = 0.0
+    k = rng.normal(size=(n, 3))
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    tmp2, r = np.empty(4), np.empty(3)
+    fc = np.clip(f, 0.0, 1.0)
+    for m in range(n):
+        qm, km = q[m].copy(), k[m].copy()
+        D._fade_and_rebase.py_func(qm, f[m], shift[m], km, one, tmp2, r)
+        key = Rotation.from_quat([[0, 0, 0, 1], np.r_[q[m, 1:], q[m, 0]]])
+        want = Slerp([0.0, 1.0], key)([fc[m]])
+        assert np.isclose(abs(np.dot(qm, _wxyz(want)[0])), 1.0, rtol=0, atol=1e-14)
+        assert abs(np.linalg.norm(qm) - 1.0) < 1e-14
+        np.testing.assert_allclose(km, k[m] + want.apply(shift[m])[0], rtol=0, atol=1e-14)
+    # the compiled kernel (inlined into _patch_level / _fill_gaps) is the same function
+    qm, km = q[7].copy(), k[7].copy()
+    D._fill_gaps(km[None].repeat(3, 0), np.stack([one, qm, qm]), np.array([0]), np.array([1]),
+                 np.array([0, 1]), np.array([2]), np.array([1.0]), True,
+                 np.array([1.0, 1.0, f[7]]), np.array([[0.0] * 3, [0.0] * 3, shift[7]]))
+
+
+@given(nb=st.integers(1, 4), seed=st.integers(0, 10_000))
+@settings(max_examples=30, deadline=None)
+def test_rigid_blend_is_the_weighted_rotation_vector(nb, seed):
+    """Q = exp(sum_b phi_b v_b) (scipy's from_rotvec as the oracle), Delta = sum_b phi_b Delta_b;
+    for one body Q is slerp(1, q_b, phi)."""
+    rng = np.random.default_rng(seed)
+    Qb = _wxyz(Rotation.random(nb, random_state=seed))
+    Qb[Qb[:, 0] < 0] *= -1.0
+    Db = rng.normal(size=(nb, 3))
+    n = 50
+    phi = rng.uniform(0.0, 1.0, (n, nb)) / nb
+    phi[0] = 0.0
+    idx = rng.permutation(2 * n)[:n]
+    gd = np.full((2 * n, 3), 7.0)
+    gq = np.full((2 * n, 4), 7.0)
+    D._rigid_blend(phi, idx, Db, qa.log(Qb), gd, gq)
+    rv = phi @ Rotation.from_quat(np.c_[Qb[:, 1:], Qb[:, :1]]).as_rotvec().reshape(nb, 3)
+    want = _wxyz(Rotation.from_rotvec(rv))
+    dots = np.abs(np.sum(gq[idx] * want, axis=1))
+    np.testing.assert_allclose(dots, 1.0, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(gd[idx], phi @ Db, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(gq[0 if 0 not in idx else 1], gq[0 if 0 not in idx else 1])
+    others = np.setdiff1d(np.arange(2 * n), idx)
+    assert np.all(gd[others] == 7.0) and np.all(gq[others] == 7.0)
+    if nb == 1:
+        key = Rotation.from_quat([[0, 0, 0, 1], np.r_[Qb[0, 1:], Qb[0, 0]]])
+        sl = _wxyz(Slerp([0.0, 1.0], key)(phi[:, 0]))
+        np.testing.assert_allclose(np.abs(np.sum(gq[idx] * sl, axis=1)), 1.0, rtol=0, atol=1e-14)
+
+
+def test_symmetry_fix_keeps_the_projected_position_and_twists_about_the_normal():
+    rng = np.random.default_rng(2)
+    n = 40
+    F = rng.normal(size=(n, 3))
+    X = rng.normal(size=(n, 3))
+    q = _wxyz(Rotation.random(n, random_state=3))
+    q[0] = [0.0, 1.0, 0.0, 0.0]            # a half turn about x: no twist about z
+    carm = np.array([0.3, -0.2, 0.5])
+    normal = np.tile(np.array([0.0, 0.6, 0.8]), (n, 1))
+    normal[n // 2:] = [0.0, 0.0, 1.0]
+    normal[0] = [0.0, 0.0, 1.0]
+    point = rng.normal(size=(n, 3))
+    idx = np.arange(n)
+    pos0 = carm + F + qa.rotate(q, X - carm)
+    want = pos0 - np.sum((pos0 - point) * normal, axis=1, keepdims=True) * normal
+    F2, q2 = F.copy(), q.copy()
+    D._symmetry_fix(F2, q2, True, X, carm, idx, point, normal)
+    np.testing.assert_allclose(carm + F2 + qa.rotate(q2, X - carm), want, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(np.cross(q2[:, 1:], normal), 0.0, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(q2, axis=1), 1.0, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(q2[0], [1.0, 0.0, 0.0, 0.0])
+    # translations only: the position X + F is projected, Q untouched
+    F3 = F.copy()
+    D._symmetry_fix(F3, np.empty((1, 4)), False, X, np.zeros(3), idx, point, normal)
+    p3 = X + F
+    p3 -= np.sum((p3 - point) * normal, axis=1, keepdims=True) * normal
+    np.testing.assert_allclose(X + F3, p3, rtol=0, atol=1e-13)
+
+
+def test_halo_points_gather_mirror_and_mark_missing():
+    X = np.arange(15.0).reshape(5, 3)
+    po = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    pn = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    out = np.empty((4, 3))
+    D._halo_points(X, np.array([2, -1, 3, 4]), np.array([-1, -1, 0, 1]), po, pn, out)
+    np.testing.assert_array_equal(out[0], X[2])
+    assert np.all(np.isnan(out[1]))
+    np.testing.assert_array_equal(out[2], [-9.0, 10.0, 11.0])
+    np.testing.assert_array_equal(out[3], [12.0, 2.0 - 13.0, 14.0])
+
+
+def test_rigid_part_of_two_bodies_with_different_axes():
+    """Two 3-D blocks side by side; the y = 0 face is one body, the y = 1 face another,
+    turned about different axes.  The derived interface points get
+    Q = exp(phi_1 v_1 + phi_2 v_2) with phi_b the reference patch TFI (tfi.tfi_patch)
+    of each body's indicator over the interface, and walls land exactly."""
+    grid, _, _, _ = G.box_pair(n=7)
+    walls = ["1:jmin", "2:imin", "1:jmax", "2:imax"]
+    d = Deformer(grid, walls=walls)
+    assert len(d._bodies) == 2
+    lower = np.array([d._P[b.gids][:, 1].max() < 0.5 for b in d._bodies])
+    m_low = rigid_motion(6.0, (1, 0, 0), (1.0, 0.0, 0.5))
+    m_up = rigid_motion(-4.0, (0, 0, 1), (1.0, 1.0, 0.5))
+
+    def move(p):
+        return np.where((p[:, 1] < 0.5)[:, None], m_low(p), m_up(p))
+
+    out = d.deform(move)
+    rd = d._wall_targets(move)
+    fits, _ = d._fits(rd)
+    gdelta, gq, _, _ = d._global_fields(fits)
+    v = [Rotation.from_quat(np.r_[q[1:], q[0]]).as_rotvec() for q, _ in fits]
+    itf = d.connectivity.interfaces[0]
+    g = d._rect_gid(itf.master)
+    pt = next(p for p in d._patches if np.array_equal(p.gid, g))
+    phis = []
+    der = np.searchsorted(d._derived, g)
+    is_der = d._derived[np.minimum(der, d._derived.size - 1)] == g
+    for k, b in enumerate(d._bodies):
+        # the sides: walls 1 or 0, derived side points (segments) their own weights
+        ind = np.zeros(g.shape + (3,))
+        ind[..., 0] = np.isin(g, b.gids)
+        ind[is_der, 0] = d._phi[der[is_der], k]
+        tfi.tfi_patch(ind, None, pt.s, lead=pt.lead)
+        phis.append(ind[..., 0])
+    inner = (slice(1, -1), slice(1, -1))
+    rv = phis[0][inner][..., None] * v[0] + phis[1][inner][..., None] * v[1]
+    want = _wxyz(Rotation.from_rotvec(rv.reshape(-1, 3)))
+    got = gq[g[inner].ravel()]
+    np.testing.assert_allclose(np.abs(np.sum(got * want, axis=1)), 1.0, rtol=0, atol=1e-13)
+    assert np.ptp(phis[0][inner]) > 0.1 and np.ptp(phis[1][inner]) > 0.1
+    # walls exact; the two bodies really turned about different axes
+    for b, blk in enumerate(out):
+        assert np.all(np.isfinite(blk.xyz))
+    assert abs(np.dot(v[0], v[1])) < 1e-6 * np.linalg.norm(v[0]) * np.linalg.norm(v[1]) + 1e-12
+    np.testing.assert_allclose(out[0].xyz[:, 0], move(grid[0].xyz[:, 0].reshape(-1, 3)).reshape(
+        grid[0].xyz[:, 0].shape), rtol=0, atol=1e-13)
+    assert lower.sum() == 1
