@@ -223,6 +223,9 @@ def test_bad_inputs_are_clear_errors():
         Deformer(grid, walls=[])
     with pytest.raises(CaseError, match="unknown face"):
         Deformer(grid, walls=["1:top"])
+    for bad in (-1e-9, float("nan"), float("inf")):
+        with pytest.raises(CaseError, match="tol must be"):
+            Deformer(grid, walls=walls, tol=bad)
     d = Deformer(grid, walls=walls, fixed=fixed)
     with pytest.raises(DeformationError, match="shape"):
         d.deform(lambda p: p[:-1])

@@ -680,6 +680,8 @@ class Deformer:
         diag = float(np.linalg.norm(hi - lo)) or 1.0
         self._scale = diag
         self.tol = float(tol) if tol is not None else 1e-10 * diag
+        if not (math.isfinite(self.tol) and self.tol >= 0.0):
+            raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
         self._number_boundary_points()
         self._classify_points()
         if not np.any(self._kind == WALL):
@@ -744,8 +746,8 @@ class Deformer:
         # merge coincident points (interfaces, cuts, collapsed faces) ...
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
-        from scipy.spatial import cKDTree
-        pairs = cKDTree(P).query_pairs(self.tol, output_type="ndarray")
+        from ._points import close_pairs
+        pairs = close_pairs(P, self.tol)
         rows = [pairs[:, 0]] if len(pairs) else []
         cols = [pairs[:, 1]] if len(pairs) else []
         # ... and the connectivity's interfaces, which are authoritative
