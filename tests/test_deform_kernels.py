@@ -8,7 +8,6 @@ fix and the halo gather against their definitions.
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
@@ -43,18 +42,6 @@ def _fields(x, seed):
     return d, q
 
 
-def _pack(patches, G_):
-    """patches: list of (gid (na, nb), s (na, nb, 2), lead, write (na, nb))."""
-    meta = np.array([(0, 0, 0, 0)] * len(patches), dtype=np.int64)
-    off = 0
-    for m, (g, s, lead, w) in enumerate(patches):
-        meta[m] = (off, g.shape[0], g.shape[1], lead)
-        off += g.size
-    return (meta, np.concatenate([p[0].ravel() for p in patches]),
-            np.ascontiguousarray(np.concatenate([p[1].reshape(-1, 2) for p in patches])),
-            np.concatenate([p[3].ravel() for p in patches]))
-
-
 @given(na=st.integers(3, 9), nb=st.integers(3, 9), seed=st.integers(0, 10_000))
 @settings(max_examples=40, deadline=None)
 def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
@@ -83,7 +70,7 @@ def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
         tfi.tfi_patch(dr, qr, s, lead=lead)
         refs.append((dr, qr))
     gd0, gq0 = gd.copy(), gq.copy()
-    D._patch_level(gd, gq, True, *_pack(patches, n_tot), D._NONE, D._NONE3)
+    D._patch_level(gd, gq, True, *D._level_pack(patches), D._NONE, D._NONE3)
     touched = np.zeros(len(gd), dtype=bool)
     for (g, s, lead, write), (dr, qr) in zip(patches, refs):
         np.testing.assert_allclose(gd[g[write]], dr[write], rtol=0, atol=1e-13)
@@ -93,7 +80,7 @@ def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
     np.testing.assert_array_equal(gq[~touched], gq0[~touched])
     # translations only (method="tfi"): the same interpolation of Δ, Q untouched
     gd2, gq2 = gd0.copy(), gq0.copy()
-    D._patch_level(gd2, gq2, False, *_pack(patches, n_tot), D._NONE, D._NONE3)
+    D._patch_level(gd2, gq2, False, *D._level_pack(patches), D._NONE, D._NONE3)
     np.testing.assert_array_equal(gd2, gd)
     np.testing.assert_array_equal(gq2, gq0)
 
@@ -119,7 +106,7 @@ def test_patch_level_takes_the_rotation_vector_fallback():
     write = np.zeros((na, nb), dtype=bool)
     write[1:-1, 1:-1] = True
     gd, gq = d.reshape(-1, 3).copy(), q.reshape(-1, 4).copy()
-    D._patch_level(gd, gq, True, *_pack([(g, s, 1, write)], na * nb), D._NONE, D._NONE3)
+    D._patch_level(gd, gq, True, *D._level_pack([(g, s, 1, write)]), D._NONE, D._NONE3)
     dr, qr = d.copy(), q.copy()
     tfi.tfi_patch(dr, qr, s, lead=1)
     np.testing.assert_allclose(gq.reshape(na, nb, 4), qr, rtol=0, atol=1e-13)

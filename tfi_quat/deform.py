@@ -52,7 +52,7 @@ import numpy as np
 
 from . import quaternion as qa
 from . import tfi
-from ._jit import jit, serial_below
+from ._jit import jit, pjit, prange, serial_below
 from .blending import wall_layer_block, wall_layer_line
 from .errors import CaseError, DeformationError
 from .fit import constrain_to_planes, fit_rigid
@@ -66,6 +66,9 @@ _ORIGIN = np.zeros(3)
 _IDENT = np.array([1.0, 0.0, 0.0, 0.0])
 _NONE = np.zeros(0)                 # "no damping" for _fill_gaps
 _NONE3 = np.zeros((0, 3))           # "no re-basing" for _fill_gaps
+#: a derived patch point costs about as much as this many volume points (the patch
+#: level runs on all threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
+_PATCH_WORK = 8
 
 #: formulations of the quaternion method
 FORMULATIONS = ("two-level", "samareh")
@@ -308,123 +311,158 @@ def _lm_flat(lead, nb, l, m):
     return m * nb + l
 
 
-@jit
-def _patch_level(gd, gq, use_q, meta, gidf, sf, wf, damp, shift):
+@jit(inline="always")
+def _patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD, lineQ, resD, resQ, fb):
+    """One patch's tables: per line of the leading direction its end values, aligned end
+    quaternions and slerp angle; per point of the two other sides the residuals F - U."""
+    for m in range(nm):
+        g0 = gidf[off + _lm_flat(lead, nb, 0, m)]
+        g1 = gidf[off + _lm_flat(lead, nb, nl - 1, m)]
+        for c in range(3):
+            lineD[m, 0, c] = gd[g0, c]
+            lineD[m, 0, 3 + c] = gd[g1, c]
+        if use_q:
+            lq = lineQ[m, 0]
+            # the lines' first ends in one hemisphere, neighbour to neighbour (as tfi's
+            # _coherent does for the leading face), then each second end aligned to its first
+            s0 = 1.0
+            if m > 0:
+                d = lineQ[m - 1, 0, 0] * gq[g0, 0] + lineQ[m - 1, 0, 1] * gq[g0, 1] + \
+                    lineQ[m - 1, 0, 2] * gq[g0, 2] + lineQ[m - 1, 0, 3] * gq[g0, 3]
+                if d < 0.0:
+                    s0 = -1.0
+            for c in range(4):
+                lq[c] = s0 * gq[g0, c]
+            d = lq[0] * gq[g1, 0] + lq[1] * gq[g1, 1] + lq[2] * gq[g1, 2] + lq[3] * gq[g1, 3]
+            sg = -1.0 if d < 0.0 else 1.0
+            for c in range(4):
+                lq[4 + c] = sg * gq[g1, c]
+            w2, sw = tfi._slerp_angle(lq[0], lq[1], lq[2], lq[3], lq[4], lq[5], lq[6], lq[7])
+            lq[8] = w2
+            lq[9] = sw
+    for side in range(2):
+        m = 0 if side == 0 else nm - 1
+        for l in range(nl):
+            f = off + _lm_flat(lead, nb, l, m)
+            g = gidf[f]
+            t = sf[f, lead]
+            x, y, z = tfi._u_d(lineD, m, 0, t)
+            rd = resD[l, 0]
+            rd[3 * side] = gd[g, 0] - x
+            rd[3 * side + 1] = gd[g, 1] - y
+            rd[3 * side + 2] = gd[g, 2] - z
+            if use_q:
+                qw, qx, qy, qz = tfi._u_q(lineQ, m, 0, t)
+                d = qw * gq[g, 0] + qx * gq[g, 1] + qy * gq[g, 2] + qz * gq[g, 3]
+                sg = -1.0 if d < 0.0 else 1.0
+                rq = resQ[l, 0]
+                o = 4 * side
+                rq[o] = sg * gq[g, 0] - qw
+                rq[o + 1] = sg * gq[g, 1] - qx
+                rq[o + 2] = sg * gq[g, 2] - qy
+                rq[o + 3] = sg * gq[g, 3] - qz
+                n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                fl = fb[l, 0]
+                o = 8 * side
+                fl[o] = qw / n
+                fl[o + 1] = qx / n
+                fl[o + 2] = qy / n
+                fl[o + 3] = qz / n
+                for c in range(4):
+                    fl[o + 4 + c] = sg * gq[g, c]
+
+
+@pjit
+def _patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
     """Every derived patch of one level: 2-D Soni TFI of (Δ, Q) from the patch's four
     sides, read from and written to the global arrays ``gd`` (G, 3), ``gq`` (G, 4).
 
-    ``meta[p] = (offset, na, nb, lead)``; ``gidf``, ``sf`` (n, 2), ``wf``: the patches'
-    global ids, blending parameters and write flags, flat in C order.  The formulas are
-    :func:`tfi_quat.tfi.tfi_patch_fast`'s (slerp along the leading direction, hemisphere
-    aligned residuals of the two other sides, normalised; the rotation-vector blend where
-    the norm falls below ``QNORM_MIN``).  Patches only read their sides, which earlier
-    levels define, so their order does not matter.  ``damp``/``shift`` (two-level, length
-    G; else empty): Q is faded and K re-based as in :func:`_fill_gaps`.
+    ``meta[p] = (offset, na, nb, lead, line offset, side offset)``; ``gidf``, ``sf``
+    (n, 2), ``wf``: the patches' global ids, blending parameters and write flags, flat
+    in C order; ``tasks`` (T, 2): (patch, line) of every interior line; ``work``: the
+    tables (:func:`_level_work`).  The formulas are
+    :func:`tfi_quat.tfi.tfi_patch_fast`'s (slerp along the leading direction,
+    hemisphere-aligned residuals of the two other sides, normalised; the
+    rotation-vector blend where the norm falls below ``QNORM_MIN``).  Patches only read
+    their sides, which earlier levels define, so the tables come first (serially,
+    O(perimeter)) and then the interior lines in parallel.  ``damp``/``shift``
+    (two-level, length G; else empty): Q is faded and K re-based as in :func:`_fill_gaps`.
     """
-    one = np.array([1.0, 0.0, 0.0, 0.0])
-    local = damp.shape[0] > 0
-    tmp2 = np.empty(4)
-    r = np.empty(3)
-    q = np.empty(4)
-    nofb = np.zeros((1, 1, 16))
-    qmin = tfi.QNORM_MIN
+    lineD, lineQ, resD, resQ, fb = work
     for p in range(meta.shape[0]):
-        off, na, nb, lead = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3]
-        if lead == 0:
-            nl, nm = na, nb
-        else:
-            nl, nm = nb, na
-        lineD = np.empty((nm, 1, 6))        # tables laid out as tfi's (index, 0, component)
-        lineQ = np.empty((nm, 1, 10))
-        resD = np.empty((nl, 1, 6))
-        resQ = np.empty((nl, 1, 8))
-        fb = np.empty((nl, 1, 16))
-        # lines of the leading direction: end values, aligned end quaternions, slerp angle
-        for m in range(nm):
-            g0 = gidf[off + _lm_flat(lead, nb, 0, m)]
-            g1 = gidf[off + _lm_flat(lead, nb, nl - 1, m)]
-            for c in range(3):
-                lineD[m, 0, c] = gd[g0, c]
-                lineD[m, 0, 3 + c] = gd[g1, c]
-            if use_q:
-                lq = lineQ[m, 0]
-                # the lines' first ends in one hemisphere, neighbour to neighbour (as tfi's
-                # _coherent does for the leading face), then each second end aligned to its first
-                s0 = 1.0
-                if m > 0:
-                    d = lineQ[m - 1, 0, 0] * gq[g0, 0] + lineQ[m - 1, 0, 1] * gq[g0, 1] + \
-                        lineQ[m - 1, 0, 2] * gq[g0, 2] + lineQ[m - 1, 0, 3] * gq[g0, 3]
-                    if d < 0.0:
-                        s0 = -1.0
-                for c in range(4):
-                    lq[c] = s0 * gq[g0, c]
-                d = lq[0] * gq[g1, 0] + lq[1] * gq[g1, 1] + lq[2] * gq[g1, 2] + lq[3] * gq[g1, 3]
-                sg = -1.0 if d < 0.0 else 1.0
-                for c in range(4):
-                    lq[4 + c] = sg * gq[g1, c]
-                w2, sw = tfi._slerp_angle(lq[0], lq[1], lq[2], lq[3], lq[4], lq[5], lq[6], lq[7])
-                lq[8] = w2
-                lq[9] = sw
-        # residuals F - U on the two other sides
-        for side in range(2):
-            m = 0 if side == 0 else nm - 1
-            for l in range(nl):
-                f = off + _lm_flat(lead, nb, l, m)
-                g = gidf[f]
-                t = sf[f, lead]
-                x, y, z = tfi._u_d(lineD, m, 0, t)
-                rd = resD[l, 0]
-                rd[3 * side] = gd[g, 0] - x
-                rd[3 * side + 1] = gd[g, 1] - y
-                rd[3 * side + 2] = gd[g, 2] - z
-                if use_q:
-                    qw, qx, qy, qz = tfi._u_q(lineQ, m, 0, t)
-                    d = qw * gq[g, 0] + qx * gq[g, 1] + qy * gq[g, 2] + qz * gq[g, 3]
-                    sg = -1.0 if d < 0.0 else 1.0
-                    rq = resQ[l, 0]
-                    o = 4 * side
-                    rq[o] = sg * gq[g, 0] - qw
-                    rq[o + 1] = sg * gq[g, 1] - qx
-                    rq[o + 2] = sg * gq[g, 2] - qy
-                    rq[o + 3] = sg * gq[g, 3] - qz
-                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                    fl = fb[l, 0]
-                    o = 8 * side
-                    fl[o] = qw / n
-                    fl[o + 1] = qx / n
-                    fl[o + 2] = qy / n
-                    fl[o + 3] = qz / n
-                    for c in range(4):
-                        fl[o + 4 + c] = sg * gq[g, c]
-        # the interior points this patch defines
-        for m in range(1, nm - 1):
-            for l in range(1, nl - 1):
-                f = off + _lm_flat(lead, nb, l, m)
-                if not wf[f]:
-                    continue
-                g = gidf[f]
-                t = sf[f, lead]
-                sm = sf[f, 1 - lead]
-                dx, dy, dz = tfi._v_d(lineD, m, 0, t, resD, l, 0, sm)
-                gd[g, 0] = dx
-                gd[g, 1] = dy
-                gd[g, 2] = dz
-                if not use_q:
-                    continue
-                qw, qx, qy, qz = tfi._v_q(lineQ, m, 0, t, resQ, l, 0, sm)
+        off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
+            meta[p, 5]
+        nl, nm = (na, nb) if lead == 0 else (nb, na)
+        _patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD[lo:lo + nm],
+                      lineQ[lo:lo + nm], resD[ro:ro + nl], resQ[ro:ro + nl], fb[ro:ro + nl])
+    local = damp.shape[0] > 0
+    qmin = tfi.QNORM_MIN
+    for tk in prange(tasks.shape[0]):
+        p = tasks[tk, 0]
+        m = tasks[tk, 1]
+        off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
+            meta[p, 5]
+        nl, nm = (na, nb) if lead == 0 else (nb, na)
+        lD = lineD[lo:lo + nm]
+        lQ = lineQ[lo:lo + nm]
+        rD = resD[ro:ro + nl]
+        rQ = resQ[ro:ro + nl]
+        fbp = fb[ro:ro + nl]
+        one = np.array([1.0, 0.0, 0.0, 0.0])
+        tmp2 = np.empty(4)
+        r = np.empty(3)
+        q = np.empty(4)
+        nofb = np.zeros((1, 1, 16))
+        for l in range(1, nl - 1):
+            f = off + _lm_flat(lead, nb, l, m)
+            if not wf[f]:
+                continue
+            g = gidf[f]
+            t = sf[f, lead]
+            sm = sf[f, 1 - lead]
+            dx, dy, dz = tfi._v_d(lD, m, 0, t, rD, l, 0, sm)
+            gd[g, 0] = dx
+            gd[g, 1] = dy
+            gd[g, 2] = dz
+            if not use_q:
+                continue
+            qw, qx, qy, qz = tfi._v_q(lQ, m, 0, t, rQ, l, 0, sm)
+            n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            if n < qmin:
+                qw, qx, qy, qz = tfi._fallback_q(lQ, m, 0, t, fbp, l, 0, sm, nofb, 0, 0, 0.0, False)
                 n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                if n < qmin:
-                    qw, qx, qy, qz = tfi._fallback_q(lineQ, m, 0, t, fb, l, 0, sm, nofb, 0, 0,
-                                                     0.0, False)
-                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                q[0] = qw / n
-                q[1] = qx / n
-                q[2] = qy / n
-                q[3] = qz / n
-                if local:
-                    _fade_and_rebase(q, damp[g], shift[g], gd[g], one, tmp2, r)
-                for c in range(4):
-                    gq[g, c] = q[c]
+            q[0] = qw / n
+            q[1] = qx / n
+            q[2] = qy / n
+            q[3] = qz / n
+            if local:
+                _fade_and_rebase(q, damp[g], shift[g], gd[g], one, tmp2, r)
+            for c in range(4):
+                gq[g, c] = q[c]
+
+
+def _level_pack(patches) -> tuple:
+    """Pack ``(gid (na, nb), s (na, nb, 2), lead, write (na, nb))`` patches for
+    :func:`_patch_level`: ``(meta, gidf, sf, wf, tasks, work)``."""
+    meta = np.zeros((len(patches), 6), dtype=np.int64)
+    off = lo = ro = 0
+    tasks = []
+    for m, (g, s, lead, w) in enumerate(patches):
+        na, nb = g.shape
+        nl, nm = (na, nb) if lead == 0 else (nb, na)
+        meta[m] = (off, na, nb, lead, lo, ro)
+        tasks += [(m, k) for k in range(1, nm - 1)]
+        off += g.size
+        lo += nm
+        ro += nl
+    cat = lambda xs, sh, dt: np.ascontiguousarray(np.concatenate(xs) if xs else np.zeros(sh, dt))  # noqa: E731
+    work = (np.zeros((lo, 1, 6)), np.zeros((lo, 1, 10)), np.zeros((ro, 1, 6)), np.zeros((ro, 1, 8)),
+            np.zeros((ro, 1, 16)))
+    return (meta,
+            cat([p[0].ravel() for p in patches], (0,), np.int64),
+            cat([np.reshape(p[1], (-1, 2)) for p in patches], (0, 2), np.float64),
+            cat([p[3].ravel() for p in patches], (0,), bool),
+            np.array(tasks, dtype=np.int64).reshape(-1, 2), work)
 
 
 @jit
@@ -538,7 +576,6 @@ class _PatchTFI:
     write: np.ndarray          # bool (na, nb): interior points this patch defines
     block: int = 0
     face: str = ""
-    wgid: np.ndarray | None = None   # gid[write], cached
 
 
 @dataclass
@@ -1123,21 +1160,12 @@ class Deformer:
             write = np.zeros(g.shape, dtype=bool)
             idx = np.argwhere(inner)[np.sort(first)]
             write[idx[:, 0], idx[:, 1]] = True
-            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face, wgid=g[write]))
+            patches.append(_PatchTFI(g, s, lead, write, r.block, r.face))
             known[flat] = True
         self._patches = patches
         # the patches packed for _patch_level (one compiled call per level)
-        meta = np.zeros((len(patches), 4), dtype=np.int64)
-        off = 0
-        for m, p in enumerate(patches):
-            meta[m] = (off, p.gid.shape[0], p.gid.shape[1], p.lead)
-            off += p.gid.size
-        cat = lambda xs, sh, dt: (np.concatenate(xs) if xs else np.zeros(sh, dtype=dt))  # noqa: E731
-        self._plevel = (meta,
-                        np.ascontiguousarray(cat([p.gid.ravel() for p in patches], (0,), np.int64)),
-                        np.ascontiguousarray(cat([p.s.reshape(-1, 2) for p in patches], (0, 2),
-                                                 np.float64)),
-                        np.ascontiguousarray(cat([p.write.ravel() for p in patches], (0,), bool)))
+        self._plevel = _level_pack([(p.gid, p.s, p.lead, p.write) for p in patches])
+        self._plevel_points = int(sum(p.gid.size for p in patches))
         self._derived = np.flatnonzero(self._kind < FIXED)
         if not known.all():
             g = int(np.flatnonzero(~known)[0])
@@ -1294,7 +1322,8 @@ class Deformer:
         if self._gaps is not None:
             _rebase_gaps(c, *self._gaps, target, shift)
         if self._patches:
-            _patch_level(c, np.empty((1, 4)), False, *self._plevel, _NONE, _NONE3)
+            with serial_below(_PATCH_WORK * self._plevel_points):
+                _patch_level(c, np.empty((1, 4)), False, *self._plevel, _NONE, _NONE3)
             wg = self._plevel[1][self._plevel[3]]
             rebase(wg, c[wg].copy())
         self._c = c
@@ -1421,7 +1450,8 @@ class Deformer:
     def _patch_stage(self, gdelta, gq) -> None:
         use_q = gq is not None
         gqa = gq if use_q else np.empty((1, 4))
-        _patch_level(gdelta, gqa, use_q, *self._plevel, _NONE, _NONE3)
+        with serial_below(_PATCH_WORK * self._plevel_points):
+            _patch_level(gdelta, gqa, use_q, *self._plevel, _NONE, _NONE3)
 
     def _symmetry_stage(self, gdelta, gq) -> None:
         """Symmetry points of Samareh's fields (:func:`_symmetry_fix`): on their plane,
@@ -1519,7 +1549,8 @@ class Deformer:
         if self._gaps is not None:
             _fill_gaps(K, gq, *self._gaps, True, damp, shift)
         t2 = time.perf_counter()
-        _patch_level(K, gq, True, *self._plevel, damp, shift)
+        with serial_below(_PATCH_WORK * self._plevel_points):
+            _patch_level(K, gq, True, *self._plevel, damp, shift)
         if self._sym_gids.size:
             _symmetry_fix(K, gq, True, A, _ORIGIN, self._sym_gids, self._sym_point,
                           self._sym_normal)
