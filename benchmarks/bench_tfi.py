@@ -14,16 +14,26 @@ set-up, tables kept in its plan) against the old path (a numpy gather per
 face, then ``deform_block(..., check=False)``), whole call and the
 O(surface) tables alone.
 
+With ``--setup-wing SCALE`` it times instead the Deformer's volume-sized
+set-up on the blocks of the multiblock wing (``Deformer._block_params``):
+``tfi.arclength`` then ``blending.wall_layer_block(..., out=s)``, against the
+kernels they replaced (frozen copies below, run in the same process,
+interleaved) and against the fused ``blending.wall_layer_arclength``; it
+checks that all three give the same bits.
+
 Usage::
 
     python3 benchmarks/bench_tfi.py                 # 10.1 M points (216^3)
     python3 benchmarks/bench_tfi.py --points 2e5    # quick
+    python3 benchmarks/bench_tfi.py --setup-wing 2.8 --repeat 9    # 10.9 M points, 4 blocks
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import pickle
 import sys
 import time
 
@@ -31,7 +41,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from tfi_quat import tfi  # noqa: E402
+from tfi_quat import blending, tfi  # noqa: E402
 from tfi_quat._jit import numba, pjit, prange  # noqa: E402
 from tfi_quat.grid import Block  # noqa: E402
 from tfi_quat.quaternion import normalize  # noqa: E402
@@ -102,12 +112,247 @@ def global_rows(xyz):
     return rows, xyz.reshape(-1, 3, order="F")[uk]
 
 
+# ------------------------------------------------- the Deformer's set-up on the wing
+# Frozen copies of the kernels before the tiled rewrite (tfi._arclength_kernel,
+# blending._layer_block_dir), the reference of the --setup-wing timings.
+@numba.njit(inline="always")
+def _old_dist(xyz, i0, j0, k0, i1, j1, k1):
+    dx = xyz[i1, j1, k1, 0] - xyz[i0, j0, k0, 0]
+    dy = xyz[i1, j1, k1, 1] - xyz[i0, j0, k0, 1]
+    dz = xyz[i1, j1, k1, 2] - xyz[i0, j0, k0, 2]
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@numba.njit(inline="always")
+def _old_mag(xyz, i0, j0, k0, i1, j1, k1):
+    return max(abs(xyz[i0, j0, k0, 0]), abs(xyz[i0, j0, k0, 1]), abs(xyz[i0, j0, k0, 2]),
+               abs(xyz[i1, j1, k1, 0]), abs(xyz[i1, j1, k1, 1]), abs(xyz[i1, j1, k1, 2]))
+
+
+@pjit
+def _old_arclength_kernel(xyz, s, rtol):
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    for k in prange(nk):
+        buf = np.empty(ni)
+        acc = np.zeros(ni)
+        col = np.empty((ni, nj))
+        for j in range(nj):
+            if ni == 1:
+                s[0, j, k, 0] = 0.0
+                continue
+            a = 0.0
+            buf[0] = 0.0
+            for i in range(1, ni):
+                a += _old_dist(xyz, i - 1, j, k, i, j, k)
+                buf[i] = a
+            if not a > rtol * _old_mag(xyz, 0, j, k, ni - 1, j, k):
+                for i in range(ni):
+                    buf[i] = i
+                a = ni - 1.0
+            for i in range(ni - 1):
+                s[i, j, k, 0] = buf[i] / a
+            s[ni - 1, j, k, 0] = 1.0
+        if nj == 1:
+            for i in range(ni):
+                s[i, 0, k, 1] = 0.0
+        else:
+            for i in range(ni):
+                col[i, 0] = 0.0
+            for j in range(1, nj):
+                for i in range(ni):
+                    acc[i] += _old_dist(xyz, i, j - 1, k, i, j, k)
+                    col[i, j] = acc[i]
+            for i in range(ni):
+                if not acc[i] > rtol * _old_mag(xyz, i, 0, k, i, nj - 1, k):
+                    for j in range(nj):
+                        col[i, j] = j
+                    acc[i] = nj - 1.0
+            for j in range(nj - 1):
+                for i in range(ni):
+                    s[i, j, k, 1] = col[i, j] / acc[i]
+            for i in range(ni):
+                s[i, nj - 1, k, 1] = 1.0
+    for j in prange(nj):
+        if nk == 1:
+            for i in range(ni):
+                s[i, j, 0, 2] = 0.0
+            continue
+        acc = np.zeros(ni)
+        col = np.empty((ni, nk))
+        for i in range(ni):
+            col[i, 0] = 0.0
+        for k in range(1, nk):
+            for i in range(ni):
+                acc[i] += _old_dist(xyz, i, j, k - 1, i, j, k)
+                col[i, k] = acc[i]
+        for i in range(ni):
+            if not acc[i] > rtol * _old_mag(xyz, i, j, 0, i, j, nk - 1):
+                for k in range(nk):
+                    col[i, k] = k
+                acc[i] = nk - 1.0
+        for k in range(nk - 1):
+            for i in range(ni):
+                s[i, j, k, 2] = col[i, k] / acc[i]
+        for i in range(ni):
+            s[i, j, nk - 1, 2] = 1.0
+
+
+@pjit
+def _old_layer_block_dir(xyz, s, d, lam0, lam1, out):
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    dims = (ni, nj, nk)
+    n = dims[d]
+    if d == 0:
+        na, nb = nj, nk
+    elif d == 1:
+        na, nb = ni, nk
+    else:
+        na, nb = ni, nj
+    for ab in prange(na * nb):
+        a = ab % na
+        b = ab // na
+        line = np.empty(n)
+        res = np.empty(n)
+        length = 0.0
+        px = py = pz = 0.0
+        for m in range(n):
+            if d == 0:
+                i, j, k = m, a, b
+            elif d == 1:
+                i, j, k = a, m, b
+            else:
+                i, j, k = a, b, m
+            line[m] = s[i, j, k, d]
+            x = xyz[i, j, k, 0]
+            y = xyz[i, j, k, 1]
+            z = xyz[i, j, k, 2]
+            if m > 0:
+                length += math.sqrt((x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2)
+            px, py, pz = x, y, z
+        blending._layer_line(line, length, lam0[a, b], lam1[a, b], res)
+        for m in range(n):
+            if d == 0:
+                out[m, a, b, d] = res[m]
+            elif d == 1:
+                out[a, m, b, d] = res[m]
+            else:
+                out[a, b, m, d] = res[m]
+
+
+def _old_arclength(xyz):
+    s = np.empty(xyz.shape, dtype=np.float64, order="F")
+    _old_arclength_kernel(xyz, s, tfi.ZERO_LENGTH_RTOL)
+    return s
+
+
+def _old_wall_layer_block(xyz, s, lam, out):
+    """The old ``wall_layer_block`` with ``out is s`` (the Deformer's call)."""
+    dims = xyz.shape[:3]
+    for d in range(3):
+        others = tuple(dims[m] for m in range(3) if m != d)
+        l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)
+        l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
+        _old_layer_block_dir(xyz, s, d, l0, l1, out)
+    return out
+
+
+def _wing_blocks(scale, pickled):
+    """The wing's blocks and their layer thicknesses as ``Deformer._block_params`` builds them."""
+    from tfi_quat import generate as gen, topology
+    from tfi_quat.deform import Deformer, _faces_of
+    if pickled:
+        with open(pickled, "rb") as f:
+            grid, _, conn = pickle.load(f)
+    else:
+        def odd4(n):
+            n = int(round(n))
+            return n + (-(n - 1)) % 4
+        grid = gen.wing(ni=odd4(129 * scale), nj=int(49 * scale), nk_wing=int(45 * scale),
+                        nk_cap=max(5, int(9 * scale)), nk_out=int(25 * scale))
+        bp = gen.boundary_patches("wing", grid)
+        conn = topology.connect(grid, walls=bp["walls"], symmetry=bp["symmetry"], fixed=bp["fixed"])
+    d = Deformer(grid, connectivity=conn)
+    ell = d.rotation_length
+    out = []
+    for b, blk in enumerate(grid):
+        out.append((blk.xyz, [ell * d._omega[d._face_gid[(b, f)]] for f in _faces_of(3)]))
+    return out
+
+
+def setup_wing(scale, repeat, pickled=None):
+    """Old kernels, new ones and the fused driver on the wing's blocks, interleaved; same bits."""
+    blocks = _wing_blocks(scale, pickled)
+    npts = sum(x.shape[0] * x.shape[1] * x.shape[2] for x, _ in blocks)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"wing {scale}: {len(blocks)} blocks, {npts / 1e6:.2f} M points; "
+          f"threads {numba.get_num_threads()}; best of {repeat}, interleaved; "
+          f"load average {load:.1f} on {os.cpu_count()} CPUs")
+    tot = {"old": np.zeros(3), "new": np.zeros(3), "fused": 0.0}
+    for b, (xyz, lam) in enumerate(blocks):
+        s_old = _old_arclength(xyz)
+        s_new = tfi.arclength(xyz)
+        same_s = np.array_equal(s_old.view(np.int64), s_new.view(np.int64))
+        _old_wall_layer_block(xyz, s_old, lam, s_old)
+        blending.wall_layer_block(xyz, s_new, lam, ndim=3, out=s_new)
+        fused = blending.wall_layer_arclength(xyz, lam)
+        same = (np.array_equal(s_old.view(np.int64), s_new.view(np.int64))
+                and np.array_equal(s_old.view(np.int64), fused.view(np.int64)))
+        del fused
+        # out=s as the Deformer calls it: each repeat starts from a fresh copy of s (not timed)
+        s0 = tfi.arclength(xyz)
+        work = np.empty_like(s0, order="F")
+        t = {k: [] for k in ("old_arc", "old_layer", "new_arc", "new_layer", "fused")}
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            _old_arclength(xyz)
+            t["old_arc"].append(time.perf_counter() - t0)
+            work[...] = s0
+            t0 = time.perf_counter()
+            _old_wall_layer_block(xyz, work, lam, work)
+            t["old_layer"].append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            tfi.arclength(xyz)
+            t["new_arc"].append(time.perf_counter() - t0)
+            work[...] = s0
+            t0 = time.perf_counter()
+            blending.wall_layer_block(xyz, work, lam, ndim=3, out=work)
+            t["new_layer"].append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            blending.wall_layer_arclength(xyz, lam)
+            t["fused"].append(time.perf_counter() - t0)
+        m = {k: min(v) for k, v in t.items()}
+        old = np.array([m["old_arc"], m["old_layer"], m["old_arc"] + m["old_layer"]])
+        new = np.array([m["new_arc"], m["new_layer"], m["new_arc"] + m["new_layer"]])
+        tot["old"] += old
+        tot["new"] += new
+        tot["fused"] += m["fused"]
+        shape = "x".join(str(v) for v in xyz.shape[:3])
+        print(f"block {b} {shape:>13s}: old arclength {old[0] * 1e3:6.1f} + layer {old[1] * 1e3:6.1f} = "
+              f"{old[2] * 1e3:6.1f} ms | new {new[0] * 1e3:6.1f} + {new[1] * 1e3:6.1f} = "
+              f"{new[2] * 1e3:6.1f} ms | fused {m['fused'] * 1e3:6.1f} ms | same bits: "
+              f"arclength {same_s}, parameters {same}")
+    o, n, f = tot["old"], tot["new"], tot["fused"]
+    print(f"{'total':<21s}: old arclength {o[0] * 1e3:6.1f} + layer {o[1] * 1e3:6.1f} = {o[2] * 1e3:6.1f} ms "
+          f"| new {n[0] * 1e3:6.1f} + {n[1] * 1e3:6.1f} = {n[2] * 1e3:6.1f} ms | fused {f * 1e3:6.1f} ms")
+    print(f"speed-up: arclength {o[0] / n[0]:.2f}x, wall_layer_block {o[1] / n[1]:.2f}x, "
+          f"set-up {o[2] / n[2]:.2f}x (fused {o[2] / f:.2f}x)")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"load average at the end {load:.1f}")
+    return 0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=float, default=216 ** 3, help="block size in points (cube)")
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--order", default="2,0,1", help="direction order L,M,N")
+    ap.add_argument("--setup-wing", type=float, metavar="SCALE", default=None,
+                    help="time the Deformer's set-up kernels on the wing of this scale instead")
+    ap.add_argument("--wing-pickle", default=None, metavar="PATH",
+                    help="with --setup-wing: load (grid, patches, connectivity) from this pickle")
     args = ap.parse_args(argv)
+    if args.setup_wing is not None:
+        return setup_wing(args.setup_wing, args.repeat, args.wing_pickle)
     n = max(4, int(round(args.points ** (1.0 / 3.0))))
     npts = n ** 3
     order = tuple(int(v) for v in args.order.split(","))

@@ -26,7 +26,13 @@ distance ``d`` to the nearest wall point, so the layer thins out smoothly along
 a wake cut or a symmetry plane that leaves a wall.
 
 Kernels are numba functions (:mod:`tfi_quat._jit`); :func:`wall_layer_block`
-is the driver for a block (or a patch given as a ``(na, nb, 1, 3)`` block).
+is the driver for a block (or a patch given as a ``(na, nb, 1, 3)`` block), and
+:func:`wall_layer_arclength` the same fused with :func:`tfi_quat.tfi.arclength`
+(one pass over the block instead of two).  The block kernels skip the lines
+without a layer (their parameters are ``s``), sum each line's length as
+``arclength`` does, and process the lines of directions j and k in tiles of
+:data:`TILE` lines, i innermost, so memory is read along i as it lies; the
+result is bit for bit that of :func:`wall_layer_line` applied line by line.
 """
 
 from __future__ import annotations
@@ -37,8 +43,9 @@ import numpy as np
 
 from ._jit import jit, pjit, prange
 from .errors import GridValueError
+from .tfi import S_DTYPE, ZERO_LENGTH_RTOL, _arc_line_i, _arc_tile_j, _arc_tile_k, _at, _check_xyz, _dist
 
-__all__ = ["wall_layer_line", "wall_layer_block", "AMAX"]
+__all__ = ["wall_layer_line", "wall_layer_block", "wall_layer_arclength", "AMAX"]
 
 #: a layer thicker than AMAX line lengths is treated as AMAX (the line is far
 #: shorter than the layer: the parameter tends to s^2 or a Hermite-like cubic)
@@ -113,47 +120,306 @@ def wall_layer_line(s, length, lam0, lam1) -> np.ndarray:
     return out
 
 
+#: lines per task of direction i, and lines i per tile of directions j and k:
+#: a tile's lines are processed together, i innermost, in (n, TILE) buffers
+#: (so memory is read and written along i, as it lies)
+LINES_PER_TASK = 64
+TILE = 128
+
+
+@jit(inline="always")
+def _needs_layer(lam0, lam1):
+    """False where :func:`_layer_line` returns ``s`` whatever the length (lines of >= 2 points)."""
+    return not (lam0 <= 0.0 and lam1 <= 0.0)
+
+
+@jit(inline="always")
+def _layer_tile(col, nw, ln, lam0, lam1, act, a0, a1, acc, gpp, sp):
+    """:func:`_layer_line` on the columns ``w < nw`` of ``col`` (n, TILE) where ``act[w]``, in place.
+
+    Column ``w`` holds a line's normalised arclength on entry and its
+    parameters on return, computed with the operations of ``_layer_line`` in
+    the same order (lines interleaved, i innermost).  ``act[w]`` must be
+    False unless the line needs a layer and ``ln[w] > 0``; it is cleared
+    where ``_layer_line`` returns ``s`` (zero integral), the column then
+    holding garbage.  ``a0 .. sp`` are work arrays of at least ``nw``.
+    """
+    n = col.shape[0]
+    for w in range(nw):
+        if act[w]:
+            a0[w] = min(lam0[w] / ln[w], AMAX)
+            a1[w] = min(lam1[w] / ln[w], AMAX)
+            s0 = col[0, w]
+            gpp[w] = _f(s0, a0[w]) * _f(1.0 - s0, a1[w])
+            sp[w] = s0
+            col[0, w] = 0.0
+            acc[w] = 0.0
+    for m in range(1, n):
+        for w in range(nw):
+            if act[w]:
+                sm = col[m, w]
+                gp = _f(sm, a0[w]) * _f(1.0 - sm, a1[w])
+                acc[w] += 0.5 * (gp + gpp[w]) * (sm - sp[w])
+                col[m, w] = acc[w]
+                gpp[w] = gp
+                sp[w] = sm
+    for w in range(nw):
+        if act[w]:
+            if acc[w] > 0.0:
+                a0[w] = 1.0 / acc[w]
+            else:
+                act[w] = False
+    for m in range(1, n - 1):
+        for w in range(nw):
+            if act[w]:
+                col[m, w] *= a0[w]
+    for w in range(nw):
+        if act[w]:
+            col[n - 1, w] = 1.0
+
+
 @pjit
-def _layer_block_dir(xyz, s, d, lam0, lam1, out):
-    """Direction ``d`` of a block: per line, length from ``xyz``, parameters from ``s[..., d]``."""
+def _layer_dir_i(xyz, s, lam0, lam1, out):
+    """Direction i (lines contiguous in memory): tasks of LINES_PER_TASK lines (j, k)."""
     ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    dims = (ni, nj, nk)
-    n = dims[d]
-    if d == 0:
-        na, nb = nj, nk
-    elif d == 1:
-        na, nb = ni, nk
-    else:
-        na, nb = ni, nj
-    for ab in prange(na * nb):
-        a = ab % na
-        b = ab // na
-        line = np.empty(n)
-        res = np.empty(n)
-        length = 0.0
-        px = py = pz = 0.0
-        for m in range(n):
-            if d == 0:
-                i, j, k = m, a, b
-            elif d == 1:
-                i, j, k = a, m, b
+    nl = nj * nk
+    ntask = (nl + LINES_PER_TASK - 1) // LINES_PER_TASK
+    for t in prange(ntask):
+        line = np.empty(ni)
+        res = np.empty(ni)
+        for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
+            j = jk % nj
+            k = jk // nj
+            l0 = lam0[j, k]
+            l1 = lam1[j, k]
+            if ni == 1:
+                out[0, j, k, 0] = 0.0
+                continue
+            if not _needs_layer(l0, l1):
+                continue                        # out already holds s
+            length = 0.0
+            for i in range(1, ni):
+                length += _dist(xyz, i - 1, j, k, i, j, k)
+            for i in range(ni):
+                line[i] = s[i, j, k, 0]
+            _layer_line(line, length, l0, l1, res)
+            for i in range(ni):
+                out[i, j, k, 0] = res[i]
+
+
+@pjit
+def _layer_dir_j(xyz, s, lam0, lam1, out):
+    """Direction j: one task per k-plane and tile of TILE lines i."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    nt = (ni + TILE - 1) // TILE
+    for t in prange(nk * nt):
+        k = t // nt
+        i0 = (t % nt) * TILE
+        nw = min(TILE, ni - i0)
+        u0 = np.uint64(i0)
+        if nj == 1:
+            for w in range(nw):
+                out[_at(u0, w), 0, k, 1] = 0.0
+            continue
+        l0 = np.empty(nw)
+        l1 = np.empty(nw)
+        act = np.empty(nw, dtype=np.bool_)
+        some = False
+        for w in range(nw):
+            l0[w] = lam0[_at(u0, w), k]
+            l1[w] = lam1[_at(u0, w), k]
+            act[w] = _needs_layer(l0[w], l1[w])
+            some = some or act[w]
+        if not some:
+            continue                            # out already holds s
+        ln = np.zeros(nw)
+        for j in range(1, nj):
+            for w in range(nw):
+                i = _at(u0, w)
+                ln[w] += _dist(xyz, i, j - 1, k, i, j, k)
+        col = np.empty((nj, nw))
+        for j in range(nj):
+            for w in range(nw):
+                col[j, w] = s[_at(u0, w), j, k, 1]
+        for w in range(nw):
+            act[w] = act[w] and ln[w] > 0.0
+        work = np.empty((5, nw))
+        _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
+        for j in range(nj):
+            for w in range(nw):
+                if act[w]:
+                    out[_at(u0, w), j, k, 1] = col[j, w]
+
+
+@pjit
+def _layer_dir_k(xyz, s, lam0, lam1, out):
+    """Direction k: one task per j-slab and tile of TILE lines i."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    nt = (ni + TILE - 1) // TILE
+    for t in prange(nj * nt):
+        j = t // nt
+        i0 = (t % nt) * TILE
+        nw = min(TILE, ni - i0)
+        u0 = np.uint64(i0)
+        if nk == 1:
+            for w in range(nw):
+                out[_at(u0, w), j, 0, 2] = 0.0
+            continue
+        l0 = np.empty(nw)
+        l1 = np.empty(nw)
+        act = np.empty(nw, dtype=np.bool_)
+        some = False
+        for w in range(nw):
+            l0[w] = lam0[_at(u0, w), j]
+            l1[w] = lam1[_at(u0, w), j]
+            act[w] = _needs_layer(l0[w], l1[w])
+            some = some or act[w]
+        if not some:
+            continue                            # out already holds s
+        ln = np.zeros(nw)
+        for k in range(1, nk):
+            for w in range(nw):
+                i = _at(u0, w)
+                ln[w] += _dist(xyz, i, j, k - 1, i, j, k)
+        col = np.empty((nk, nw))
+        for k in range(nk):
+            for w in range(nw):
+                col[k, w] = s[_at(u0, w), j, k, 2]
+        for w in range(nw):
+            act[w] = act[w] and ln[w] > 0.0
+        work = np.empty((5, nw))
+        _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
+        for k in range(nk):
+            for w in range(nw):
+                if act[w]:
+                    out[_at(u0, w), j, k, 2] = col[k, w]
+
+
+_LAYER_DIR = (_layer_dir_i, _layer_dir_j, _layer_dir_k)
+
+
+@jit(inline="always")
+def _arc_tile_norm(col, cum, den, w):
+    """Column ``w`` of ``col``: the normalised arclength ``cum[:, w] / den[w]``, exactly 1 at the end."""
+    n = col.shape[0]
+    for m in range(n - 1):
+        col[m, w] = cum[m, w] / den[w]
+    col[n - 1, w] = 1.0
+
+
+@jit(inline="always")
+def _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c):
+    """Parameters of a tile of :func:`wall_layer_arclength` into ``col`` (n, nw): lines ``i = u0 + w``
+    with arclength ``cum / den`` and length ``ln`` (:func:`tfi._arc_tile_j`), thicknesses
+    ``lam0[i, c]`` and ``lam1[i, c]``."""
+    n = col.shape[0]
+    for m in range(n - 1):
+        for w in range(nw):
+            col[m, w] = cum[m, w] / den[w]
+    for w in range(nw):
+        col[n - 1, w] = 1.0
+    l0 = np.empty(nw)
+    l1 = np.empty(nw)
+    need = np.empty(nw, dtype=np.bool_)
+    act = np.empty(nw, dtype=np.bool_)
+    some = False
+    for w in range(nw):
+        l0[w] = lam0[_at(u0, w), c]
+        l1[w] = lam1[_at(u0, w), c]
+        need[w] = _needs_layer(l0[w], l1[w])
+        act[w] = need[w] and ln[w] > 0.0
+        some = some or act[w]
+    if not some:
+        return
+    work = np.empty((5, nw))
+    _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
+    for w in range(nw):
+        if need[w] and not act[w]:              # zero integral: the parameters are s
+            _arc_tile_norm(col, cum, den, w)
+
+
+@pjit
+def _arc_layer_i(xyz, rtol, lam0, lam1, out):
+    """Direction i of :func:`wall_layer_arclength`: each line's arclength, then its layer."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    nl = nj * nk
+    for t in prange((nl + LINES_PER_TASK - 1) // LINES_PER_TASK):
+        buf = np.empty(ni)
+        line = np.empty(ni)
+        res = np.empty(ni)
+        for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
+            j = jk % nj
+            k = jk // nj
+            if ni == 1:
+                out[0, j, k, 0] = 0.0
+                continue
+            length, a = _arc_line_i(xyz, rtol, j, k, buf)
+            l0 = lam0[j, k]
+            l1 = lam1[j, k]
+            if _needs_layer(l0, l1):
+                for i in range(ni - 1):
+                    line[i] = buf[i] / a
+                line[ni - 1] = 1.0
+                _layer_line(line, length, l0, l1, res)
+                for i in range(ni):
+                    out[i, j, k, 0] = res[i]
             else:
-                i, j, k = a, b, m
-            line[m] = s[i, j, k, d]
-            x = xyz[i, j, k, 0]
-            y = xyz[i, j, k, 1]
-            z = xyz[i, j, k, 2]
-            if m > 0:
-                length += math.sqrt((x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2)
-            px, py, pz = x, y, z
-        _layer_line(line, length, lam0[a, b], lam1[a, b], res)
-        for m in range(n):
-            if d == 0:
-                out[m, a, b, d] = res[m]
-            elif d == 1:
-                out[a, m, b, d] = res[m]
-            else:
-                out[a, b, m, d] = res[m]
+                for i in range(ni - 1):
+                    out[i, j, k, 0] = buf[i] / a
+                out[ni - 1, j, k, 0] = 1.0
+
+
+@pjit
+def _arc_layer_j(xyz, rtol, lam0, lam1, out):
+    """Direction j of :func:`wall_layer_arclength`: one task per k-plane and tile of TILE lines i."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    nt = (ni + TILE - 1) // TILE
+    for t in prange(nk * nt):
+        k = t // nt
+        i0 = (t % nt) * TILE
+        nw = min(TILE, ni - i0)
+        u0 = np.uint64(i0)
+        if nj == 1:
+            for w in range(nw):
+                out[_at(u0, w), 0, k, 1] = 0.0
+            continue
+        cum = np.empty((nj, nw))
+        col = np.empty((nj, nw))
+        ln = np.empty(nw)
+        den = np.empty(nw)
+        _arc_tile_j(xyz, rtol, u0, nw, k, cum, ln, den)
+        _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, k)
+        for j in range(nj):
+            for w in range(nw):
+                out[_at(u0, w), j, k, 1] = col[j, w]
+
+
+@pjit
+def _arc_layer_k(xyz, rtol, lam0, lam1, out):
+    """Direction k of :func:`wall_layer_arclength`: one task per j-slab and tile of TILE lines i."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    nt = (ni + TILE - 1) // TILE
+    for t in prange(nj * nt):
+        j = t // nt
+        i0 = (t % nt) * TILE
+        nw = min(TILE, ni - i0)
+        u0 = np.uint64(i0)
+        if nk == 1:
+            for w in range(nw):
+                out[_at(u0, w), j, 0, 2] = 0.0
+            continue
+        cum = np.empty((nk, nw))
+        col = np.empty((nk, nw))
+        ln = np.empty(nw)
+        den = np.empty(nw)
+        _arc_tile_k(xyz, rtol, u0, nw, j, cum, ln, den)
+        _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, j)
+        for k in range(nk):
+            for w in range(nw):
+                out[_at(u0, w), j, k, 2] = col[k, w]
+
+
+_ARC_LAYER_DIR = (_arc_layer_i, _arc_layer_j, _arc_layer_k)
 
 
 def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
@@ -173,7 +439,8 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
         Directions to process (the third parameter of a 2-D block is copied).
     out : ndarray, optional
         Receives the result (Fortran order, the shape of ``s``); may be ``s``
-        itself (each line is read before it is written).
+        itself (each line is read before it is written).  Lines whose two
+        thicknesses are <= 0 keep ``s`` and are not computed.
 
     Returns
     -------
@@ -196,5 +463,50 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
         others = tuple(dims[m] for m in range(3) if m != d)
         l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)
         l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
-        _layer_block_dir(xyz, s, d, l0, l1, out)
+        _LAYER_DIR[d](xyz, s, l0, l1, out)
+    return out
+
+
+def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_RTOL, out=None) -> np.ndarray:
+    """:func:`tfi_quat.tfi.arclength` and :func:`wall_layer_block` in one pass over the block.
+
+    Bit for bit ``wall_layer_block(xyz, s, lam, ndim, out=s)`` with
+    ``s = tfi.arclength(xyz, rtol=rtol)``, without storing ``s`` or reading
+    ``xyz`` again for the line lengths: each line's arclength is computed as
+    ``arclength`` computes it and its wall-layer parameters are taken from it
+    while it is in cache.
+
+    Parameters
+    ----------
+    xyz : ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+        Undeformed coordinates (``Block.xyz``; a patch as ``(na, nb, 1, 3)`` with ``ndim=2``).
+    lam : sequence of ``2 * ndim`` arrays
+        Layer thicknesses, as for :func:`wall_layer_block`.
+    ndim : {2, 3}
+        Directions that get a layer (the others keep the arclength).
+    rtol : float
+        Zero-length tolerance of :func:`tfi_quat.tfi.arclength`.
+    out : ndarray, optional
+        Receives the result (float64, Fortran order, the shape of ``xyz``).
+
+    Returns
+    -------
+    ndarray, shape (ni, nj, nk, 3), float64, Fortran order
+    """
+    _check_xyz(xyz, "xyz")
+    if len(lam) != 2 * ndim:
+        raise GridValueError(f"lam: expected {2 * ndim} face arrays, got {len(lam)}")
+    if out is None:
+        out = np.empty(xyz.shape, dtype=S_DTYPE, order="F")
+    elif out.shape != xyz.shape or out.dtype != S_DTYPE or not out.flags.f_contiguous:
+        raise GridValueError(f"out: expected a float64 Fortran-order array of shape {xyz.shape}")
+    dims = xyz.shape[:3]
+    for d in range(3):
+        others = tuple(dims[m] for m in range(3) if m != d)
+        if d < ndim:
+            l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)
+            l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
+        else:                                   # no layer: the arclength itself
+            l0 = l1 = np.zeros(others)
+        _ARC_LAYER_DIR[d](xyz, float(rtol), l0, l1, out)
     return out
