@@ -53,7 +53,7 @@ import numpy as np
 from . import quaternion as qa
 from . import tfi
 from ._jit import jit, pjit, prange, serial_below
-from .blending import wall_layer_block, wall_layer_line
+from .blending import wall_layer_arclength, wall_layer_line
 from .errors import CaseError, DeformationError
 from .fit import constrain_to_planes, fit_rigid
 from .grid import FACES, Block, Grid
@@ -1041,24 +1041,20 @@ class Deformer:
 
     def _patch_params(self, g: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(self._P[g])
-        s = tfi.arclength_surface(x)
         if not self._two:
-            return self._psi(s)
+            return self._psi(tfi.arclength_surface(x))
         ell = self.rotation_length
         om = self._omega
         x4 = np.asfortranarray(x[:, :, None, :])
-        s4 = np.zeros(x4.shape, order="F")
-        s4[:, :, 0, :2] = s
         lam = [ell * om[g[0, :]], ell * om[g[-1, :]], ell * om[g[:, 0]], ell * om[g[:, -1]]]
-        return np.ascontiguousarray(wall_layer_block(x4, s4, lam, ndim=2)[:, :, 0, :2])
+        return np.ascontiguousarray(wall_layer_arclength(x4, lam, ndim=2)[:, :, 0, :2])
 
     def _block_params(self, b: int, blk: Block) -> np.ndarray:
-        s = tfi.arclength(blk.xyz)
         if not self._two:
-            return self._psi(s)
+            return self._psi(tfi.arclength(blk.xyz))
         ell = self.rotation_length
         lam = [ell * self._omega[self._face_gid[(b, f)]] for f in _faces_of(self.ndim)]
-        return wall_layer_block(blk.xyz, s, lam, ndim=self.ndim, out=s)
+        return wall_layer_arclength(blk.xyz, lam, ndim=self.ndim)
 
     # --------------------------------------------------------------- skeleton
     def _build_vertices(self, power: float, max_sources: int) -> None:
