@@ -1,5 +1,13 @@
-"""Coincident point pairs: all ``i < j`` with ``|P[i] - P[j]| <= tol``, exactly.
+"""Exact point queries: coincident pairs and bounded nearest neighbours.
 
+* :func:`close_pairs`: all ``i < j`` with ``|P[i] - P[j]| <= tol``
+  (``cKDTree.query_pairs``), by a sweep along a generic direction;
+* :func:`nearest_within`: for each query point the nearest reference point
+  closer than a bound (``cKDTree.query(..., distance_upper_bound=bound)``), by
+  a compiled kd-tree (section *Bounded nearest neighbours* below).
+
+Coincident pairs
+----------------
 :func:`close_pairs` replaces ``scipy.spatial.cKDTree(P).query_pairs(tol,
 output_type="ndarray")`` for the sets this package feeds it: the boundary
 points of a structured multiblock grid, most of which have no partner at all,
@@ -42,17 +50,85 @@ never counted: a pole with ``k`` copies of one point is ``k (k - 1) / 2``
 pairs of output anyway (the pair arrays are then sized by a second sweep).
 Coordinates so large that projections would overflow are scaled by 1/16 for
 the projection (cKDTree refuses such sets).
+
+Bounded nearest neighbours
+--------------------------
+:func:`nearest_within` replaces ``cKDTree(ref).query(query,
+distance_upper_bound=bound)`` for the Deformer's wall distances: ref = the
+wall points of a wing (tens of thousands, strongly clustered at the leading
+and trailing edges and at a collapsed tip edge), query = the boundary points
+next to the walls (symmetry plane, wake cut, tip cap), many of them up to the
+bound away from every wall point.
+
+*Why a kd-tree and not a uniform cell hash.*  The ref points lie on a
+surface and crowd at the edges, while a quarter of the queries are 0.1 to
+0.6 chord from it.  On the wing below, cells of 0.005 leave 99 % of the
+cells empty (still 24 points in the fullest), and a query 0.3 from the
+surface must look at every cell of the ball of that radius, ~10**6 of them;
+cells of 0.02 still mean ~27 000 per such query and put up to 129 points in
+a cell; cells of 0.1 put up to 1 625.  A tree adapts to both.
+
+*The tree.*  A complete binary tree over the ref points, built once per call
+(a few ms for 27 k points): each node splits its points by count at the
+median of the widest extent of their bounding box (quickselect, falling back
+to a sort on a bad pivot sequence), down to leaves of at most about
+:data:`LEAF` points; the points are stored leaf by leaf (coordinates as
+three contiguous arrays) and every node keeps the *tight* bounding box of its
+points.  The tree is implicit (children of node ``k`` are ``2k + 1`` and
+``2k + 2``), so the only tables are the boxes, the leaf offsets and the
+permutation.  Any partition gives a valid tree with tight boxes, so repeated
+points, points on a plane or a line, or one point repeated ``m`` times need
+no special case.
+
+*The search*, for each query ``q``: depth first, nearer child first, a node
+visited only while the squared distance from ``q`` to its box does not
+exceed the best squared distance found so far (initially ``bound**2``);
+the first test is the root's box, so a query far outside the ref points'
+box costs one box distance.  Consecutive queries are usually close (the
+points of a grid face), so each query starts with the previous query's
+answer as a candidate, within chunks of :data:`CHUNK` queries.  The chunks
+run in parallel (``prange``), taken in interleaved runs of consecutive
+chunks so that each thread gets costly and cheap stretches of the queries
+alike (:func:`_chunk_order`); fewer than ``SERIAL_BELOW / _QUERY_WORK``
+queries run on one thread.  The answer does not depend on the start nor on
+the order.
+
+*Exactness.*  The distance test is cKDTree's: with ``dx = r_x - q_x`` etc.
+in float64, a ref point is a candidate when ``dx*dx + dy*dy + dz*dz <
+bound*bound`` (strictly: a point exactly at ``bound`` is not returned, as in
+cKDTree, whose ``distance_upper_bound`` is squared in float64 and compared
+with ``<``), and the answer is the candidate with the smallest such sum,
+the smallest index among equal sums; the distance returned is its
+``sqrt``.  The pruning cannot lose it: the box distance is computed with
+the same operations on the box's per-axis gaps, each gap no larger than the
+corresponding ``|dx|`` of any point in the box, and float64 rounding is
+monotone, so the computed box distance never exceeds the computed distance
+of a point inside (with any rounding, underflow or overflow); a node is
+skipped only when its box distance is *larger* than the best so far, so
+ties are never skipped.  cKDTree visits nodes in another order and keeps the
+first of equal distances it meets, so among ties its index may differ (the
+distance is the same); its node bounds are updated incrementally, so a ref
+point within a few units in the last place of the bound or of another
+candidate's distance may, in principle, be decided differently.
+
+On the 2.8-scale wing (26 731 wall points, 129 973 queries, bound 0.61),
+tree included, it takes ~25 ms on the 2-core machine (~34 ms on one
+thread), against ~163 ms for the best cKDTree variant (``balanced_tree=False,
+compact_nodes=False``; ~400 ms for the default tree), with the same
+distances and indices; with all 393 228 boundary points as queries ~29 ms
+against ~190 ms (``benchmarks/bench_points.py``).
 """
 
 from __future__ import annotations
 
+import math
 import numbers
 
 import numpy as np
 
-from ._jit import jit
+from ._jit import ENABLED, jit, numba, pjit, prange, serial_below
 
-__all__ = ["close_pairs", "DIRECTION"]
+__all__ = ["close_pairs", "nearest_within", "DIRECTION"]
 
 _RHO = 1.324717957244746025960908854478          # plastic number, rho**3 = rho + 1
 #: the sweep direction: ``(rho**-1, rho**-2, rho**-3)`` normalised -- no two
@@ -383,10 +459,12 @@ def close_pairs(points, tol: float, *, budget: int | None = None) -> np.ndarray:
         return np.empty((0, 2), dtype=np.int64)
     p = np.empty(n)
     sc = 1.0
-    ok, pmin, pmax, amax = _project(P, DIRECTION, sc, p)
-    if ok == 1:                          # |coordinates| near the float64 limit: scale the projections
-        sc = 1.0 / 16.0
+    # overflow and NaN are detected by _project itself (errstate: for the uncompiled kernel)
+    with np.errstate(over="ignore", invalid="ignore"):
         ok, pmin, pmax, amax = _project(P, DIRECTION, sc, p)
+        if ok == 1:                      # |coordinates| near the float64 limit: scale the projections
+            sc = 1.0 / 16.0
+            ok, pmin, pmax, amax = _project(P, DIRECTION, sc, p)
     if ok == 0:
         bad = np.flatnonzero(~np.isfinite(P).all(axis=1))
         raise ValueError(f"close_pairs: points contain a non-finite (NaN or infinite) coordinate "
@@ -410,3 +488,386 @@ def close_pairs(points, tol: float, *, budget: int | None = None) -> np.ndarray:
         if m <= cap:
             return _lexsorted(first, second, m, n)
         cap = m                          # big clusters: more pairs than points; sweep again
+
+
+# ================================================================ bounded nearest neighbours
+#: target leaf size of the kd-tree: leaves hold at most about this many points
+LEAF = 16
+#: queries per warm-started chunk: each query of a chunk starts from the previous answer
+CHUNK = 512
+#: a query costs about as much as this many points of the other parallel kernels (the
+#: queries run on all threads when ``_QUERY_WORK * n`` reaches ``SERIAL_BELOW``)
+_QUERY_WORK = 32
+#: the chunks are taken in this many runs of consecutive chunks, interleaved (:func:`_chunk_order`)
+_RUNS = 16
+#: stack entries for the tree search: one per level and the root (depth <= 62)
+_STACK = 64
+
+
+@jit
+def _first_nonfinite(X):
+    """Index of the first row of ``X`` (n, 3) with a NaN or infinite coordinate, else -1."""
+    for i in range(X.shape[0]):
+        # NaN compares false, so the sum of |.| is < inf only when all three are finite
+        if not (abs(X[i, 0]) + abs(X[i, 1]) + abs(X[i, 2]) < np.inf):
+            for k in range(3):
+                if not np.isfinite(X[i, k]):
+                    return i
+    return -1
+
+
+@jit(inline="always")
+def _swap4(a, b, c, p, i, j):
+    t = a[i]
+    a[i] = a[j]
+    a[j] = t
+    t = b[i]
+    b[i] = b[j]
+    b[j] = t
+    t = c[i]
+    c[i] = c[j]
+    c[j] = t
+    u = p[i]
+    p[i] = p[j]
+    p[j] = u
+
+
+@jit(inline="always")
+def _select_rounds(c):
+    """Partition rounds :func:`_select` may take on ``c`` keys before it sorts: ``2 floor(log2 c) + 8``."""
+    rounds = 8
+    while c > 1:
+        rounds += 2
+        c >>= 1
+    return rounds
+
+
+@jit
+def _select(key, o1, o2, perm, s, e, k, rounds):
+    """Reorder ``key[s:e]`` (carrying ``o1``, ``o2``, ``perm`` along) so that ``key[k]`` has rank ``k - s``.
+
+    Afterwards ``key[s:k] <= key[k] <= key[k + 1:e]``.  Quickselect with a
+    median-of-three pivot and Hoare partitioning (equal keys are split
+    evenly); after ``rounds`` partitions (:func:`_select_rounds`) whatever
+    range is left is sorted instead, so the cost stays ``O(c log c)`` on any
+    input of ``c = e - s`` keys.
+    """
+    lo = s
+    hi = e - 1
+    while hi > lo:
+        rounds -= 1
+        if rounds < 0:
+            srt = np.argsort(key[lo:hi + 1]) + lo
+            for arr in (key, o1, o2):
+                seg = arr[srt]
+                arr[lo:hi + 1] = seg
+            segp = perm[srt]
+            perm[lo:hi + 1] = segp
+            return
+        a = key[lo]
+        b = key[(lo + hi) // 2]
+        c = key[hi]
+        piv = max(min(a, b), min(max(a, b), c))
+        i = lo
+        j = hi
+        while i <= j:
+            while key[i] < piv:
+                i += 1
+            while key[j] > piv:
+                j -= 1
+            if i <= j:
+                _swap4(key, o1, o2, perm, i, j)
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return
+
+
+@jit
+def _range_box(xs, ys, zs, s, e, box, nd):
+    """``box[nd] = (xlo, xhi, ylo, yhi, zlo, zhi)`` of the points ``s:e`` (empty: lo = inf, hi = -inf)."""
+    x0 = np.inf
+    x1 = -np.inf
+    y0 = np.inf
+    y1 = -np.inf
+    z0 = np.inf
+    z1 = -np.inf
+    for t in range(s, e):
+        v = xs[t]
+        x0 = min(x0, v)
+        x1 = max(x1, v)
+        v = ys[t]
+        y0 = min(y0, v)
+        y1 = max(y1, v)
+        v = zs[t]
+        z0 = min(z0, v)
+        z1 = max(z1, v)
+    box[nd, 0] = x0
+    box[nd, 1] = x1
+    box[nd, 2] = y0
+    box[nd, 3] = y1
+    box[nd, 4] = z0
+    box[nd, 5] = z1
+
+
+@jit
+def _kd_build(R, leaf):
+    """The implicit kd-tree of ``R`` (m >= 1, 3): ``(box, lstart, xs, ys, zs, perm)``.
+
+    Depth ``D`` is the smallest with ``m >> D <= leaf``; node ``k``'s children
+    are ``2k + 1``, ``2k + 2``; leaf ``j`` (node ``2**D - 1 + j``) holds the
+    points ``lstart[j]:lstart[j + 1]`` of ``xs, ys, zs`` (the coordinates in
+    leaf order), ``perm`` maps them to rows of ``R``; ``box[k]`` is the tight
+    bounding box ``(xlo, xhi, ylo, yhi, zlo, zhi)`` of node ``k``'s points.
+    Each node splits its range at the middle index, after a selection along
+    the widest extent of its box (none when all its points coincide).
+    """
+    m = R.shape[0]
+    depth = 0
+    while (m >> depth) > leaf:
+        depth += 1
+    nl = 1 << depth
+    first = nl - 1
+    nn = 2 * nl - 1
+    box = np.empty((nn, 6))
+    lstart = np.empty(nl + 1, dtype=np.int64)
+    xs = np.empty(m)
+    ys = np.empty(m)
+    zs = np.empty(m)
+    for i in range(m):
+        xs[i] = R[i, 0]
+        ys[i] = R[i, 1]
+        zs[i] = R[i, 2]
+    perm = np.arange(m)
+    rs = np.empty(nn, dtype=np.int64)
+    re = np.empty(nn, dtype=np.int64)
+    rs[0] = 0
+    re[0] = m
+    for nd in range(nn):
+        s = rs[nd]
+        e = re[nd]
+        _range_box(xs, ys, zs, s, e, box, nd)
+        if nd >= first:
+            lstart[nd - first] = s
+            continue
+        mid = (s + e) // 2
+        wx = box[nd, 1] - box[nd, 0]
+        wy = box[nd, 3] - box[nd, 2]
+        wz = box[nd, 5] - box[nd, 4]
+        if e - s > 1:
+            rounds = _select_rounds(e - s)
+            if wx >= wy and wx >= wz:
+                if wx > 0.0:
+                    _select(xs, ys, zs, perm, s, e, mid, rounds)
+            elif wy >= wz:
+                _select(ys, xs, zs, perm, s, e, mid, rounds)
+            else:
+                _select(zs, xs, ys, perm, s, e, mid, rounds)
+        rs[2 * nd + 1] = s
+        re[2 * nd + 1] = mid
+        rs[2 * nd + 2] = mid
+        re[2 * nd + 2] = e
+    lstart[nl] = m
+    return box, lstart, xs, ys, zs, perm
+
+
+@jit(inline="always")
+def _box_d2(box, nd, x, y, z):
+    """Squared distance from ``(x, y, z)`` to ``box[nd]``, summed as a point's ``dx*dx + dy*dy + dz*dz``."""
+    gx = max(max(box[nd, 0] - x, x - box[nd, 1]), 0.0)
+    gy = max(max(box[nd, 2] - y, y - box[nd, 3]), 0.0)
+    gz = max(max(box[nd, 4] - z, z - box[nd, 5]), 0.0)
+    return gx * gx + gy * gy + gz * gz
+
+
+def _chunk_order(nch: int, runs: int = _RUNS) -> np.ndarray:
+    """The order in which ``_kd_query`` takes its ``nch`` chunks: ``runs`` runs of consecutive chunks,
+    the runs in the order ``r * stride % runs`` (``stride`` coprime to ``runs``, near 0.618 runs).
+
+    Each thread's share of the ``prange`` is a stretch of this order, so it gets
+    runs from all over the queries (the costly queries tend to come together: a
+    symmetry plane, a tip cap -- one half of the wing's took twice the other's
+    time), while the queries of a run stay consecutive (the tree nodes they visit
+    stay in cache).
+    """
+    k = max(1, min(nch, runs))
+    stride = max(min(2, k - 1), int(0.6180339887498949 * k), 1)
+    while math.gcd(stride, k) != 1:
+        stride += 1
+    edge = (np.arange(k + 1) * nch) // k
+    return np.concatenate([np.arange(edge[r], edge[r + 1]) for r in (np.arange(k) * stride) % k])
+
+
+@pjit
+def _kd_query(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order, dist, idx):
+    """``dist[q], idx[q]``: nearest row of ``R`` to ``Q[q]`` with squared distance ``< bound2``, else ``inf, m``.
+
+    Ties go to the smallest row index.  The chunks of ``chunk`` queries run in
+    parallel, in the order ``order`` (:func:`_chunk_order`); within a chunk
+    each query first tries the previous one's answer.
+    """
+    n = Q.shape[0]
+    m = xs.size
+    nl = lstart.size - 1
+    first = nl - 1
+    for c in prange(order.size):
+        b = order[c]
+        sn = np.empty(_STACK, dtype=np.int64)
+        sd = np.empty(_STACK)
+        hint = -1
+        for q in range(b * chunk, min(n, (b + 1) * chunk)):
+            x = Q[q, 0]
+            y = Q[q, 1]
+            z = Q[q, 2]
+            best = bound2
+            bi = -1                                      # none yet: only d2 < bound2 is accepted
+            if hint >= 0:
+                dx = R[hint, 0] - x
+                dy = R[hint, 1] - y
+                dz = R[hint, 2] - z
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 < best:
+                    best = d2
+                    bi = hint
+            sp = 0
+            md = _box_d2(box, 0, x, y, z)
+            if md <= best:
+                sn[0] = 0
+                sd[0] = md
+                sp = 1
+            while sp > 0:
+                sp -= 1
+                nd = sn[sp]
+                if sd[sp] > best:
+                    continue
+                while True:
+                    if nd >= first:                      # a leaf: its points
+                        j0 = nd - first
+                        for t in range(lstart[j0], lstart[j0 + 1]):
+                            dx = xs[t] - x
+                            dy = ys[t] - y
+                            dz = zs[t] - z
+                            d2 = dx * dx + dy * dy + dz * dz
+                            if d2 <= best:
+                                j = perm[t]
+                                # a tie goes to the smaller row (bi = -1: none yet, so
+                                # d2 == bound2 is never accepted)
+                                if d2 < best or j < bi:
+                                    best = d2
+                                    bi = j
+                        break
+                    ch = 2 * nd + 1
+                    m0 = _box_d2(box, ch, x, y, z)
+                    m1 = _box_d2(box, ch + 1, x, y, z)
+                    if m0 <= m1:
+                        near = ch
+                        far = ch + 1
+                        mn = m0
+                        mf = m1
+                    else:
+                        near = ch + 1
+                        far = ch
+                        mn = m1
+                        mf = m0
+                    if mf <= best:                       # later, unless best has dropped below by then
+                        sn[sp] = far
+                        sd[sp] = mf
+                        sp += 1
+                    if mn <= best:
+                        nd = near
+                    else:
+                        break
+            if bi >= 0:
+                dist[q] = np.sqrt(best)
+                idx[q] = bi
+                hint = bi
+            else:
+                dist[q] = np.inf
+                idx[q] = m
+    return dist, idx
+
+
+def _points_array(x, name: str) -> np.ndarray:
+    P = np.ascontiguousarray(x, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"nearest_within: {name} must have shape (n, 3), got {P.shape}")
+    bad = _first_nonfinite(P)
+    if bad >= 0:
+        nbad = int(np.count_nonzero(~np.isfinite(P).all(axis=1)))
+        raise ValueError(f"nearest_within: {name} contains a non-finite (NaN or infinite) coordinate "
+                         f"({nbad} row(s), first row {int(bad)})")
+    return P
+
+
+def nearest_within(ref, query, bound) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest row of ``ref`` to each row of ``query``, among those closer than ``bound``.
+
+    The answer of ``scipy.spatial.cKDTree(ref).query(query,
+    distance_upper_bound=bound)``, exactly (see the module notes).
+
+    Parameters
+    ----------
+    ref : (m, 3) array_like of float
+        Reference points (converted to C-ordered float64), finite; ``m = 0``
+        is allowed (no query has a neighbour).
+    query : (n, 3) array_like of float
+        Query points, finite; ``n = 0`` is allowed.
+    bound : float
+        ``>= 0``; ``inf`` for an unbounded query (every query gets the
+        nearest ref point when ``m > 0``), ``0`` for none.
+
+    Returns
+    -------
+    d : (n,) float64
+        ``sqrt(dx*dx + dy*dy + dz*dz)`` (float64, ``dx = r_x - q_x``, ...) of
+        the nearest ref point ``r`` whose ``dx*dx + dy*dy + dz*dz <
+        bound*bound`` (strictly, in float64, as cKDTree: a point exactly at
+        ``bound`` does not count), ``inf`` where there is none.
+    idx : (n,) int64
+        Its row in ``ref``, ``m`` where there is none.  Among ref points at
+        the same (computed) distance the smallest row; cKDTree may return
+        another of them.
+
+    Raises
+    ------
+    ValueError
+        ``ref`` or ``query`` is not ``(k, 3)`` or has a NaN or infinite
+        coordinate (the message names which, and the first bad row);
+        ``bound`` is not a real number, is NaN or is negative.
+
+    Notes
+    -----
+    ``bound*bound`` is what is compared: a finite ``bound`` above ~1.3e154
+    acts as ``inf`` and one below ~1.5e-162 as ``0``, as in cKDTree; squared
+    distances that overflow (coordinates beyond ~1e154 apart) never count.
+    """
+    if isinstance(bound, np.ndarray) and bound.ndim == 0:
+        bound = bound[()]
+    if isinstance(bound, (bool, np.bool_)) or not isinstance(bound, numbers.Real):
+        raise ValueError(f"nearest_within: bound must be a real number, got {bound!r}")
+    bound = float(bound)
+    if np.isnan(bound):
+        raise ValueError("nearest_within: bound must not be NaN")
+    if bound < 0.0:
+        raise ValueError(f"nearest_within: bound must be >= 0, got {bound!r}")
+    R = _points_array(ref, "ref")
+    Q = _points_array(query, "query")
+    m = R.shape[0]
+    n = Q.shape[0]
+    dist = np.full(n, np.inf)
+    idx = np.full(n, m, dtype=np.int64)
+    bound2 = bound * bound
+    if m == 0 or n == 0 or not bound2 > 0.0:        # nothing can be strictly closer than 0
+        return dist, idx
+    # squared distances may overflow (huge coordinates; never a candidate then) or underflow:
+    # silence numpy's warnings for the uncompiled kernels (TFI_QUAT_JIT=0)
+    with np.errstate(over="ignore", under="ignore"):
+        tree = _kd_build(R, LEAF)
+        with serial_below(_QUERY_WORK * n):
+            runs = _RUNS if ENABLED and numba.get_num_threads() > 1 else 1
+            _kd_query(*tree, R, Q, bound2, CHUNK, _chunk_order(-(-n // CHUNK), runs), dist, idx)
+    return dist, idx

@@ -995,7 +995,7 @@ class Deformer:
     def _build_wall_distances(self, rotation_length) -> None:
         """Two-level: distance of every boundary point to the walls, its nearest wall point,
         the rotation length and the end weights ``omega = exp(-d / ell)``."""
-        from scipy.spatial import cKDTree
+        from ._points import nearest_within
         P = self._P
         wall = np.flatnonzero(self._kind == WALL)
         W = P[wall]
@@ -1009,21 +1009,7 @@ class Deformer:
         self.rotation_length = ell
         # every weight built from d is below 1e-8 beyond 20 ell (omega = exp(-d / ell)): a
         # bounded query; points farther away get d = inf, weight 0
-        bound = 20.0 * ell
-        # only points inside a wall patch's bounding box grown by the bound can be closer
-        cand = np.zeros(P.shape[0], dtype=bool)
-        for w in self._walls:
-            x = P[w.gid.ravel()]
-            lo = x.min(axis=0) - bound
-            hi = x.max(axis=0) + bound
-            cand |= np.all((P >= lo) & (P <= hi), axis=1)
-        ci = np.flatnonzero(cand)
-        d = np.full(P.shape[0], np.inf)
-        near = np.zeros(P.shape[0], dtype=np.int64)
-        if ci.size:
-            dc, nc = cKDTree(W).query(P[ci], distance_upper_bound=bound, workers=-1)
-            d[ci] = dc
-            near[ci] = nc
+        d, near = nearest_within(W, P, 20.0 * ell)
         far = ~np.isfinite(d)
         d[self._kind == WALL] = 0.0
         near[far] = 0
