@@ -85,8 +85,20 @@ REBASE_FRACTION = 0.1
 DAMP_FRACTION = 4.0
 
 
+@pjit
+def _hermite_kernel(s):
+    for m in prange(s.shape[0]):
+        x = s[m]
+        s[m] = (x * -2.0 + 3.0) * (x * x)
+
+
 def _hermite(s: np.ndarray) -> np.ndarray:
     """In place: s -> 3 s^2 - 2 s^3 (0 and 1 stay exact, zero slope at both ends)."""
+    if s.flags.f_contiguous or s.flags.c_contiguous:
+        flat = s.reshape(-1, order="F" if s.flags.f_contiguous else "C")
+        with serial_below(flat.size):
+            _hermite_kernel(flat)
+        return s
     s2 = s * s
     s *= -2.0
     s += 3.0
@@ -1164,7 +1176,6 @@ class Deformer:
             sel = planes == m
             self._sym_point[sel] = pl[0]
             self._sym_normal[sel] = pl[1]
-        self._fixed_gids = np.flatnonzero(self._kind == FIXED)
 
     def _onto_symmetry(self, pos: np.ndarray) -> None:
         """The symmetry points of the global array ``pos`` (G, 3) projected onto their planes,
@@ -1445,10 +1456,9 @@ class Deformer:
                           self._sym_normal)
 
     def _finish_boundary(self, pos, rd) -> np.ndarray:
-        """Boundary positions: symmetry points on their plane, fixed points at rest, walls exact."""
+        """Boundary positions: symmetry points on their plane, walls exact (fixed points are
+        never written: they keep the buffer's undeformed position)."""
         self._onto_symmetry(pos)
-        fixed = self._fixed_gids
-        pos[fixed] = self._P[fixed]
         wall = self._wall_gids
         pos[wall] = rd[wall]
         return pos
@@ -1499,7 +1509,8 @@ class Deformer:
         if self._buffers is None:
             G = self.n_global
             P = self._P
-            K = self._c.copy()                 # fixed points: K = c (Q = 1: position c + A = P)
+            # two-level: fixed points have K = c (Q = 1: position c + A = P)
+            K = self._c.copy() if self._two else None
             ql = np.zeros((G, 4))
             ql[:, 0] = 1.0
             gd = np.zeros((G, 3))
@@ -1598,26 +1609,28 @@ class Deformer:
         return Grid(blocks, self.ndim, source_format=self.grid.source_format)
 
     def _deform_samareh(self, rd, callback, t0) -> Grid:
-        G = self.n_global
         wall = self._wall_gids
         c = self.centre
-        gdelta = np.zeros((G, 3))
+        P = self._P
+        # persistent buffers: walls and derived points are written every step, fixed points
+        # keep Δ = 0, Q = 1 and their position
+        _, _, gdelta, gq, pos = self._work()
         if self._use_q:
-            gq = np.zeros((G, 4))
-            gq[:, 0] = 1.0
             qw = self._wall_quaternions(rd)
             gq[wall] = qw
             # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
-            gdelta[wall] = rd[wall] - c - qa.rotate(qw, self._P[wall] - c)
+            gdelta[wall] = rd[wall] - c - qa.rotate(qw, P[wall] - c)
         else:
             gq = None
-            gdelta[wall] = rd[wall] - self._P[wall]
+            gdelta[wall] = rd[wall] - P[wall]
         t1 = time.perf_counter()
         ts, tf = self._samareh_fields(gdelta, gq)
+        der = self._derived
         if gq is not None:
-            pos = c + gdelta + qa.rotate(gq, self._P - c)
+            pos[der] = P[der]
+            _positions_global(gdelta, gq, c, der, pos)
         else:
-            pos = self._P + gdelta
+            pos[der] = P[der] + gdelta[der]
         pos = self._finish_boundary(pos, rd)
         t3 = time.perf_counter()
         outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
