@@ -28,12 +28,13 @@ METHODS = (("quaternion", "two-level"), ("quaternion", "samareh"), ("tfi", None)
 
 
 def _kept_bytes(d: Deformer) -> int:
-    """Bytes a Deformer keeps per block: blending parameters, arms, the kernels' kept tables."""
+    """Bytes a Deformer keeps per block: blending parameters, the kernels' kept tables and the
+    two-level base tables."""
     n = 0
     for plan in d._blocks:
         n += plan.s.nbytes
-        if plan.arm is not None:
-            n += plan.arm.nbytes
+        if plan.base is not None:
+            n += sum(t.nbytes for t in plan.base)
         if plan.gather is not None:
             n += plan.gather.nbytes
     return n

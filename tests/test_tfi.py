@@ -896,6 +896,64 @@ def test_deform_block_gathered_2d_is_bit_identical_to_deform_block_2d(shape, ord
     np.testing.assert_array_equal(work, expect)
 
 
+@given(st.sampled_from([(6, 5, 4), (2, 5, 3), (4, 1, 3), (5, 4, 2)]), orders_st, seeds_st)
+def test_based_update_is_the_update_of_the_stored_base_point(shape, order, seed):
+    """``base=plan.base_tables(B)``: bit for bit the update of ``R_u + TFI(B)`` computed
+    first by the baseline kernel and passed as ``xyz_u`` (the two-level arms), 3-D and 2-D."""
+    cases = [(warped_block(shape, seed), 6, order)]
+    cases.append((block2d(shape[0], shape[1] + 1, seed=seed), 4, order[:2] if order[0] < 2 else (1, 0)))
+    for xyz, nf, o in cases:
+        if nf == 4 and sorted(o) != [0, 1]:
+            o = (0, 1)
+        s = tfi.arclength(xyz)
+        face_index, G, P = global_rows(xyz, nf, seed)
+        gd, gq = global_values(P, seed, True)
+        gb, _ = global_values(P * 0.7 - 0.1, seed + 1, False)
+        plan = tfi.gather_plan(face_index, s, o)
+        c = np.array([0.3, -0.2, 0.5 if nf == 6 else 0.0])
+        arm = tfi.deform_block_gathered(xyz, s, gb, None, plan, np.zeros(3))
+        expect = tfi.deform_block_gathered(arm, s, gd, gq, plan, c)
+        base = plan.base_tables(gb)
+        got = tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, base=base)
+        np.testing.assert_array_equal(got, expect)
+        # the plan's kept tables are rebuilt by later calls; the base tables are a copy
+        tfi.deform_block_gathered(xyz, s, gb * 3.0, None, plan, np.zeros(3))
+        np.testing.assert_array_equal(tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, base=base),
+                                      expect)
+        with pytest.raises(GridValueError, match="only for quaternion"):
+            tfi.deform_block_gathered(xyz, s, gd, None, plan, c, base=base)
+        with pytest.raises(GridValueError, match="in place"):
+            tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, out=xyz, base=base)
+
+
+def test_based_update_takes_the_fallback_like_the_stored_base_point():
+    """The half-turn sides of the fallback test, about a shifted base: the rows that need
+    the rotation-vector fallback give the stored-base result bit for bit."""
+    ni, nj = 5, 5
+    xyz = np.zeros((ni, nj, 1, 3), order="F")
+    xyz[..., 0] = np.linspace(0.0, 1.0, ni)[:, None, None] + 0.3
+    xyz[..., 1] = np.linspace(0.0, 2.0, nj)[None, :, None] + 0.1
+    s = tfi.arclength(xyz)
+    fd, fq = _half_turn_sides(ni, nj, np.array([0.1, -0.2, 0.0]))
+    ids = np.arange(ni * nj).reshape(ni, nj, 1, order="F")
+    face_index = [ids[0], ids[-1], ids[:, 0], ids[:, -1]]
+    gd = np.zeros((ni * nj, 3))
+    gq = np.zeros((ni * nj, 4))
+    gq[:, 0] = 1.0
+    for f, d, q in zip(face_index, fd, fq):
+        gd[f[:, 0]] = d
+        gq[f[:, 0]] = q
+    gb = np.zeros((ni * nj, 3))
+    gb[:, 0] = 0.05 * np.arange(ni * nj) % 0.3
+    plan = tfi.gather_plan(face_index, s, (0, 1))
+    c = np.array([0.2, 0.4, 0.0])
+    arm = tfi.deform_block_gathered(xyz, s, gb, None, plan, np.zeros(3))
+    expect = tfi.deform_block_gathered(arm, s, gd, gq, plan, c)
+    got = tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, base=plan.base_tables(gb))
+    np.testing.assert_array_equal(got, expect)
+    assert np.all(np.isfinite(got))
+
+
 @pytest.mark.parametrize("keep", [True, False])
 def test_a_plan_reused_with_new_values_gives_each_step_its_own_result(keep):
     """Tables kept in the plan are rebuilt from each call's values (quaternion and baseline

@@ -608,7 +608,7 @@ class _BlockPlan:
     order: tuple[int, ...]
     face_gid: list[np.ndarray] = field(default_factory=list)   # per face (na, nb)
     face_s: tuple | None = None         # tfi.face_params(s)
-    arm: np.ndarray | None = None       # two-level: A = R_u - TFI(c on the faces)
+    base: tuple | None = None           # two-level: tables of TFI(-c), the arms A = R_u - TFI(c)
     gather: object = None               # tfi.gather_plan: faces read from the global arrays
 
 
@@ -1327,12 +1327,9 @@ class Deformer:
         damp[der] = np.exp(-(self._dwall[der] / (DAMP_FRACTION * self.rotation_length)) ** 2)
         self._dampf = damp
         minus_c = np.negative(c)
-        for blk, plan in zip(self.grid, self._blocks):
-            # A = R_u - TFI(c): the baseline kernel with R_u as base and -c on the faces
-            arm = np.empty_like(blk.xyz, order="F")
-            with serial_below(blk.npoints):
-                tfi.deform_block_gathered(blk.xyz, plan.s, minus_c, None, plan.gather, _ORIGIN, out=arm)
-            plan.arm = arm
+        for plan in self._blocks:
+            # A = R_u - TFI(c), evaluated inside the volume kernel from these O(surface) tables
+            plan.base = plan.gather.base_tables(minus_c)
 
     # -------------------------------------------------------------- a step
     def wall_points(self) -> np.ndarray:
@@ -1473,17 +1470,20 @@ class Deformer:
         self._symmetry_stage(gdelta, gq)
         return t2 - t1, time.perf_counter() - t2
 
-    def _volumes(self, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None):
+    def _volumes(self, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None,
+                 based=False):
         """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``.
 
         The face values are read from the global boundary arrays through each block's
-        :func:`tfi.gather_plan` (no per-face copies).
+        :func:`tfi.gather_plan` (no per-face copies).  ``based``: the base point is
+        ``bases[b] + TFI(-c)`` (the two-level arms, from the block's base tables).
         """
         nblk = len(self.grid)
         total = total or nblk
         for b, plan in enumerate(self._blocks):
             with serial_below(self.grid[b].npoints):
-                tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre, out=outs[b])
+                tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre,
+                                          out=outs[b], base=plan.base if based else None)
             if callback is not None:
                 callback(done0 + b + 1, total)
 
@@ -1669,8 +1669,8 @@ class Deformer:
         outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
         total = len(self.grid) * (int(local) + int(rigid))
         if local:
-            self._volumes([plan.arm for plan in self._blocks], K, gql, _ORIGIN, outs, callback, 0,
-                          total)
+            self._volumes([blk.xyz for blk in self.grid], K, gql, _ORIGIN, outs, callback, 0,
+                          total, based=True)
         else:
             for out, blk in zip(outs, self.grid):
                 np.copyto(out, blk.xyz)

@@ -296,11 +296,9 @@ def _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn):
 
 
 @jit(inline="always")
-def _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
-    """``out = R_u + Δ + (rot(q, R_u - c) - (R_u - c))`` (exact identity when q = 1, Δ = 0)."""
-    x0 = xyz[i, j, k, 0]
-    y0 = xyz[i, j, k, 1]
-    z0 = xyz[i, j, k, 2]
+def _store_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
+    """``out = R + Δ + (rot(q, R - c) - (R - c))`` for the base point ``R = (x0, y0, z0)``
+    (exact identity when q = 1, Δ = 0)."""
     vx = x0 - cx
     vy = y0 - cy
     vz = z0 - cz
@@ -313,12 +311,16 @@ def _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
 
 
 @jit(inline="always")
-def _store_g(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz, g):
-    """:func:`_store` with the change scaled by ``g``: 1 gives :func:`_store`'s result bit
-    for bit (the same sums), 0 stores ``R_u`` itself."""
-    x0 = xyz[i, j, k, 0]
-    y0 = xyz[i, j, k, 1]
-    z0 = xyz[i, j, k, 2]
+def _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz):
+    """:func:`_store_at` with the base point ``R_u = xyz[i, j, k]``."""
+    _store_at(out, i, j, k, xyz[i, j, k, 0], xyz[i, j, k, 1], xyz[i, j, k, 2], cx, cy, cz,
+              dx, dy, dz, qw, qx, qy, qz)
+
+
+@jit(inline="always")
+def _store_g_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz, g):
+    """:func:`_store_at` with the change scaled by ``g``: 1 gives its result bit for bit
+    (the same sums), 0 stores the base point itself."""
     vx = x0 - cx
     vy = y0 - cy
     vz = z0 - cz
@@ -328,6 +330,13 @@ def _store_g(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz, g):
     out[i, j, k, 0] = x0 + g * dx + g * (qw * tx + (qy * tz - qz * ty))
     out[i, j, k, 1] = y0 + g * dy + g * (qw * ty + (qz * tx - qx * tz))
     out[i, j, k, 2] = z0 + g * dz + g * (qw * tz + (qx * ty - qy * tx))
+
+
+@jit(inline="always")
+def _store_g(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz, g):
+    """:func:`_store_g_at` with the base point ``R_u = xyz[i, j, k]``."""
+    _store_g_at(out, i, j, k, xyz[i, j, k, 0], xyz[i, j, k, 1], xyz[i, j, k, 2], cx, cy, cz,
+                dx, dy, dz, qw, qx, qy, qz, g)
 
 
 @jit(inline="always")
@@ -680,6 +689,124 @@ def _deform2_d(xyz, s, out, L, M, lineD, gD, hD):
     """Fused 2-D baseline update (nk = 1), parallel over rows."""
     for jp in prange(xyz.shape[1]):
         _row2_d(xyz, s, out, np.int64(jp), L, M, lineD, gD, hD)
+
+
+@jit(inline="always")
+def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
+    """The base point ``R_u + TFI(B)`` of the based kernels (``B``'s baseline TFI, the
+    sums :func:`_point_d` makes)."""
+    bx, by, bz = _w_d(lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
+    return xyz[i, j, k, 0] + bx, xyz[i, j, k, 1] + by, xyz[i, j, k, 2] + bz
+
+
+@jit(inline="always")
+def _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+              lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb, lineB, gB, hB):
+    """:func:`_point_q` about the base point ``R_u + TFI(B)`` instead of ``R_u``."""
+    t = np.float64(s[i, j, k, L])
+    sm = np.float64(s[i, j, k, M])
+    sn = np.float64(s[i, j, k, N])
+    x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
+    dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+    qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    inv = 1.0 / max(n, QNORM_MIN)
+    g = 1.0 if n >= QNORM_MIN else 0.0
+    _store_g_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw * inv, qx * inv, qy * inv,
+                qz * inv, g)
+    return 1 if n < QNORM_MIN else 0
+
+
+@jit
+def _fix_row_b(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+               fbM, fbN, hasn, lineB, gB, hB):
+    """The based kernels' :func:`_fix_row`."""
+    for i in range(xyz.shape[0]):
+        la, lb = _fc(i, j, k, L)
+        ma, mb = _fc(i, j, k, M)
+        if hasn:
+            na, nb = _fc(i, j, k, N)
+        else:
+            na, nb = 0, 0
+        t = np.float64(s[i, j, k, L])
+        sm = np.float64(s[i, j, k, M])
+        sn = np.float64(s[i, j, k, N])
+        qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+        if math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) < QNORM_MIN:
+            dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+            qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn)
+            x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb,
+                                  sn)
+            _store_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz)
+
+
+@jit(forceinline=True)
+def _row3_qb(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+             lineB, gB, hB):
+    """The based twin of the quaternion row kernel (base point ``R_u + TFI(B)``)."""
+    ni = xyz.shape[0]
+    nbad = 0
+    if L == 0:
+        cm = k if M == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            nbad += _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                              lineD, lineQ, j, k, gD, gQ, i, cm, hD, hQ, i, cn, lineB, gB, hB)
+    elif M == 0:
+        cl = k if L == 1 else j
+        cn = k if N == 1 else j
+        for i in range(ni):
+            nbad += _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                              lineD, lineQ, i, cl, gD, gQ, j, k, hD, hQ, i, cn, lineB, gB, hB)
+    else:
+        cl = k if L == 1 else j
+        cm = k if M == 1 else j
+        for i in range(ni):
+            nbad += _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
+                              lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB)
+    if nbad > 0:
+        _fix_row_b(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+                   fbM, fbN, True, lineB, gB, hB)
+
+
+@jit(forceinline=True)
+def _row2_qb(xyz, s, out, j, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+             lineB, gB, hB):
+    """The based twin of the quaternion row kernel (base point ``R_u + TFI(B)``)."""
+    ni = xyz.shape[0]
+    nbad = 0
+    if L == 0:
+        for i in range(ni):
+            nbad += _point_qb(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
+                              lineD, lineQ, j, 0, gD, gQ, i, 0, hD, hQ, 0, 0, lineB, gB, hB)
+    else:
+        for i in range(ni):
+            nbad += _point_qb(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
+                              lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB)
+    if nbad > 0:
+        _fix_row_b(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
+                   fbM, fbN, False, lineB, gB, hB)
+
+
+@pjit
+def _deform3_qb(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+                lineB, gB, hB):
+    """The based twin of the fused quaternion update (base point ``R_u + TFI(B)``)."""
+    nj, nk = xyz.shape[1], xyz.shape[2]
+    for kp in prange(nk):
+        k = np.int64(kp)
+        for j in range(nj):
+            _row3_qb(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+                     lineB, gB, hB)
+
+
+@pjit
+def _deform2_qb(xyz, s, out, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+                lineB, gB, hB):
+    """The based twin of the fused quaternion update (base point ``R_u + TFI(B)``)."""
+    for jp in prange(xyz.shape[1]):
+        _row2_qb(xyz, s, out, np.int64(jp), cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+                 lineB, gB, hB)
 
 
 @pjit
@@ -1749,6 +1876,15 @@ class GatherPlan:
               FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
         return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
 
+    def base_tables(self, g_base) -> tuple:
+        """The tables of the baseline TFI of a fixed field ``g_base`` (G, 3) over this
+        block's faces, for ``deform_block_gathered(..., base=...)``: a copy (O(surface)),
+        kept by the caller."""
+        gb = _check_global(g_base, 3, self.n_index, "g_base")
+        with self._lock:
+            lineD, _, gD, _, hD, _, _, _ = self._fill(gb, None)
+            return lineD.copy(order="F"), gD.copy(order="F"), hD.copy(order="F")
+
 
 _NO_Q = np.zeros((1, 4))            # stands for g_q in the baseline (never read)
 
@@ -1872,7 +2008,8 @@ def _check_global(a, ncomp: int, n_index: int, name: str) -> np.ndarray:
     return a
 
 
-def deform_block_gathered(xyz_u, s, g_delta, g_q, plan, centre, out=None) -> np.ndarray:
+def deform_block_gathered(xyz_u, s, g_delta, g_q, plan, centre, out=None, *,
+                          base=None) -> np.ndarray:
     """:func:`deform_block` (or :func:`deform_block_2d`) with the face values read from global arrays.
 
     Gives bit for bit the result of ``deform_block(xyz_u, s, [g_delta[g] for
@@ -1902,7 +2039,12 @@ def deform_block_gathered(xyz_u, s, g_delta, g_q, plan, centre, out=None) -> np.
     centre : array_like, shape (3,)
         Rotation centre ``c``.
     out : ndarray, shape (ni, nj, nk, 3), float64, Fortran order, optional
-        Receives the result; may be ``xyz_u`` itself (in place).
+        Receives the result; may be ``xyz_u`` itself (in place), but not with ``base``.
+    base : tuple, optional
+        :meth:`GatherPlan.base_tables` of a field ``B``: the update is made about
+        the base point ``R_u + TFI(B)`` instead of ``R_u``, bit for bit as if that
+        point (the baseline kernel's result with Δ = B) had been passed as
+        ``xyz_u``, without storing it.  Quaternion calls only.
 
     Returns
     -------
@@ -1942,8 +2084,26 @@ def deform_block_gathered(xyz_u, s, g_delta, g_q, plan, centre, out=None) -> np.
     gq = None if g_q is None else _check_global(g_q, 4, plan.n_index, "g_q")
     c = _check_centre(centre)
     out = _check_out(out, dims)
+    if base is not None:
+        if gq is None:
+            _fail("base: only for quaternion calls (g_q given)")
+        if out is xyz_u:
+            _fail("base: the update cannot be made in place (out is xyz_u)")
+        lineB, gB, hB = base
+        if lineB.shape[:2] != _padded(dims, plan.order[0]) or lineB.shape[2] != 6:
+            _fail(f"base: tables of another block (line table {lineB.shape})")
     with plan._lock:
         lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = plan._fill(gd, gq)
+        if base is not None:
+            if plan.ndim == 3:
+                L, M, N = plan.order
+                _deform3_qb(xyz_u, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD,
+                            hQ, fbM, fbN, lineB, gB, hB)
+            else:
+                L, M = plan.order
+                _deform2_qb(xyz_u, s, out, c[0], c[1], c[2], L, M, lineD, lineQ, gD, gQ, hD, hQ,
+                            fbM, fbN, lineB, gB, hB)
+            return out
         if plan.ndim == 3:
             L, M, N = plan.order
             if gq is None:
