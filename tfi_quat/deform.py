@@ -16,7 +16,9 @@ Set-up (once per grid, :class:`Deformer`):
    vertices, the gaps of each segment with their blending parameters, the
    parameters and leading direction of each derived patch, the parameters and
    direction order of each block and, for the two-level formulation, the
-   rotation arms of every level.
+   rotation arms of every level (in the volumes as O(surface) tables the
+   kernel evaluates them from) and the weights of each wall body's rigid
+   motion on the derived boundary points.
 
 Formulations (``docs/deformer.md`` has the derivation and the measurements):
 
@@ -87,6 +89,7 @@ DAMP_FRACTION = 4.0
 
 @pjit
 def _hermite_kernel(s):
+    """``s <- 3 s^2 - 2 s^3`` in place on a flat array, the sums of the numpy form."""
     for m in prange(s.shape[0]):
         x = s[m]
         s[m] = (x * -2.0 + 3.0) * (x * x)
