@@ -773,10 +773,12 @@ def test_nn_parallel_chunks(threads):
     if ENABLED and threads > numba.config.NUMBA_NUM_THREADS:
         pytest.skip("fewer threads available")
     rng = np.random.default_rng(17)
-    R = np.concatenate([_clustered(rng, 3000, 5), rng.uniform(-1, 1, size=(2000, 3))])
-    R = np.concatenate([R, R[:500]])
-    line = np.cumsum(0.01 * _unit_vectors(rng, 30011), axis=0) % 2.0 - 1.0   # a coherent walk
-    Q = np.concatenate([line, R[rng.integers(len(R), size=3000)]])
+    R = np.concatenate([_clustered(rng, 800, 5), rng.uniform(-1, 1, size=(500, 3))])
+    R = np.concatenate([R, R[:200]])
+    line = np.cumsum(0.01 * _unit_vectors(rng, 7011), axis=0) % 2.0 - 1.0   # a coherent walk
+    Q = np.concatenate([line, R[rng.integers(len(R), size=1500)]])
+    from tfi_quat._jit import SERIAL_BELOW
+    assert _points._QUERY_WORK * len(Q) >= SERIAL_BELOW      # the parallel path runs
     ref = nn_brute(R, Q, 0.3)
     prev = numba.get_num_threads() if ENABLED else None
     try:

@@ -395,7 +395,7 @@ def _patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
     ``meta[p] = (offset, na, nb, lead, line offset, side offset)``; ``gidf``, ``sf``
     (n, 2), ``wf``: the patches' global ids, blending parameters and write flags, flat
     in C order; ``tasks`` (T, 2): (patch, line) of every interior line; ``work``: the
-    tables (:func:`_level_work`).  The formulas are
+    tables (:func:`_level_pack`).  The formulas are
     :func:`tfi_quat.tfi.tfi_patch_fast`'s (slerp along the leading direction,
     hemisphere-aligned residuals of the two other sides, normalised; the
     rotation-vector blend where the norm falls below ``QNORM_MIN``).  Patches only read
