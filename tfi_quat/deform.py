@@ -287,6 +287,15 @@ def _positions_global(gdelta, gq, centre, idx, pos):
 
 
 @jit
+def _blend_rows(P, foot, w, out):
+    """``out[p] = w[p] P[foot[p]] + (1 - w[p]) P[p]`` (the sums of the numpy form)."""
+    for p in range(P.shape[0]):
+        f = foot[p]
+        for c in range(3):
+            out[p, c] = w[p] * P[f, c] + (1.0 - w[p]) * P[p, c]
+
+
+@jit
 def _halo_points(X, hidx, mirror, po, pn, out):
     """``out[h] = X[hidx[h]]``, mirrored across plane ``mirror[h]`` (``po``, ``pn``: plane
     points and unit normals) where that is >= 0, NaN where ``hidx[h] < 0``."""
@@ -1304,7 +1313,8 @@ class Deformer:
         shift = np.zeros_like(P)
         lr = REBASE_FRACTION * self.rotation_length
         w_r = np.exp(-self._dwall / lr)
-        target = w_r[:, None] * P[self._foot] + (1.0 - w_r)[:, None] * P   # re-based centres
+        target = np.empty_like(P)                # re-based centres w foot + (1 - w) x
+        _blend_rows(P, self._foot, w_r, target)
 
         def rebase(idx, c_interp):
             shift[idx] = target[idx] - c_interp
@@ -1329,10 +1339,11 @@ class Deformer:
         der = self._derived
         damp[der] = np.exp(-(self._dwall[der] / (DAMP_FRACTION * self.rotation_length)) ** 2)
         self._dampf = damp
-        minus_c = np.negative(c)
+        np.negative(c, out=c)                    # -c for the tables (negation is exact)
         for plan in self._blocks:
             # A = R_u - TFI(c), evaluated inside the volume kernel from these O(surface) tables
-            plan.base = plan.gather.base_tables(minus_c)
+            plan.base = plan.gather.base_tables(c)
+        np.negative(c, out=c)
 
     # -------------------------------------------------------------- a step
     def wall_points(self) -> np.ndarray:
