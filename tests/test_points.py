@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import assume, given
+from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
@@ -259,13 +259,8 @@ def test_structured_blocks_match_ckdtree(seed, shape, rel_tol, rotate):
     assert len(ref) >= nj * nk                            # the shared face at least
 
 
-@pytest.mark.parametrize("make", [
-    lambda: gen.wing(ni=33, nj=12, nk_wing=11, nk_cap=5, nk_out=7),   # interfaces, wake cut, collapsed sheet
-    lambda: gen.airfoil(topology="C", ni=65, nj=17),                  # wake cut
-    lambda: gen.cylinder(ni=33, nj=9),                                # periodic seam
-], ids=["wing", "c-airfoil", "o-cylinder"])
-def test_generated_grid_boundaries(make, spy):
-    grid = make()
+def _boundary_points(grid) -> np.ndarray:
+    """Every block's points on its six faces (a block point on several faces once), stacked."""
     pts = []
     for blk in grid:
         x = blk.xyz
@@ -274,7 +269,17 @@ def test_generated_grid_boundaries(make, spy):
         mask[:, [0, -1]] = True
         mask[:, :, [0, -1]] = True
         pts.append(x[mask])
-    P = np.concatenate(pts)
+    return np.concatenate(pts)
+
+
+@pytest.mark.parametrize("make", [
+    lambda: gen.wing(ni=33, nj=12, nk_wing=11, nk_cap=5, nk_out=7),   # interfaces, wake cut, collapsed sheet
+    lambda: gen.airfoil(topology="C", ni=65, nj=17),                  # wake cut
+    lambda: gen.cylinder(ni=33, nj=9),                                # periodic seam
+], ids=["wing", "c-airfoil", "o-cylinder"])
+def test_generated_grid_boundaries(make, spy):
+    grid = make()
+    P = _boundary_points(grid)
     tol = 1e-10 * np.linalg.norm(P.max(0) - P.min(0))
     out = close_pairs(P, tol)
     ref = kdtree(P, tol)
@@ -747,15 +752,7 @@ def test_nn_generated_wing_walls():
         walls.append(f.reshape(-1, 3))
     W = np.concatenate(walls)
     assert len(np.unique(W, axis=0)) < len(W)            # the shared edge: ties at distance 0
-    P = []
-    for blk in grid:
-        x = blk.xyz
-        mask = np.zeros(x.shape[:3], dtype=bool)
-        mask[[0, -1]] = True
-        mask[:, [0, -1]] = True
-        mask[:, :, [0, -1]] = True
-        P.append(x[mask])
-    P = np.concatenate(P)
+    P = _boundary_points(grid)
     bound = 0.2 * float(np.linalg.norm(W.max(0) - W.min(0)))
     out = nearest_within(W, P, bound)
     check_nn_form(out, len(P), len(W))
