@@ -13,6 +13,13 @@ read once when this module is first imported:
     do not cache compiled kernels on disk (default: cache, so a warm CLI
     start-up skips compilation).
 
+numba's disk cache is invalidated only by changes to a kernel's own source
+file: kernels that inline helpers from another module (``deform``,
+``blending`` and ``boundary`` inline ``tfi`` and ``quaternion`` helpers) keep
+their cached machine code when only the helper's file changes.  After
+editing such a helper, delete the package's ``__pycache__`` folders (or run
+with ``TFI_QUAT_CACHE=0``); a fresh checkout, as in CI, has no cache.
+
 Tests that run one kernel uncompiled inside a compiled session use
 ``kernel.py_func``; ``tests/test_jit.py`` runs the package with
 ``TFI_QUAT_JIT=0`` in a subprocess.  (numba's own ``NUMBA_DISABLE_JIT=1``
