@@ -606,12 +606,10 @@ class _PatchTFI:
 class _Wall:
     spec: PatchSpec
     gid: np.ndarray            # (na, nb) or (n,) for 2-D curves
-    halo: np.ndarray           # (na+2, nb+2) or (n+2,), -1 where no neighbour
+    halo: np.ndarray           # (na+2, nb+2) or (n+2,), C order, -1 where no neighbour
     mirror: np.ndarray         # same shape: symmetry plane whose mirror image of halo is used, or -1
-    hidx: np.ndarray | None = None      # halo, flat (C order)
-    hmirror: np.ndarray | None = None   # mirror, flat
-    pshape: tuple = ()                  # shape of the padded halo points
-    pu: np.ndarray | None = None        # undeformed halo points (NaN where no neighbour)
+    pu: np.ndarray | None = None   # undeformed halo points as boundary_motion takes them:
+                                   # (na+2, nb+2, 3) or (n+2, 1, 3), NaN where no neighbour
 
 
 @dataclass
@@ -973,7 +971,8 @@ class Deformer:
                     side = {int(g[x, col]) for x in (aa - 1, aa + 1) if 0 <= x < na}
                     fill(halo, mirror, (aa + 1, at), int(g[aa, col]), int(g[aa, inner_col]), side)
             if curve:
-                self._walls.append(_Wall(p.spec, g[:, 0], halo[:, 1], mirror[:, 1]))
+                self._walls.append(_Wall(p.spec, g[:, 0], np.ascontiguousarray(halo[:, 1]),
+                                         np.ascontiguousarray(mirror[:, 1])))
             else:
                 self._walls.append(_Wall(p.spec, g, halo, mirror))
         self._wall_gids = np.flatnonzero(self._kind == WALL)
@@ -987,11 +986,9 @@ class Deformer:
         self._plane_o = np.array([o for o, _ in self._sym_planes]).reshape(npl, 3)
         self._plane_n = np.array([n for _, n in self._sym_planes]).reshape(npl, 3)
         for w in self._walls:
-            w.hidx = np.ascontiguousarray(w.halo.ravel())
-            w.hmirror = np.ascontiguousarray(w.mirror.ravel())
-            w.pshape = (w.halo.shape[0], 1, 3) if curve else w.halo.shape + (3,)
-            w.pu = np.empty(w.pshape)
-            _halo_points(P, w.hidx, w.hmirror, self._plane_o, self._plane_n, w.pu.reshape(-1, 3))
+            w.pu = np.empty((w.halo.shape[0], 1, 3) if curve else w.halo.shape + (3,))
+            _halo_points(P, w.halo.ravel(), w.mirror.ravel(), self._plane_o, self._plane_n,
+                         w.pu.reshape(-1, 3))
 
     def _build_rects(self) -> None:
         rects: list[_Rect] = []
@@ -1021,7 +1018,7 @@ class Deformer:
         the rotation length and the end weights ``omega = exp(-d / ell)``."""
         from ._points import nearest_within
         P = self._P
-        wall = np.flatnonzero(self._kind == WALL)
+        wall = self._wall_gids
         W = P[wall]
         if rotation_length is None:
             # twice the largest distance from the walls' centroid: a size that rotates with them
@@ -1328,8 +1325,7 @@ class Deformer:
         if self._gaps is not None:
             _rebase_gaps(c, *self._gaps, target, shift)
         if self._patches:
-            with serial_below(_PATCH_WORK * self._plevel_points):
-                _patch_level(c, np.empty((1, 4)), False, *self._plevel, _NONE, _NONE3)
+            self._patch_stage(c, None)
             wg = self._plevel[1][self._plevel[3]]
             rebase(wg, c[wg].copy())
         self._c = c
@@ -1411,10 +1407,11 @@ class Deformer:
         curve = self.ndim == 2
         e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
         for w, lid in zip(self._walls, self._wall_local):
-            pd = np.empty(w.pshape)
-            _halo_points(rd, w.hidx, w.hmirror, self._plane_o, self._plane_n, pd.reshape(-1, 3))
-            na = w.pshape[0] - 2
-            nb = 1 if curve else w.pshape[1] - 2
+            pd = np.empty_like(w.pu)
+            _halo_points(rd, w.halo.ravel(), w.mirror.ravel(), self._plane_o, self._plane_n,
+                         pd.reshape(-1, 3))
+            na = pd.shape[0] - 2
+            nb = 1 if curve else pd.shape[1] - 2
             q, _ = _motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, self.centre, na, nb)
             _merge_quaternions(lid, q.reshape(-1, 4), acc, count)
         acc /= np.linalg.norm(acc, axis=1, keepdims=True)
@@ -1451,11 +1448,13 @@ class Deformer:
         _fill_gaps(gdelta, gq if gq is not None else np.empty((1, 4)), left, right, ptr, pts, s,
                    gq is not None, _NONE, _NONE3)
 
-    def _patch_stage(self, gdelta, gq) -> None:
+    def _patch_stage(self, gdelta, gq, damp=_NONE, shift=_NONE3) -> None:
+        """The derived patches (:func:`_patch_level`); ``gq`` None: translations only;
+        ``damp``/``shift``: the two-level fade and re-basing."""
         use_q = gq is not None
         gqa = gq if use_q else np.empty((1, 4))
         with serial_below(_PATCH_WORK * self._plevel_points):
-            _patch_level(gdelta, gqa, use_q, *self._plevel, _NONE, _NONE3)
+            _patch_level(gdelta, gqa, use_q, *self._plevel, damp, shift)
 
     def _symmetry_stage(self, gdelta, gq) -> None:
         """Symmetry points of Samareh's fields (:func:`_symmetry_fix`): on their plane,
@@ -1556,8 +1555,7 @@ class Deformer:
         if self._gaps is not None:
             _fill_gaps(K, gq, *self._gaps, True, damp, shift)
         t2 = time.perf_counter()
-        with serial_below(_PATCH_WORK * self._plevel_points):
-            _patch_level(K, gq, True, *self._plevel, damp, shift)
+        self._patch_stage(K, gq, damp, shift)
         if self._sym_gids.size:
             _symmetry_fix(K, gq, True, A, _ORIGIN, self._sym_gids, self._sym_point,
                           self._sym_normal)
