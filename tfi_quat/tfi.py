@@ -375,8 +375,11 @@ def _point_d(xyz, s, out, i, j, k, L, M, N, lineD, la, lb, gD, ma, mb, hD, na, n
 
 @jit
 def _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-             fbM, fbN, hasn):
-    """Redo the points of row (j, k) whose blended Q is below QNORM_MIN, with the fallback."""
+             fbM, fbN, hasn, hasb, lineB, gB, hB):
+    """Redo the points of row (j, k) whose blended Q is below QNORM_MIN, with the fallback.
+
+    ``hasb``: about the based kernels' base point ``R_u + TFI(B)`` (tables ``lineB``,
+    ``gB``, ``hB``; any tables of the right rank, never read, otherwise)."""
     for i in range(xyz.shape[0]):
         la, lb = _fc(i, j, k, L)
         ma, mb = _fc(i, j, k, M)
@@ -391,7 +394,12 @@ def _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, h
         if math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) < QNORM_MIN:
             dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
             qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn)
-            _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz)
+            if hasb:
+                x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb,
+                                      sn)
+                _store_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz)
+            else:
+                _store(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz)
 
 
 # =================================================================== set-up (O(surface))
@@ -603,7 +611,7 @@ def _row3_q(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ
                              lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k)
     if nbad > 0:
         _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                 fbM, fbN, True)
+                 fbM, fbN, True, False, lineD, gD, hD)
 
 
 @jit(forceinline=True)
@@ -642,7 +650,7 @@ def _row2_q(xyz, s, out, j, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM,
                              lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0)
     if nbad > 0:
         _fix_row(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
-                 fbM, fbN, False)
+                 fbM, fbN, False, False, lineD, gD, hD)
 
 
 @jit(forceinline=True)
@@ -717,29 +725,6 @@ def _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
     return 1 if n < QNORM_MIN else 0
 
 
-@jit
-def _fix_row_b(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-               fbM, fbN, hasn, lineB, gB, hB):
-    """The based kernels' :func:`_fix_row`."""
-    for i in range(xyz.shape[0]):
-        la, lb = _fc(i, j, k, L)
-        ma, mb = _fc(i, j, k, M)
-        if hasn:
-            na, nb = _fc(i, j, k, N)
-        else:
-            na, nb = 0, 0
-        t = np.float64(s[i, j, k, L])
-        sm = np.float64(s[i, j, k, M])
-        sn = np.float64(s[i, j, k, N])
-        qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
-        if math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) < QNORM_MIN:
-            dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
-            qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn)
-            x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb,
-                                  sn)
-            _store_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz)
-
-
 @jit(forceinline=True)
 def _row3_qb(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
              lineB, gB, hB):
@@ -765,8 +750,8 @@ def _row3_qb(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, h
             nbad += _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
                               lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB)
     if nbad > 0:
-        _fix_row_b(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                   fbM, fbN, True, lineB, gB, hB)
+        _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+                 fbM, fbN, True, True, lineB, gB, hB)
 
 
 @jit(forceinline=True)
@@ -784,8 +769,8 @@ def _row2_qb(xyz, s, out, j, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM
             nbad += _point_qb(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
                               lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB)
     if nbad > 0:
-        _fix_row_b(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
-                   fbM, fbN, False, lineB, gB, hB)
+        _fix_row(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
+                 fbM, fbN, False, True, lineB, gB, hB)
 
 
 @pjit
