@@ -69,6 +69,7 @@ from ..grid import Block, Grid, has_z
 from .._jit import jit
 from . import register
 from ._atomic import atomic_output, check_target
+from ._limits import BYTES_PER_POINT, available_memory, check_points
 
 __all__ = ["Plot3DFormat", "read", "write", "detect", "detect_all"]
 
@@ -222,11 +223,13 @@ def _check_names(kw, what) -> None:
 class _Miss(Exception):
     """One variant does not fit the file: ``rank`` (lower = more plausible) and why."""
 
-    def __init__(self, rank: int, msg: str, distance: float = 0.0):
+    def __init__(self, rank: int, msg: str, distance: float = 0.0, limit: bool = False):
         super().__init__(msg)
         self.rank = rank
         self.msg = msg
         self.distance = distance
+        #: the header declares more points than the size limit allows
+        self.limit = limit
 
 
 @dataclass
@@ -265,6 +268,7 @@ def _layout(fmt: Plot3DFormat, dims) -> tuple[int, list[_BlockLayout], int, list
     header_end, header_markers = off, markers
     blocks = []
     for d in dims:
+        d = tuple(int(v) for v in d)
         markers = []
         n = d[0] * d[1] * d[2]
         start = off
@@ -316,8 +320,19 @@ def _check_marker(fd, size, offset, expected, ms, endian, where, rank):
                           f"reads {got}, the record holds {expected} bytes")
 
 
-def _parse_header(fd, size: int, fmt: Plot3DFormat) -> list[tuple[int, int, int]]:
-    """Block dims of a binary/Fortran file read as ``fmt`` (only its framing fields count)."""
+#: header integers read per positioned read: a wrong framing (the other byte order reads a
+#: block count 1 as 16,777,216) is refused within the first chunk, not after reading its "header"
+_HEADER_CHUNK = 1 << 13
+
+
+def _parse_header(fd, size: int, fmt: Plot3DFormat, max_points=None) -> np.ndarray:
+    """Block dims ``(nblocks, 3)`` int64 of a binary/Fortran file read as ``fmt``.
+
+    Only the framing fields of ``fmt`` count.  The dimensions are read in
+    chunks and checked as they come (each >= 1, and all blocks so far small
+    enough to fit the file even as float32), so a wrong framing costs a few
+    kilobytes of reading, whatever block count it reads.
+    """
     it = _int_dtype(fmt)
     isz, nd = fmt.int_size, fmt.ndim
     ms = fmt.marker_size if fmt.encoding == "fortran" else 0
@@ -333,12 +348,14 @@ def _parse_header(fd, size: int, fmt: Plot3DFormat) -> list[tuple[int, int, int]
             _check_marker(fd, size, ms + isz, isz, ms, fmt.endian, "header", 1)
         nb = int(_read_ints(fd, size, off + ms, 1, it)[0])
         off += isz + 2 * ms
-        need = off + ms + nb * nd * isz + ms
+        # the header, then at least one float32 point a block
+        need = off + 2 * ms + nb * nd * isz + (nb * nd * 4 if nb > 0 else 0)
         if nb < 1 or need > size:
             rank = 1 if ms else (2 if -(1 << 20) < nb < 1 else 3)
             raise _Miss(rank, f"header: block count {nb} at byte offset {ms} "
                               + ("must be >= 1" if nb < 1 else
-                                 f"needs a {need}-byte header, the file has {size} bytes"))
+                                 f"needs at least {need} bytes (header and one float32 point a "
+                                 f"block), the file has {size} bytes"))
     else:
         nb = 1
     if ms:
@@ -351,18 +368,41 @@ def _parse_header(fd, size: int, fmt: Plot3DFormat) -> list[tuple[int, int, int]
         _check_marker(fd, size, off + ms + nb * nd * isz, nb * nd * isz, ms, fmt.endian,
                       "header", 1)
     doff = off + ms
-    vals = _read_ints(fd, size, doff, nb * nd, it).reshape(nb, nd)
-    bad = np.argwhere((vals < 1) | (vals >= (1 << 31)))
-    if bad.size:
-        b, c = (int(v) for v in bad[0])
-        v = int(vals[b, c])
-        plausible = bool(np.all((vals > -(1 << 20)) & (vals <= size)))
-        rank = 1 if ms else (2 if plausible else 3)
-        raise _Miss(rank, f"header: block {b + 1} dimension {'ijk'[c]} = {v} at byte offset "
-                          f"{doff + (b * nd + c) * isz} " + ("must be >= 1" if v < 1 else "is too large"))
-    if nd == 2:
-        vals = np.concatenate([vals, np.ones((nb, 1), dtype=np.int64)], axis=1)
-    return [tuple(int(v) for v in row) for row in vals]
+    data_start = doff + nb * nd * isz + ms
+    chunks = []
+    points = 0
+    for b0 in range(0, nb, _HEADER_CHUNK):
+        b1 = min(nb, b0 + _HEADER_CHUNK)
+        vals = _read_ints(fd, size, doff + b0 * nd * isz, (b1 - b0) * nd, it).reshape(-1, nd)
+        bad = np.argwhere((vals < 1) | (vals >= (1 << 31)))
+        if bad.size:
+            b, c = (int(v) for v in bad[0])
+            v = int(vals[b, c])
+            plausible = bool(np.all((vals > -(1 << 20)) & (vals <= size)))
+            rank = 1 if ms else (2 if plausible else 3)
+            raise _Miss(rank, f"header: block {b0 + b + 1} dimension {'ijk'[c]} = {v} at byte offset "
+                              f"{doff + ((b0 + b) * nd + c) * isz} "
+                              + ("must be >= 1" if v < 1 else "is too large"))
+        chunks.append(vals)
+        # in float64: a product of three dimensions below 2**31 can overflow int64
+        points += int(np.prod(vals.astype(np.float64), axis=1).sum())
+        least = data_start + points * nd * 4
+        if least > size:
+            if b1 == nb:
+                break   # the layout check says which block the file ends in
+            raise _Miss(1 if ms else 2,
+                        f"header: blocks 1..{b1} of {nb} declare {points:,} points, at least "
+                        f"{least} bytes even as float32, the file has {size} bytes: the file is "
+                        "truncated or this is not its header")
+        # a file (sparse, say) that holds what its header declares: refuse a grid too
+        # large to hold before going on (its dimensions alone can be gigabytes)
+        try:
+            check_points(f"header: blocks 1..{b1} of {nb}", points, max_points=max_points)
+        except GridFormatError as exc:
+            raise _Miss(0, str(exc), limit=True) from None
+    dims = np.ones((nb, 3), dtype=np.int64)
+    dims[:, :nd] = np.concatenate(chunks)
+    return dims
 
 
 def _check_layout(fd, size: int, fmt: Plot3DFormat, dims, header_rank: int):
@@ -388,18 +428,63 @@ def _check_layout(fd, size: int, fmt: Plot3DFormat, dims, header_rank: int):
     return blocks
 
 
-def _check_iblank_range(fd, fmt, blocks) -> None:
-    """64-bit IBLANK values must fit int32 (tells such variants from float64 look-alikes)."""
-    dt = _int_dtype(fmt)
+#: values read at each end of every coordinate and IBLANK array when detection checks
+#: that a variant's arrays hold what they should
+_SAMPLE = 512
+#: a coordinate read from the right bytes is zero or between these magnitudes (the smallest
+#: normal float32 and 2**120); the bits of integers or of floats of the other precision
+#: almost never are: small integers read as floats are subnormal, float32 pairs read as
+#: float64 are near 1e-150, float64 halves read as float32 have random exponents
+COORD_RANGE = (2.0 ** -126, 2.0 ** 120)
+#: an IBLANK value read from the right bytes is at most this in size (1 field, 0 hole,
+#: 2 or -n fringe with donor block n); the bits of a float beyond 2**-1000 never are
+IBLANK_LIMIT = 1 << 20
+
+
+def _sample_spans(count: int):
+    """``(first, n)`` spans of at most ``_SAMPLE`` values at the start and end of ``count``."""
+    if count <= 2 * _SAMPLE:
+        return [(0, count)]
+    return [(0, _SAMPLE), (count - _SAMPLE, _SAMPLE)]
+
+
+def _check_content(fd, fmt: Plot3DFormat, blocks) -> None:
+    """Check that ``fmt``'s arrays hold coordinates and IBLANK codes (their ends, O(1) a block).
+
+    A damaged file can fit a wrong variant byte for byte (a truncated
+    two-block float32 file is exactly one float64 block whose first values
+    are the old header's integers); what its arrays would hold gives it away.
+    """
+    fdt, idt = _float_dtype(fmt), _int_dtype(fmt)
+    lo, hi = COORD_RANGE
     for n, b in enumerate(blocks):
-        for s in range(0, b.npoints, _CHUNK):
-            count = min(_CHUNK, b.npoints - s)
-            vals = np.frombuffer(_pread(fd, count * 8, b.iblank + 8 * s), dtype=dt)
-            bad = (vals < -(1 << 31)) | (vals >= (1 << 31))
+        for c in range(fmt.ndim):
+            first = c * b.npoints
+            off, v0, _ = next(r for r in b.runs if r[1] <= first < r[1] + r[2])
+            base = off + (first - v0) * fmt.precision
+            for s, k in _sample_spans(b.npoints):
+                at = base + s * fmt.precision
+                vals = np.frombuffer(_pread(fd, k * fmt.precision, at), dtype=fdt).astype(np.float64)
+                with np.errstate(invalid="ignore", over="ignore"):
+                    mag = np.abs(vals)
+                    bad = (mag > 0) & ((mag < lo) | (mag > hi)) & np.isfinite(vals)
+                if bad.any():
+                    j = int(np.argmax(bad))
+                    raise _Miss(0, f"block {n + 1}: {'xyz'[c]} value {vals[j]:.6g} at byte offset "
+                                   f"{at + j * fmt.precision} is no coordinate (neither 0 nor "
+                                   f"{lo:.3g} to {hi:.3g} in size): these are not the bytes of "
+                                   f"float{8 * fmt.precision} coordinates")
+        if b.iblank is None:
+            continue
+        for s, k in _sample_spans(b.npoints):
+            at = b.iblank + s * fmt.int_size
+            vals = np.frombuffer(_pread(fd, k * fmt.int_size, at), dtype=idt).astype(np.int64)
+            bad = np.abs(vals) > IBLANK_LIMIT
             if bad.any():
-                k = int(np.argmax(bad))
-                raise _Miss(0, f"block {n + 1}: IBLANK value {int(vals[k])} at byte offset "
-                               f"{b.iblank + 8 * (s + k)} does not fit a 32-bit integer")
+                j = int(np.argmax(bad))
+                raise _Miss(0, f"block {n + 1}: IBLANK value {int(vals[j])} at byte offset "
+                               f"{at + j * fmt.int_size} is no blanking code (at most "
+                               f"{IBLANK_LIMIT:,} in size): these are not the bytes of IBLANK values")
 
 
 def _all_binary_variants() -> list[tuple[Plot3DFormat, list[Plot3DFormat]]]:
@@ -472,26 +557,34 @@ def _looks_like_text(fd, size) -> bool:
 _TEXT_BYTES = bytes(range(0x20, 0x7F)) + b"\t\n\r\f\v"
 
 
-def _detect_binary(fd, size, path, fixed):
-    tried, misses, fits = [], [], []
-    for fr, comps in _framings(fixed):
+def _detect_binary(fd, size, path, fixed, max_points=None):
+    framings = _framings(fixed)
+    # a caller who names the variant completely is taken at its word: sizes and record
+    # markers must fit, but the arrays' contents are not second-guessed
+    judge = sum(len(comps) for _, comps in framings) > 1
+    tried, misses, fits, limits = [], [], [], []
+    for fr, comps in framings:
         tried += comps
+        if not comps:
+            continue
         try:
-            dims = _parse_header(fd, size, fr)
+            dims = _parse_header(fd, size, fr, max_points)
         except _Miss as m:
-            misses.append((m.rank, fr._key(), 0.0, fr._key(), m.msg, fr))
+            (limits if m.limit else misses).append((m.rank, fr._key(), 0.0, fr._key(), m.msg, fr))
             continue
         header_rank = 0 if fr.encoding == "fortran" else 1
         for f in comps:
             try:
                 blocks = _check_layout(fd, size, f, dims, header_rank)
-                if f.iblank and f.int_size == 8:
-                    _check_iblank_range(fd, f, blocks)
+                if judge:
+                    _check_content(fd, f, blocks)
             except _Miss as m:
                 misses.append((m.rank, fr._key(), m.distance, f._key(), m.msg, f))
                 continue
             fits.append((f._key(), f, dims, blocks))
     if not fits:
+        if limits:
+            raise GridFormatError(f"{path}: {limits[0][4]}")
         raise _no_fit(path, size, tried, misses)
     fits.sort(key=lambda t: t[0])
     return fits
@@ -1075,19 +1168,18 @@ def _mostly_text(fd, size) -> bool:
     return len(head.translate(None, _TEXT_BYTES)) <= 0.1 * len(head)
 
 
-def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "read"):
+def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "read",
+                       max_points=None):
     """Detect (and read) a file.
 
     ``mode``: ``"read"`` returns ``(fmt, blocks)``, ``"detect"`` ``(fmt, None)``,
-    ``"all"`` ``([every variant that fits, preferred first], None)``.
+    ``"all"`` ``([every variant that fits, preferred first], None)``.  A
+    missing file, a folder or a file without read permission raise
+    ``open``'s own FileNotFoundError, IsADirectoryError, PermissionError.
     """
     path = Path(os.fspath(path))
     fixed = _fixed_fields(format, overrides)
-    try:
-        fh = open(path, "rb", buffering=0)
-    except IsADirectoryError:
-        raise GridFormatError(f"{path}: is a directory, not a grid file") from None
-    with fh:
+    with open(path, "rb", buffering=0) as fh:
         fd = fh.fileno()
         size = os.fstat(fd).st_size
         if size == 0:
@@ -1096,14 +1188,14 @@ def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "re
         text = enc == "ascii" or (enc is None and _looks_like_text(fd, size))
         if not text:
             try:
-                fits = _detect_binary(fd, size, path, fixed)
+                fits = _detect_binary(fd, size, path, fixed, max_points)
             except GridFormatError as exc:
                 if enc is not None or not _mostly_text(fd, size):
                     raise
                 # a text file with a few bytes that are not printable ASCII (a non-ASCII
                 # comment, a DOS end-of-file mark): the text reader names their line
                 try:
-                    return _dispatch_ascii(path, fh, fixed, allow_nonfinite, mode)
+                    return _dispatch_ascii(path, fh, size, fixed, allow_nonfinite, mode, max_points)
                 except GridFormatError as texc:
                     raise GridFormatError(f"{texc} (the file is mostly text, but not all of it is "
                                           "printable ASCII; as binary no variant fits either)") from exc
@@ -1112,11 +1204,23 @@ def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "re
             fmt, dims, layout = fits[0][1:]
             if mode == "detect":
                 return fmt.canonical(), None
+            _check_size(path, fmt, sum(b.npoints for b in layout), max_points)
             return fmt.canonical(), _read_blocks(fd, path, fmt, layout, allow_nonfinite)
-        return _dispatch_ascii(path, fh, fixed, allow_nonfinite, mode)
+        return _dispatch_ascii(path, fh, size, fixed, allow_nonfinite, mode, max_points)
 
 
-def _dispatch_ascii(path, fh, fixed, allow_nonfinite, mode):
+def _check_size(path, fmt, npoints: int, max_points) -> None:
+    """Refuse, before allocating, a grid of ``npoints`` points too large to hold."""
+    check_points(str(path), npoints, max_points=max_points,
+                 bytes_per_point=BYTES_PER_POINT if fmt.iblank else BYTES_PER_POINT - 4)
+
+
+def _dispatch_ascii(path, fh, size, fixed, allow_nonfinite, mode, max_points=None):
+    # the text and its numbers (8 bytes each, at most one per 2 bytes of text) are held at once
+    have = available_memory()
+    if 5 * size > have:
+        raise GridFormatError(f"{path}: a text file of {size:,} bytes needs up to {5 * size:,} bytes "
+                              f"of memory to read, more than the {have:,} bytes available")
     fh.seek(0)
     data = fh.read()
     vals, fits = _detect_ascii(path, data, fixed)
@@ -1125,6 +1229,7 @@ def _dispatch_ascii(path, fh, fixed, allow_nonfinite, mode):
     _, fmt, (_, layout) = fits[0]
     if mode == "detect":
         return fmt.canonical(), None
+    _check_size(path, fmt, sum(npts for _, _, npts in layout), max_points)
     return fmt.canonical(), _read_ascii(path, data, vals, fmt, layout, allow_nonfinite)
 
 
@@ -1182,7 +1287,7 @@ def detect_all(path, **overrides) -> list[Plot3DFormat]:
 
 
 def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = False,
-         **overrides) -> Grid:
+         max_points: int | None = None, **overrides) -> Grid:
     """Read a Plot3D grid file of any supported variant.
 
     Parameters
@@ -1192,6 +1297,9 @@ def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = Fa
         Read as exactly this variant (no detection; the file must fit it).
     allow_nonfinite : bool
         Accept NaN and infinite coordinates (default: error naming the block).
+    max_points : int, optional
+        Refuse a file declaring more points than this (default: as many as
+        fit in the memory available now), before allocating anything.
     **overrides
         :class:`Plot3DFormat` fields to take as given; the rest is detected
         (with ``format``: fields replaced in it).
@@ -1210,9 +1318,12 @@ def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = Fa
         Empty, truncated or over-long file, bad dimensions, inconsistent
         Fortran record markers, a non-numeric token (with its line),
         non-finite coordinates, or no variant fits; the message names the
-        file, block and byte offset or line.
+        file, block and byte offset or line.  A grid of more points than
+        ``max_points`` (or than fit in the memory available), with its size.
+    FileNotFoundError, IsADirectoryError, PermissionError
+        The path is missing, a folder, or not readable.
     """
-    fmt, blocks = _open_and_dispatch(path, format, overrides, allow_nonfinite, "read")
+    fmt, blocks = _open_and_dispatch(path, format, overrides, allow_nonfinite, "read", max_points)
     return Grid(blocks, fmt.ndim, source_format=fmt, source_path=path)
 
 
