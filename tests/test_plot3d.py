@@ -334,22 +334,50 @@ def test_reads_handmade_fortran_64bit_integers_and_markers(tmp_path):
 
 # ---------------------------------------------------------------- detection
 
-def test_ambiguous_file_prefers_common_variant_and_override_picks_the_other(tmp_path):
-    # 2-D, 64-bit integers: float64 without iblank and float32 with int64 iblank
-    # are both 16 bytes a point, so the sizes cannot tell them apart
+def _ambiguous_2d_file(path):
+    """A 2-D single-block float64 file, 64-bit integers, that is also float32 with int64 IBLANK.
+
+    Both variants take 16 bytes a point, so the sizes cannot tell them apart;
+    neither can the contents here: x is dyadic (the low halves of its float64
+    values are float32 zeros, the high halves plausible float32 values) and
+    y = 0 (IBLANK 0 when read as int64).
+    """
+    xyz = np.zeros((3, 2, 1, 3), order="F")
+    xyz[..., 0, 0] = [[1.0, 2.0], [3.0, 0.5], [0.25, 4.0]]
+    write(path, Grid([xyz], 2), int_size=8, multiblock=False)
+    return xyz
+
+
+def test_equal_sizes_told_apart_by_the_contents(tmp_path):
+    # 2-D, 64-bit integers: float64 without iblank and float32 with int64 iblank are
+    # both 16 bytes a point; float32 pairs are no float64 coordinates (about 1e-150),
+    # float64 coordinates no IBLANK codes
     grid = Grid([annulus(3, 2)], 2)
-    p = tmp_path / "amb.x"
+    p = tmp_path / "f32.x"
     write(p, grid, precision=4, iblank=True, int_size=8, multiblock=False)
+    assert plot3d.detect_all(p) == [Plot3DFormat(precision=4, iblank=True, ndim=2, int_size=8,
+                                                 multiblock=False)]
+    q = tmp_path / "f64.x"
+    write(q, grid, int_size=8, multiblock=False)
+    assert plot3d.detect_all(q) == [Plot3DFormat(ndim=2, int_size=8, multiblock=False)]
+    with pytest.raises(GridFormatError, match="IBLANK value .* is no blanking code"):
+        read(q, precision=4)
+    assert np.array_equal(read(p)[0].xyz, annulus(3, 2).astype(np.float32).astype(float))
+
+
+def test_ambiguous_file_prefers_common_variant_and_override_picks_the_other(tmp_path):
+    p = tmp_path / "amb.x"
+    xyz = _ambiguous_2d_file(p)
     assert detect(p) == Plot3DFormat(precision=8, ndim=2, int_size=8, multiblock=False)
+    assert np.array_equal(read(p)[0].xyz, xyz)
     g = read(p, precision=4)
     assert g.source_format == Plot3DFormat(precision=4, iblank=True, ndim=2, int_size=8, multiblock=False)
-    assert np.array_equal(g[0].xyz, annulus(3, 2).astype(np.float32).astype(float))
+    assert np.all(g[0].iblank == 0)
 
 
 def test_detect_all_lists_every_fit_preferred_first(tmp_path):
-    grid = Grid([annulus(3, 2)], 2)
     p = tmp_path / "amb.x"
-    write(p, grid, precision=4, iblank=True, int_size=8, multiblock=False)
+    _ambiguous_2d_file(p)
     both = [Plot3DFormat(precision=8, ndim=2, int_size=8, multiblock=False),
             Plot3DFormat(precision=4, iblank=True, ndim=2, int_size=8, multiblock=False)]
     assert plot3d.detect_all(p) == both

@@ -432,10 +432,11 @@ def _check_layout(fd, size: int, fmt: Plot3DFormat, dims, header_rank: int):
 #: that a variant's arrays hold what they should
 _SAMPLE = 512
 #: a coordinate read from the right bytes is zero or between these magnitudes (the smallest
-#: normal float32 and 2**120); the bits of integers or of floats of the other precision
-#: almost never are: small integers read as floats are subnormal, float32 pairs read as
-#: float64 are near 1e-150, float64 halves read as float32 have random exponents
-COORD_RANGE = (2.0 ** -126, 2.0 ** 120)
+#: normal float32, and 2**120 for float32); the bits of integers or of floats of the other
+#: precision almost never are: small integers read as floats are subnormal, float32 pairs
+#: read as float64 are below 2**-126 (unless the float32 values exceed 2**97), the low
+#: halves of float64 values read as float32 have random exponents
+COORD_RANGE = {4: (2.0 ** -126, 2.0 ** 120), 8: (2.0 ** -126, math.inf)}
 #: an IBLANK value read from the right bytes is at most this in size (1 field, 0 hole,
 #: 2 or -n fringe with donor block n); the bits of a float beyond 2**-1000 never are
 IBLANK_LIMIT = 1 << 20
@@ -456,7 +457,8 @@ def _check_content(fd, fmt: Plot3DFormat, blocks) -> None:
     are the old header's integers); what its arrays would hold gives it away.
     """
     fdt, idt = _float_dtype(fmt), _int_dtype(fmt)
-    lo, hi = COORD_RANGE
+    lo, hi = COORD_RANGE[fmt.precision]
+    expect = f"{lo:.3g} to {hi:.3g}" if hi < math.inf else f"at least {lo:.3g}"
     for n, b in enumerate(blocks):
         for c in range(fmt.ndim):
             first = c * b.npoints
@@ -464,15 +466,15 @@ def _check_content(fd, fmt: Plot3DFormat, blocks) -> None:
             base = off + (first - v0) * fmt.precision
             for s, k in _sample_spans(b.npoints):
                 at = base + s * fmt.precision
-                vals = np.frombuffer(_pread(fd, k * fmt.precision, at), dtype=fdt).astype(np.float64)
-                with np.errstate(invalid="ignore", over="ignore"):
+                with np.errstate(invalid="ignore", over="ignore"):   # signalling NaNs
+                    vals = np.frombuffer(_pread(fd, k * fmt.precision, at), dtype=fdt).astype(np.float64)
                     mag = np.abs(vals)
                     bad = (mag > 0) & ((mag < lo) | (mag > hi)) & np.isfinite(vals)
                 if bad.any():
                     j = int(np.argmax(bad))
                     raise _Miss(0, f"block {n + 1}: {'xyz'[c]} value {vals[j]:.6g} at byte offset "
                                    f"{at + j * fmt.precision} is no coordinate (neither 0 nor "
-                                   f"{lo:.3g} to {hi:.3g} in size): these are not the bytes of "
+                                   f"{expect} in size): these are not the bytes of "
                                    f"float{8 * fmt.precision} coordinates")
         if b.iblank is None:
             continue
