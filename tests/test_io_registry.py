@@ -47,9 +47,9 @@ def test_write_with_unknown_extension_or_format_is_an_error_and_writes_nothing(t
 
 
 def test_read_of_a_folder_or_missing_file(tmp_path):
-    with pytest.raises(tq.GridFormatError, match="is a directory"):
+    with pytest.raises(IsADirectoryError, match="Is a directory"):
         tq.read(tmp_path)
-    with pytest.raises(FileNotFoundError, match="no such file"):
+    with pytest.raises(FileNotFoundError, match="No such file"):
         tq.read(tmp_path / "none.x")
 
 

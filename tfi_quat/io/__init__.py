@@ -22,7 +22,7 @@ from typing import Callable
 
 from ..errors import GridFormatError
 
-__all__ = ["read", "write", "register", "format_for", "FORMATS"]
+__all__ = ["read", "write", "register", "format_for", "check_readable", "FORMATS"]
 
 
 @dataclass(frozen=True)
@@ -86,6 +86,18 @@ def format_for(path=None, format: str | None = None, like=None) -> _Format:
     raise GridFormatError("no format given and no path or reference grid to infer it from")
 
 
+def check_readable(path) -> None:
+    """Raise the standard OSError for a path that cannot be read as a file.
+
+    FileNotFoundError, IsADirectoryError or PermissionError, exactly as
+    ``open`` raises them (errno, message, the path in ``filename`` and in the
+    text), so that every reader reports a missing file, a folder or a file
+    without read permission the same way, before any format looks at it.
+    """
+    with open(os.fspath(path), "rb"):
+        pass
+
+
 def read(path, format: str | None = None, **kw):
     """Read a grid file.
 
@@ -96,18 +108,24 @@ def read(path, format: str | None = None, **kw):
         Default: from the extension.
     **kw
         Passed on to the format's reader (e.g. Plot3D variant overrides,
-        ``allow_nonfinite``).
+        ``allow_nonfinite``, ``max_points``: refuse a file declaring more
+        points, before allocating; default what fits in the memory available).
 
     Returns
     -------
     Grid
         With ``source_format`` (the detected variant) and ``source_path`` set.
+
+    Raises
+    ------
+    FileNotFoundError, IsADirectoryError, PermissionError
+        The path is missing, a folder, or not readable (the path in the
+        message), whatever the format.
+    GridFormatError
+        The file is not a grid of the format, or declares one too large.
     """
     p = Path(os.fspath(path))
-    if not p.exists():
-        raise FileNotFoundError(f"{p}: no such file")
-    if p.is_dir():
-        raise GridFormatError(f"{p}: is a directory, not a grid file")
+    check_readable(p)
     return format_for(p, format).reader(p, **kw)
 
 
