@@ -386,7 +386,9 @@ def test_detect_all_lists_every_fit_preferred_first(tmp_path):
     write(q, Grid([sheared_box()]), encoding="fortran")
     assert plot3d.detect_all(q) == [detect(q)] == [Plot3DFormat(encoding="fortran")]
     a = tmp_path / "t.fmt"
-    a.write_text("1\n1 1 1\n1 1 1\n")   # one 3-D block of one point, or single-block with IBLANK
+    # one 3-D block of one point, or single-block with IBLANK (one value a line, so that
+    # either header ends at a line end)
+    a.write_text("1\n" * 7)
     fits = plot3d.detect_all(a)
     assert fits == [Plot3DFormat(encoding="ascii"), Plot3DFormat(encoding="ascii", multiblock=False, iblank=True)]
     assert fits[0] == detect(a)

@@ -1053,6 +1053,11 @@ def _ascii_candidates(vals, fixed):
     return out
 
 
+def _last_line(data: bytes) -> int:
+    """Line number (1-based) of the last line with text."""
+    return data.rstrip().count(b"\n") + 1
+
+
 def _ascii_header_error(data, vals, fmt) -> str:
     """Explain why the text does not fit ``fmt`` (error path only)."""
     total = len(vals)
@@ -1065,11 +1070,12 @@ def _ascii_header_error(data, vals, fmt) -> str:
         nb = int(vals[0])
         if h + nb * fmt.ndim > total:
             return (f"the header claims {nb} blocks ({h + nb * fmt.ndim} header values), "
-                    f"the file holds {total} values")
+                    f"the file holds {total} values, up to line {_last_line(data)}")
     else:
         nb = 1
     if h + nb * fmt.ndim > total:
-        return f"the file holds only {total} values, fewer than the header needs"
+        return (f"the file holds only {total} values, up to line {_last_line(data)}, fewer than "
+                "the header needs")
     for n in range(nb * fmt.ndim):
         v = vals[h + n]
         if v != round(v) or v < 1 or v >= 2 ** 31:
@@ -1092,6 +1098,34 @@ def _ascii_header_error(data, vals, fmt) -> str:
             + (f", from line {line[0]}" if line else ""))
 
 
+_INTEGER_TOKEN = re.compile(rb"[-+]?[0-9]+")
+
+
+def _ascii_header_shape_error(data: bytes, header_end: int) -> str | None:
+    """Why the first ``header_end`` tokens are no header line(s), or None.
+
+    Writers put the block count and the dimensions as integers on lines of
+    their own, then start the coordinates on a new line; a variant that
+    would read a coordinate as a dimension, or whose header stops in the
+    middle of a line, is not the file's (a truncated multi-block file read
+    as one block).  Reads the header tokens only.
+    """
+    tokens = _TOKEN.finditer(data)
+    m = None
+    for n in range(header_end):
+        m = next(tokens)
+        if not _INTEGER_TOKEN.fullmatch(m.group()):
+            line = data.count(b"\n", 0, m.start()) + 1
+            return (f"line {line}: header value number {n + 1} "
+                    f"{m.group()[:40].decode('ascii', 'replace')!r} is not an integer")
+    after = next(tokens, None)
+    if m is not None and after is not None and b"\n" not in data[m.end():after.start()]:
+        line = data.count(b"\n", 0, m.start()) + 1
+        return (f"line {line}: the header ends after {header_end} value(s) in the middle of the "
+                "line; the coordinates would start on the same line")
+    return None
+
+
 def _detect_ascii(path, data: bytes, fixed):
     """All numbers of a text file and the variants that fit them, preferred first.
 
@@ -1108,6 +1142,8 @@ def _detect_ascii(path, data: bytes, fixed):
             misses.append((1, f._key(), 0.0, f._key(), None, f))
             continue
         bad = _ascii_iblank_error(data, vals, f, lay[1]) if f.iblank else None
+        if bad is None and len(cands) > 1:
+            bad = _ascii_header_shape_error(data, lay[0])
         if bad is not None:
             misses.append((0, f._key(), 0.0, f._key(), bad, f))
             continue
