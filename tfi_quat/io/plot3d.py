@@ -437,6 +437,10 @@ _SAMPLE = 512
 #: read as float64 are below 2**-126 (unless the float32 values exceed 2**97), the low
 #: halves of float64 values read as float32 have random exponents
 COORD_RANGE = {4: (2.0 ** -126, 2.0 ** 120), 8: (2.0 ** -126, math.inf)}
+#: the nonzero coordinates of one block are within this factor of each other in size
+#: (round-off next to zero is 1e-17 of the block's size); the low halves of float64 values
+#: read as float32 have exponents spread over the whole float32 range
+COORD_SPREAD = 2.0 ** 128
 #: an IBLANK value read from the right bytes is at most this in size (1 field, 0 hole,
 #: 2 or -n fringe with donor block n); the bits of a float beyond 2**-1000 never are
 IBLANK_LIMIT = 1 << 20
@@ -460,6 +464,7 @@ def _check_content(fd, fmt: Plot3DFormat, blocks) -> None:
     lo, hi = COORD_RANGE[fmt.precision]
     expect = f"{lo:.3g} to {hi:.3g}" if hi < math.inf else f"at least {lo:.3g}"
     for n, b in enumerate(blocks):
+        smallest, largest = (math.inf, 0), (0.0, 0)
         for c in range(fmt.ndim):
             first = c * b.npoints
             off, v0, _ = next(r for r in b.runs if r[1] <= first < r[1] + r[2])
@@ -470,12 +475,22 @@ def _check_content(fd, fmt: Plot3DFormat, blocks) -> None:
                     vals = np.frombuffer(_pread(fd, k * fmt.precision, at), dtype=fdt).astype(np.float64)
                     mag = np.abs(vals)
                     bad = (mag > 0) & ((mag < lo) | (mag > hi)) & np.isfinite(vals)
+                ok = (mag > 0) & np.isfinite(vals)
+                if ok.any():
+                    j, k = int(np.argmin(np.where(ok, mag, np.inf))), int(np.argmax(np.where(ok, mag, 0)))
+                    smallest = min(smallest, (float(mag[j]), at + j * fmt.precision))
+                    largest = max(largest, (float(mag[k]), at + k * fmt.precision))
                 if bad.any():
                     j = int(np.argmax(bad))
                     raise _Miss(0, f"block {n + 1}: {'xyz'[c]} value {vals[j]:.6g} at byte offset "
                                    f"{at + j * fmt.precision} is no coordinate (neither 0 nor "
                                    f"{expect} in size): these are not the bytes of "
                                    f"float{8 * fmt.precision} coordinates")
+        if largest[0] > smallest[0] * COORD_SPREAD:
+            raise _Miss(0, f"block {n + 1}: coordinates from {smallest[0]:.3g} (byte offset "
+                           f"{smallest[1]}) to {largest[0]:.3g} (byte offset {largest[1]}) in size, "
+                           f"more than a factor {COORD_SPREAD:.3g} apart: these are not the bytes "
+                           f"of float{8 * fmt.precision} coordinates")
         if b.iblank is None:
             continue
         for s, k in _sample_spans(b.npoints):
