@@ -535,10 +535,12 @@ def test_convert_plot3d_never_replaces_its_input_without_force(capsys, tmp_path)
 
 
 def test_info_lists_the_other_variants_an_ambiguous_file_fits(capsys, tmp_path):
-    # 2-D with 8-byte integers: float64 without IBLANK and float32 with IBLANK are the same size
+    # 2-D with 8-byte integers: float64 without IBLANK and float32 with IBLANK are the same size;
+    # dyadic x and y = 0 read as either (float32 halves of x, IBLANK 0)
     p = tmp_path / "amb.x"
-    grid = Grid([annulus(5, 3)], 2)
-    plot3d.write(p, grid, precision=4, iblank=True, int_size=8, multiblock=False)
+    xyz = np.zeros((5, 3, 1, 3), order="F")
+    xyz[..., 0, 0] = np.arange(15.0).reshape(5, 3) / 4
+    plot3d.write(p, Grid([xyz], 2), int_size=8, multiblock=False)
     rc, out, err = run_cli(capsys, "info", p)
     chosen = Plot3DFormat(ndim=2, int_size=8, multiblock=False)
     other = chosen.replace(precision=4, iblank=True)
@@ -556,7 +558,7 @@ def test_info_lists_the_other_variants_an_ambiguous_file_fits(capsys, tmp_path):
     s = json.loads(out)
     assert Plot3DFormat(**s["variant"]) == other and "also_fits" not in s
     assert s["iblank"] is True
-    assert s["bbox"]["max"][0] == pytest.approx(3.0, rel=1e-6)
+    assert s["bbox"]["max"][0] == plot3d.read(p, format=other)[0].xyz[..., 0].max()
 
 
 def test_info_hint_options_select_each_alternative(capsys, tmp_path):
@@ -565,7 +567,7 @@ def test_info_hint_options_select_each_alternative(capsys, tmp_path):
     plot3d.write(p, Grid([annulus(1, 1)], 2))
     rc, out, _ = run_cli(capsys, "info", p, "--json")
     alts = json.loads(out)["also_fits"]
-    assert rc == 0 and len(alts) >= 2
+    assert rc == 0 and len(alts) >= 1
     for a in alts:
         rc, out, _ = run_cli(capsys, "info", p, "--json", *a["options"].split())
         assert rc == 0 and json.loads(out)["variant"] == a["variant"], a
@@ -587,7 +589,8 @@ def test_info_leaves_out_variants_with_absurd_iblank(capsys, tmp_path):
     p = tmp_path / "c.x"
     plot3d.write(p, Grid([annulus(9, 5)], 2))
     fits = plot3d.detect_all(p)
-    assert Plot3DFormat(precision=4, iblank=True, multiblock=False) in fits
+    # detection itself sees coordinate bytes where that IBLANK would be
+    assert Plot3DFormat(precision=4, iblank=True, multiblock=False) not in fits
     rc, out, _ = run_cli(capsys, "info", p, "--json")
     assert rc == 0 and "also_fits" not in json.loads(out)
     # the same shape with small integers where that IBLANK would be is listed
@@ -598,9 +601,9 @@ def test_info_leaves_out_variants_with_absurd_iblank(capsys, tmp_path):
                  multiblock=False)
     rc, out, _ = run_cli(capsys, "info", q, "--json")
     s = json.loads(out)
-    assert Plot3DFormat(**s["variant"]) == Plot3DFormat(ndim=2)
-    assert [Plot3DFormat(**a["variant"]) for a in s["also_fits"]] == \
-        [Plot3DFormat(precision=4, iblank=True, multiblock=False)]
+    # the float32 coordinates read as float64 give themselves away: only the real variant fits
+    assert Plot3DFormat(**s["variant"]) == Plot3DFormat(precision=4, iblank=True, multiblock=False)
+    assert "also_fits" not in s
 
 # ----------------------------------------------------------------------------- quality, plot
 
