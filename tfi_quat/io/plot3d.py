@@ -28,10 +28,13 @@ Fortran files hold the block count in one record and all block dimensions
 in the next (single-block files: one record with the dimensions).
 
 Detection (:func:`detect`) tries every variant left open by the caller's
-overrides: for binary files it parses the header, computes the exact file
-size each variant implies and, for Fortran files, checks every record
-marker; for text files it counts the values.  A variant fits only when the
-sizes add up exactly.  When several fit (tiny grids; 2-D files with 8-byte
+overrides: for binary files it parses the header (in chunks, stopping at the
+first impossible dimension, so a wrong framing costs kilobytes), computes the
+exact file size each variant implies and, for Fortran files, checks every
+record marker; for text files it counts the values.  A variant fits only
+when the sizes add up exactly and, when detection chooses among several,
+when the ends of its arrays hold coordinates and IBLANK codes
+(:func:`_check_content`; text: integer header lines).  When several fit (tiny grids; 2-D files with 8-byte
 integers), the preferred values above decide, deterministically, and
 :func:`detect_all` lists them all; when none fits, the error lists what was
 tried and the closest misses (truncation, a bad record marker, a bad
