@@ -440,9 +440,9 @@ _SAMPLE = 512
 #: read as float64 are below 2**-126 (unless the float32 values exceed 2**97), the low
 #: halves of float64 values read as float32 have random exponents
 COORD_RANGE = {4: (2.0 ** -126, 2.0 ** 120), 8: (2.0 ** -126, math.inf)}
-#: the nonzero coordinates of one block are within this factor of each other in size
-#: (round-off next to zero is 1e-17 of the block's size); the low halves of float64 values
-#: read as float32 have exponents spread over the whole float32 range
+#: the nonzero float32 coordinates of one block are within this factor of each other in
+#: size (round-off next to zero is 1e-8 of the block's size); the low halves of float64
+#: values read as float32 have exponents spread over the whole float32 range
 COORD_SPREAD = 2.0 ** 128
 #: an IBLANK value read from the right bytes is at most this in size (1 field, 0 hole,
 #: 2 or -n fringe with donor block n); the bits of a float beyond 2**-1000 never are
@@ -489,7 +489,7 @@ def _check_content(fd, fmt: Plot3DFormat, blocks) -> None:
                                    f"{at + j * fmt.precision} is no coordinate (neither 0 nor "
                                    f"{expect} in size): these are not the bytes of "
                                    f"float{8 * fmt.precision} coordinates")
-        if largest[0] > smallest[0] * COORD_SPREAD:
+        if fmt.precision == 4 and largest[0] > smallest[0] * COORD_SPREAD:
             raise _Miss(0, f"block {n + 1}: coordinates from {smallest[0]:.3g} (byte offset "
                            f"{smallest[1]}) to {largest[0]:.3g} (byte offset {largest[1]}) in size, "
                            f"more than a factor {COORD_SPREAD:.3g} apart: these are not the bytes "
