@@ -32,12 +32,10 @@ def _kept_bytes(d: Deformer) -> int:
     """Bytes a Deformer keeps per block: blending parameters, the kernels' kept tables and the
     two-level base tables."""
     n = 0
-    for plan in d._blocks:
-        n += plan.s.nbytes
-        if plan.base is not None:
-            n += sum(t.nbytes for t in plan.base)
-        if plan.gather is not None:
-            n += plan.gather.nbytes
+    for plan in d.skeleton.blocks:
+        n += plan.s.nbytes + plan.gather.nbytes
+    if d.two_level is not None:
+        n += sum(t.nbytes for base in d.two_level.base for t in base)
     return n
 
 

@@ -1,4 +1,4 @@
-"""The Deformer against the properties of DESIGN section 4, on several grid shapes."""
+"""The Deformer against the properties of docs/method.md §4, on several grid shapes."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from tfi_quat import CaseError, DeformationError, Grid
 from tfi_quat import quaternion as qa
-from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.deform import Deformer, rigid_motion, twolevel
 from tfi_quat.quality import negative_cells
 
 import _deform_grids as G
@@ -42,7 +42,7 @@ def _wall_mask(deformer, grid):
         for p in deformer.connectivity.patches:
             if p.kind != "wall" or p.spec.block != b:
                 continue
-            from tfi_quat.deform import _face_ijk
+            from tfi_quat.deform.skeleton import _face_ijk
             ijk = _face_ijk(blk.dims, p.spec.face, p.spec.range).reshape(-1, 3)
             m[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
         out.append(m)
@@ -93,7 +93,7 @@ def test_reference_untouched_and_no_drift(case, formulation):
 
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, formulation):
-    """DESIGN property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
+    """docs/method.md §4, property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
     name, grid, walls, sym, fixed = case
     faces = ("imin", "imax", "jmin", "jmax") + (("kmin", "kmax") if grid.ndim == 3 else ())
     every = [f"{b + 1}:{f}" for b in range(len(grid)) for f in faces]
@@ -114,7 +114,7 @@ def test_interface_points_stay_bit_identical(formulation):
         out = d.deform(rigid_motion(15.0, (0, 0, 1), (0.4, 0.1, 0.0), (0.1, 0.2, 0.0)))
         assert d.connectivity.interfaces, builder.__name__
         for itf in d.connectivity.interfaces:
-            from tfi_quat.deform import _face_ijk
+            from tfi_quat.deform.skeleton import _face_ijk
             m = itf.master
             mi = _face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
             si = np.asarray(itf.slave_index(mi)).reshape(-1, 3)
@@ -155,7 +155,7 @@ def _orthogonality_change(out, ref, layers=5):
 @pytest.mark.parametrize("angle", [10.0, 30.0, 45.0])
 @pytest.mark.parametrize("formulation", ["samareh"])
 def test_near_wall_orthogonality_kept_under_rigid_rotation(angle, formulation):
-    """DESIGN property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
+    """docs/method.md §4, property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
     grid, walls, sym, fixed = G.o_grid(65, 33)
     move = rigid_motion(angle, (0, 0, 1), (0.5, 0.0, 0.0), (0.3, 0.2, 0.0))
     q = Deformer(grid, walls=walls, fixed=fixed, formulation=formulation).deform(move)
@@ -176,7 +176,7 @@ def _transform_grid(grid, f):
 @pytest.mark.parametrize("name", ["o-grid", "box-pair", "o-grid-3d"])
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_translation_and_rotation_of_the_whole_problem(name, formulation):
-    """DESIGN property 5: moving the whole problem moves the result the same way."""
+    """docs/method.md §4, property 5: moving the whole problem moves the result the same way."""
     grid, walls, sym, fixed = CASES[name]()
     move = _motion_for(name)
     base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(move)
@@ -207,7 +207,7 @@ def test_moved_as_grid_and_as_mapping_agree_with_callable():
     mapping = {}
     for p in d.connectivity.patches:
         if p.kind == "wall":
-            from tfi_quat.deform import _face_ijk
+            from tfi_quat.deform.skeleton import _face_ijk
             ijk = _face_ijk(grid[p.spec.block].dims, p.spec.face, p.spec.range)
             pts = grid[p.spec.block].xyz[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
             mapping[p.spec] = move(pts.reshape(-1, 3)).reshape(pts.shape)
@@ -254,7 +254,7 @@ def test_two_wall_bodies_get_their_own_rigid_fits():
     is zero; walls exact, no negative cells, the middle moves half way."""
     grid, _, _, _ = G.channel()
     d = Deformer(grid, walls=["1:jmin", "1:jmax"], fixed=["1:imin", "1:imax"])
-    assert len(d._bodies) == 2
+    assert len(d.two_level.bodies) == 2
 
     def move(p):
         p = np.array(p, dtype=np.float64)
@@ -263,11 +263,14 @@ def test_two_wall_bodies_get_their_own_rigid_fits():
         p[~lower, 1] += 0.04
         return p
 
-    fits, y = d._fits(d._wall_targets(move))
+    P, wall = d.skeleton.points.P, d.skeleton.points.wall
+    rd, y = P.copy(), P.copy()
+    rd[wall] = move(P[wall])
+    fits = twolevel.fit_bodies(d.skeleton, d.two_level, rd, y)
     for q, t in fits:
         np.testing.assert_allclose(q, [1.0, 0.0, 0.0, 0.0], atol=1e-14)
         assert abs(abs(t[1]) - 0.04) < 1e-14 and abs(t[0]) < 1e-14
-    np.testing.assert_allclose(y[d._wall_gids], d._P[d._wall_gids], atol=1e-14)   # no residual
+    np.testing.assert_allclose(y[wall], P[wall], atol=1e-14)   # no residual
     out = d.deform(move)
     x, r = out[0].xyz, grid[0].xyz
     np.testing.assert_allclose(x[:, 0, 0, 1], r[:, 0, 0, 1] - 0.04, atol=1e-14)

@@ -1,4 +1,4 @@
-"""The Deformer on the shipped grids: DESIGN section 4, every property, on every topology.
+"""The Deformer on the shipped grids: docs/method.md §4, every property, on every topology.
 
 Grids: the 2-D C-grid and O-grid airfoils and their one-cell-thick 3-D
 extrusions (wall normal j, not the last index), the 2-D two-block case, the
@@ -16,7 +16,8 @@ import pytest
 import tfi_quat as tq
 from tfi_quat import quaternion as qa
 from tfi_quat.case import Motion, load_case
-from tfi_quat.deform import Deformer, _face_ijk, rigid_motion
+from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.deform.skeleton import _face_ijk
 from tfi_quat.quality import orthogonality_change, volume_ratio_summary
 from tfi_quat.spec import parse_patch_spec
 
@@ -93,7 +94,7 @@ def _scale(grid):
 def _copies(d):
     """Per global boundary point, every (block, flat index) copy of it."""
     out = []
-    for b, (local, gid) in enumerate(d._scatter):
+    for b, (local, gid) in enumerate(d.skeleton.scatter):
         out.append((b, local, gid))
     return out
 
@@ -109,8 +110,8 @@ def test_walls_fixed_symmetry_interfaces(name, method, formulation):
     move = CASES[name][1]
     out = d.deform(move)
     scale = _scale(grid)
-    P = d._P
-    kinds = d._kind
+    P = d.skeleton.points.P
+    kinds = d.skeleton.points.kind
     seen = {}
     for b, local, gid in _copies(d):
         x = out[b].xyz.reshape(-1, 3, order="F")[local]

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from tfi_quat import quaternion as qa
 from tfi_quat import tfi
 from tfi_quat.deform import stages as S
-from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.deform import Deformer, rigid_motion, twolevel
 
 import _deform_grids as G
 
@@ -221,8 +221,10 @@ def test_rigid_part_of_two_bodies_with_different_axes():
     grid, _, _, _ = G.box_pair(n=7)
     walls = ["1:jmin", "2:imin", "1:jmax", "2:imax"]
     d = Deformer(grid, walls=walls)
-    assert len(d._bodies) == 2
-    lower = np.array([d._P[b.gids][:, 1].max() < 0.5 for b in d._bodies])
+    sk, two = d.skeleton, d.two_level
+    P = sk.points.P
+    assert len(two.bodies) == 2
+    lower = np.array([P[b.gids][:, 1].max() < 0.5 for b in two.bodies])
     m_low = rigid_motion(6.0, (1, 0, 0), (1.0, 0.0, 0.5))
     m_up = rigid_motion(-4.0, (0, 0, 1), (1.0, 1.0, 0.5))
 
@@ -230,21 +232,23 @@ def test_rigid_part_of_two_bodies_with_different_axes():
         return np.where((p[:, 1] < 0.5)[:, None], m_low(p), m_up(p))
 
     out = d.deform(move)
-    rd = d._wall_targets(move)
-    fits, _ = d._fits(rd)
-    gdelta, gq, _, _ = d._global_fields(fits)
+    rd = P.copy()
+    rd[sk.points.wall] = move(P[sk.points.wall])
+    fits = twolevel.fit_bodies(sk, two, rd, P.copy())
+    gdelta, gq = np.zeros((sk.n_global, 3)), np.zeros((sk.n_global, 4))
+    twolevel.rigid_fields(sk, two, fits, d.centre, gdelta, gq)
     v = [Rotation.from_quat(np.r_[q[1:], q[0]]).as_rotvec() for q, _ in fits]
     itf = d.connectivity.interfaces[0]
-    g = d._rect_gid(itf.master)
-    pt = next(p for p in d._patches if np.array_equal(p.gid, g))
+    g = sk.points.rect_gid(itf.master)
+    pt = next(p for p in sk.patches.items if np.array_equal(p.gid, g))
     phis = []
-    der = np.searchsorted(d._derived, g)
-    is_der = d._derived[np.minimum(der, d._derived.size - 1)] == g
-    for k, b in enumerate(d._bodies):
+    der = np.searchsorted(sk.derived, g)
+    is_der = sk.derived[np.minimum(der, sk.derived.size - 1)] == g
+    for k, b in enumerate(two.bodies):
         # the sides: walls 1 or 0, derived side points (segments) their own weights
         ind = np.zeros(g.shape + (3,))
         ind[..., 0] = np.isin(g, b.gids)
-        ind[is_der, 0] = d._phi[der[is_der], k]
+        ind[is_der, 0] = two.phi[der[is_der], k]
         tfi.tfi_patch(ind, None, pt.s, lead=pt.lead)
         phis.append(ind[..., 0])
     inner = (slice(1, -1), slice(1, -1))

@@ -441,3 +441,121 @@ def symmetry_fix(F, gq, use_q, X, carm, idx, point, normal):
             qa.krotate(tw, arm, r)
         for c in range(3):
             F[p, c] = pos[c] - carm[c] - r[c]
+
+
+# ----------------------------------------------------------------------------- drivers
+# One call per hierarchy level on the global boundary arrays of a Skeleton
+# (tfi_quat.deform.skeleton): Δ or K (G, 3) and Q (G, 4), ``gq`` None for
+# translations only.
+
+#: "no damping" / "no re-basing" for fill_gaps and patch_level
+NONE = np.zeros(0)
+NONE3 = np.zeros((0, 3))
+_ORIGIN = np.zeros(3)
+#: a derived patch point costs about as much as this many volume points (the patch
+#: level runs on all threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
+PATCH_WORK = 8
+
+
+def vertex_q(vertices, gq: np.ndarray, decay: np.ndarray) -> np.ndarray:
+    """Quaternions of the free vertices: the hemisphere-aligned weighted mean of the sources,
+    normalised (the strongest source where it vanishes), slerped from 1 by ``decay``."""
+    src, w, _, ref = vertices.idw
+    qs = gq[src]                                         # (ns, 4)
+    qref = qs[ref]                                       # (nv, 4)
+    sign = np.where(qref @ qs.T >= 0.0, 1.0, -1.0)       # (nv, ns)
+    qbar = (w * sign) @ qs
+    norm = np.linalg.norm(qbar, axis=1)
+    small = norm < 1e-6
+    qbar[small] = qref[small]
+    qbar[~small] /= norm[~small, None]
+    ident = np.zeros_like(qbar)
+    ident[:, 0] = 1.0
+    return qa.slerp(ident, qbar, decay)
+
+
+def vertex_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None) -> None:
+    """The free vertices: inverse-distance blend of the wall sources, decaying to fixed points."""
+    if sk.vertices.idw is None:
+        return
+    src, w, decay, _ = sk.vertices.idw
+    free = sk.vertices.free
+    gdelta[free] = decay[:, None] * (w @ gdelta[src])
+    if gq is not None:
+        gq[free] = vertex_q(sk.vertices, gq, decay)
+
+
+def segment_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None) -> None:
+    """The segments' gaps (:func:`fill_gaps`)."""
+    if sk.segments is None:
+        return
+    fill_gaps(gdelta, gq if gq is not None else np.empty((1, 4)), *sk.segments.arrays(),
+              gq is not None, NONE, NONE3)
+
+
+def patch_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None, damp: np.ndarray = NONE,
+                shift: np.ndarray = NONE3) -> None:
+    """The derived patches (:func:`patch_level`); ``damp``/``shift``: the two-level fade and
+    re-basing."""
+    use_q = gq is not None
+    gqa = gq if use_q else np.empty((1, 4))
+    with serial_below(PATCH_WORK * sk.patches.npoints):
+        patch_level(gdelta, gqa, use_q, *sk.patches.pack, damp, shift)
+
+
+def symmetry_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None, centre: np.ndarray) -> None:
+    """Symmetry points of Samareh's fields (:func:`symmetry_fix`): on their plane, rotating
+    about its normal only."""
+    sym = sk.symmetry
+    if sym.gids.size:
+        use_q = gq is not None
+        symmetry_fix(gdelta, gq if use_q else np.empty((1, 4)), use_q, sk.points.P,
+                     centre if use_q else _ORIGIN, sym.gids, sym.point, sym.normal)
+
+
+def onto_symmetry(sk, pos: np.ndarray) -> None:
+    """The symmetry points of the global array ``pos`` (G, 3) projected onto their planes,
+    in place."""
+    onto_planes(pos, sk.symmetry.gids, sk.symmetry.point, sk.symmetry.normal)
+
+
+def wall_quaternions(sk, rd: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Merged boundary quaternions ``(n_wall, 4)`` of the wall points moved to ``rd`` (G, 3)."""
+    with serial_below(sk.points.wall.size):
+        return _wall_quaternions(sk, rd, centre)
+
+
+def _wall_quaternions(sk, rd, centre):
+    from ..boundary import _motion_padded
+    nw = sk.points.wall.size
+    acc = np.zeros((nw, 4))
+    count = np.zeros(nw, dtype=np.int64)
+    curve = sk.ndim == 2
+    e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
+    for w, lid in zip(sk.walls.patches, sk.walls.local):
+        pd = np.empty_like(w.pu)
+        halo_points(rd, w.halo.ravel(), w.mirror.ravel(), sk.points.plane_o, sk.points.plane_n,
+                    pd.reshape(-1, 3))
+        na = pd.shape[0] - 2
+        nb = 1 if curve else pd.shape[1] - 2
+        q, _ = _motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, centre, na, nb)
+        merge_quaternions(lid, q.reshape(-1, 4), acc, count)
+    acc /= np.linalg.norm(acc, axis=1, keepdims=True)
+    return acc
+
+
+def volumes(sk, grid, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None,
+            base_tables=None) -> None:
+    """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``.
+
+    The face values are read from the global boundary arrays through each block's
+    :func:`tfi.gather_plan` (no per-face copies).  ``base_tables`` (per block): the base
+    point is ``bases[b] + TFI(-c)`` (the two-level arms).
+    """
+    total = total or len(grid)
+    for b, plan in enumerate(sk.blocks):
+        with serial_below(grid[b].npoints):
+            tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre,
+                                      out=outs[b], base=None if base_tables is None else base_tables[b])
+        if callback is not None:
+            callback(done0 + b + 1, total)
