@@ -12,7 +12,7 @@ from tfi_quat.quality import negative_cells
 
 import _deform_grids as G
 
-FORMULATIONS = ["two-level", "samareh"]
+QUATERNION = ["two-level", "samareh"]
 
 CASES = {
     "o-grid": G.o_grid,
@@ -58,10 +58,10 @@ def _motion_for(name):
     return rigid_motion(20.0, (0, 0, 1), (0.3, 0.0, 0.0), (0.2, -0.1, 0.0))
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_walls_land_exactly(case, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_walls_land_exactly(case, method):
     name, grid, walls, sym, fixed = case
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
     move = _motion_for(name)
     out = d.deform(move)
     for blk, ref, m in zip(out, grid, _wall_mask(d, grid)):
@@ -70,20 +70,20 @@ def test_walls_land_exactly(case, formulation):
     assert not negative_cells(out, grid)
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_zero_motion_returns_the_grid(case, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_zero_motion_returns_the_grid(case, method):
     name, grid, walls, sym, fixed = case
-    for method in ("quaternion", "tfi"):
-        out = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method, formulation=formulation).deform(lambda p: p)
+    for m in (method, "tfi"):
+        out = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=m).deform(lambda p: p)
         for blk, ref in zip(out, grid):
             np.testing.assert_allclose(blk.xyz, ref.xyz, rtol=0, atol=1e-13 * _scale(grid))
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_reference_untouched_and_no_drift(case, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_reference_untouched_and_no_drift(case, method):
     name, grid, walls, sym, fixed = case
     before = grid.copy()
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
     a = d.deform(_motion_for(name))
     d.deform(rigid_motion(40.0, (0, 0, 1)))
     b = d.deform(_motion_for(name))
@@ -91,13 +91,13 @@ def test_reference_untouched_and_no_drift(case, formulation):
     assert a == b
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, method):
     """docs/method.md §4, property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
     name, grid, walls, sym, fixed = case
     faces = ("imin", "imax", "jmin", "jmax") + (("kmin", "kmax") if grid.ndim == 3 else ())
     every = [f"{b + 1}:{f}" for b in range(len(grid)) for f in faces]
-    d = Deformer(grid, walls=every, formulation=formulation)
+    d = Deformer(grid, walls=every, method=method)
     move = rigid_motion(35.0, (0.2, 0.3, 1.0) if grid.ndim == 3 else (0, 0, 1), (0.5, -0.2, 0.1 if grid.ndim == 3 else 0.0),
                         (0.3, 0.1, 0.05 if grid.ndim == 3 else 0.0))
     out = d.deform(move)
@@ -106,11 +106,11 @@ def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, formulation):
                                    rtol=0, atol=1e-10 * _scale(grid))
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_interface_points_stay_bit_identical(formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_interface_points_stay_bit_identical(method):
     for builder in (G.o_grid, G.two_block_o, G.box_pair):
         grid, walls, sym, fixed = builder()
-        d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+        d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
         out = d.deform(rigid_motion(15.0, (0, 0, 1), (0.4, 0.1, 0.0), (0.1, 0.2, 0.0)))
         assert d.connectivity.interfaces, builder.__name__
         for itf in d.connectivity.interfaces:
@@ -123,10 +123,10 @@ def test_interface_points_stay_bit_identical(formulation):
             assert np.array_equal(a, b), f"{builder.__name__}: interface {m} not bit-identical"
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_fixed_patches_do_not_move_and_symmetry_stays_in_plane(formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_fixed_patches_do_not_move_and_symmetry_stays_in_plane(method):
     grid, walls, sym, fixed = G.o_grid_3d()
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
     out = d.deform(rigid_motion(25.0, (0, 0, 1), (0.2, 0.0, 0.0), (0.1, 0.3, 0.0)))
     x, r = out[0].xyz, grid[0].xyz
     assert np.array_equal(x[:, -1], r[:, -1])                      # far field fixed, bit for bit
@@ -153,13 +153,13 @@ def _orthogonality_change(out, ref, layers=5):
 
 
 @pytest.mark.parametrize("angle", [10.0, 30.0, 45.0])
-@pytest.mark.parametrize("formulation", ["samareh"])
-def test_near_wall_orthogonality_kept_under_rigid_rotation(angle, formulation):
+@pytest.mark.parametrize("method", ["samareh"])
+def test_near_wall_orthogonality_kept_under_rigid_rotation(angle, method):
     """docs/method.md §4, property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
     grid, walls, sym, fixed = G.o_grid(65, 33)
     move = rigid_motion(angle, (0, 0, 1), (0.5, 0.0, 0.0), (0.3, 0.2, 0.0))
-    q = Deformer(grid, walls=walls, fixed=fixed, formulation=formulation).deform(move)
-    t = Deformer(grid, walls=walls, fixed=fixed, method="tfi", formulation=formulation).deform(move)
+    q = Deformer(grid, walls=walls, fixed=fixed, method=method).deform(move)
+    t = Deformer(grid, walls=walls, fixed=fixed, method="tfi").deform(move)
     dq = _orthogonality_change(q, grid)
     dt = _orthogonality_change(t, grid)
     assert dq <= 0.1, dq
@@ -174,12 +174,12 @@ def _transform_grid(grid, f):
 
 
 @pytest.mark.parametrize("name", ["o-grid", "box-pair", "o-grid-3d"])
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_translation_and_rotation_of_the_whole_problem(name, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_translation_and_rotation_of_the_whole_problem(name, method):
     """docs/method.md §4, property 5: moving the whole problem moves the result the same way."""
     grid, walls, sym, fixed = CASES[name]()
     move = _motion_for(name)
-    base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(move)
+    base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method).deform(move)
     scale = _scale(grid)
     T = np.array([3.0, -2.0, 0.0 if grid.ndim == 2 else 1.5])
     if grid.ndim == 2:
@@ -191,7 +191,7 @@ def test_translation_and_rotation_of_the_whole_problem(name, formulation):
         g2 = _transform_grid(grid, f)
         if name == "o-grid-3d" and f(np.zeros(3))[2] != 0.0:
             continue
-        out = Deformer(g2, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(lambda p: f(move(finv(p))))
+        out = Deformer(g2, walls=walls, symmetry=sym, fixed=fixed, method=method).deform(lambda p: f(move(finv(p))))
         for a, b in zip(out, base):
             np.testing.assert_allclose(a.xyz.reshape(-1, 3, order="F"),
                                        f(b.xyz.reshape(-1, 3, order="F")), rtol=0, atol=1e-9 * scale)
@@ -235,17 +235,54 @@ def test_bad_inputs_are_clear_errors():
         d.deform(G.channel()[0])
 
 
-def test_unknown_formulation_and_misplaced_options_are_errors():
+def test_unknown_method_and_misplaced_options_are_errors():
     grid, walls, sym, fixed = G.o_grid()
-    with pytest.raises(CaseError, match="formulation"):
-        Deformer(grid, walls=walls, formulation="local")
+    with pytest.raises(CaseError, match="method must be one of 'two-level', 'samareh', 'tfi'"):
+        Deformer(grid, walls=walls, method="local")
     with pytest.raises(CaseError, match="blending"):
         Deformer(grid, walls=walls, blending="linear")              # two-level has its own
     with pytest.raises(CaseError, match="rotation_length"):
-        Deformer(grid, walls=walls, formulation="samareh", rotation_length=0.1)
+        Deformer(grid, walls=walls, method="samareh", rotation_length=0.1)
     with pytest.raises(CaseError, match="rotation_length"):
         Deformer(grid, walls=walls, rotation_length=-1.0)
-    Deformer(grid, walls=walls, formulation="samareh", blending="linear")
+    Deformer(grid, walls=walls, method="samareh", blending="linear")
+
+
+@pytest.mark.parametrize("old,new", [
+    ({"method": "quaternion"}, "two-level"),
+    ({"method": "quaternion", "formulation": "samareh"}, "samareh"),
+    ({"method": "quaternion", "formulation": "two-level"}, "two-level"),
+    ({"formulation": "samareh"}, "samareh"),
+    ({"formulation": "two-level"}, "two-level"),
+    ({"method": "tfi", "formulation": "samareh"}, "tfi"),
+])
+def test_old_spellings_warn_and_give_the_same_grid(old, new):
+    """``method="quaternion"`` and ``formulation=`` still work, with a DeprecationWarning."""
+    grid, walls, sym, fixed = G.o_grid(25, 9)
+    move = rigid_motion(10.0, (0, 0, 1), (0.3, 0.0, 0.0))
+    with pytest.warns(DeprecationWarning, match="deprecated") as seen:
+        d = Deformer(grid, walls=walls, fixed=fixed, **old)
+    assert all(w.filename == __file__ for w in seen)            # points at the caller
+    assert d.method == new
+    assert d.deform(move) == Deformer(grid, walls=walls, fixed=fixed, method=new).deform(move)
+
+
+def test_old_spellings_are_still_checked():
+    grid, walls, sym, fixed = G.o_grid(25, 9)
+    with pytest.warns(DeprecationWarning), pytest.raises(CaseError, match="formulation must be"):
+        Deformer(grid, walls=walls, formulation="local")
+    with pytest.warns(DeprecationWarning), pytest.raises(CaseError, match="rotation_length"):
+        Deformer(grid, walls=walls, formulation="samareh", rotation_length=0.1)
+
+
+def test_the_package_exports_the_deformer_lazily():
+    import subprocess
+    import sys
+    code = ("import sys, tfi_quat as tq; assert 'tfi_quat.deform' not in sys.modules; "
+            "from tfi_quat import deform; "
+            "assert (tq.Deformer, tq.rigid_motion, tq.StepTimings, tq.deformer_from_case) == "
+            "(deform.Deformer, deform.rigid_motion, deform.StepTimings, deform.deformer_from_case)")
+    subprocess.run([sys.executable, "-c", code], check=True)
 
 
 def test_two_wall_bodies_get_their_own_rigid_fits():

@@ -20,8 +20,8 @@ concern:
 
 from __future__ import annotations
 
-from .deformer import FORMULATIONS, Deformer, StepTimings, deformer_from_case, rigid_motion
+from .deformer import METHODS, Deformer, StepTimings, deformer_from_case, rigid_motion
 from .skeleton import DERIVED, FIXED, SYMMETRY, WALL
 
-__all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "FORMULATIONS",
+__all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "METHODS",
            "WALL", "FIXED", "SYMMETRY", "DERIVED"]

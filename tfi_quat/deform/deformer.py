@@ -5,20 +5,24 @@ the two-level formulation, its :class:`~.twolevel.TwoLevel` parts; a step
 (:meth:`Deformer.deform`) reads them, fills the boundary fields level by level
 (:mod:`.stages`) and runs one fused TFI kernel per block.
 
-Formulations (``docs/deformer.md`` has the derivation and the measurements):
+Methods (``docs/deformer.md`` has the derivation and the measurements):
 
-``"two-level"`` (default)
+``method="two-level"`` (default)
     The wall motion of each wall body is split into the rigid motion that
     fits it best and a residual deformation (:mod:`.twolevel`).  Rigid
     motions are reproduced exactly, near-wall grid lines turn with the wall,
     and small irregularities of the fitted wall rotations are not carried
     over long lever arms into thin far-field cells.
-``"samareh"``
+``method="samareh"``
     The memo's update ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``, Δ and Q
     interpolated from the boundaries (Hermite blending by default).
 
-``method="tfi"`` is the classic baseline: the same hierarchy with Q ≡ 1 and Δ
-the displacement.
+``method="tfi"``
+    The classic baseline: the same hierarchy with Q ≡ 1 and Δ the
+    displacement.
+
+The old spellings ``method="quaternion"`` and ``formulation=`` are accepted
+with a :class:`DeprecationWarning` (:func:`resolve_method`).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
@@ -38,13 +43,41 @@ from ..spec import PatchSpec, as_patch_specs, parse_patch_spec
 from . import stages, twolevel
 from .skeleton import BLENDINGS, FIXED, WALL, ArclengthParams, boundary_points, build_skeleton
 
-__all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "FORMULATIONS"]
+__all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "METHODS",
+           "resolve_method"]
 
 _ORIGIN = np.zeros(3)
 _IDENT = np.array([1.0, 0.0, 0.0, 0.0])
 
-#: formulations of the quaternion method
-FORMULATIONS = ("two-level", "samareh")
+#: the deformation methods: quaternion TFI in the two-level formulation (default) or in the
+#: memo's (Samareh's) form, and plain TFI of displacements
+METHODS = ("two-level", "samareh", "tfi")
+_FORMULATIONS = ("two-level", "samareh")
+
+
+def resolve_method(method: str = "two-level", formulation: str | None = None) -> str:
+    """The method (one of :data:`METHODS`) for ``method`` and the deprecated ``formulation``.
+
+    ``method="quaternion"`` (deprecated) means ``formulation`` or ``"two-level"``;
+    ``formulation`` (deprecated) replaces a quaternion method (``"two-level"``,
+    ``"samareh"``, ``"quaternion"``) and is ignored with ``"tfi"``, as before.  Each
+    deprecated spelling warns with a :class:`DeprecationWarning`.
+    """
+    if formulation is not None:
+        warnings.warn("Deformer(formulation=...) is deprecated; give method='two-level', "
+                      "'samareh' or 'tfi'", DeprecationWarning, stacklevel=3)
+        if formulation not in _FORMULATIONS:
+            raise CaseError(f"formulation must be one of {', '.join(map(repr, _FORMULATIONS))}, "
+                            f"got {formulation!r}")
+    if method == "quaternion":
+        warnings.warn("Deformer(method='quaternion') is deprecated; give method='two-level' (the "
+                      "default) or method='samareh'", DeprecationWarning, stacklevel=3)
+        return formulation or "two-level"
+    if method not in METHODS:
+        raise CaseError(f"method must be one of {', '.join(map(repr, METHODS))}, got {method!r}")
+    if formulation is not None and method != "tfi":
+        return formulation
+    return method
 
 
 def rigid_motion(rotate_deg: float = 0.0, axis=(0.0, 0.0, 1.0), about=(0.0, 0.0, 0.0),
@@ -119,12 +152,15 @@ class Deformer:
         Interfaces and patches (e.g. loaded from JSON or an ``.nmf``); found
         with :func:`tfi_quat.topology.connect` when omitted.  When given with
         ``walls``/``symmetry``/``fixed``, those kinds are applied to it.
-    method : {"quaternion", "tfi"}
-        ``quaternion``: interpolate translations and rotations;
-        ``tfi``: the classic baseline, displacements only.
-    formulation : {"two-level", "samareh"}
-        How rotations act on positions (``method="quaternion"`` only); see the
-        module docstring and ``docs/deformer.md``.
+    method : {"two-level", "samareh", "tfi"}
+        ``two-level`` (default) and ``samareh``: interpolate translations and
+        rotations (quaternion TFI), the rotations acting in the two-level
+        formulation or in the memo's update (see the module docstring and
+        ``docs/deformer.md``); ``tfi``: the classic baseline, displacements
+        only.  ``"quaternion"`` is a deprecated spelling of ``"two-level"``.
+    formulation : {"two-level", "samareh"}, optional
+        Deprecated: give ``method`` instead (it replaces ``method`` unless
+        that is ``"tfi"``).
     centre : array_like (3,), optional
         Rotation centre ``c`` of the Samareh update (the whole update for
         ``"samareh"``, the rigid part for ``"two-level"``).  Default: the
@@ -134,14 +170,14 @@ class Deformer:
         Coincidence tolerance for merging boundary points; default
         1e-10 x the grid's bounding-box diagonal.
     blending : {"hermite", "linear"}, optional
-        Blending function of ``"samareh"`` and ``method="tfi"`` applied to the
+        Blending function of ``"samareh"`` and ``"tfi"`` applied to the
         normalised arclength ``s``: ``hermite`` (default) ``3 s^2 - 2 s^3``,
         ``linear`` Soni's original.  The two-level formulation always uses its
         wall-layer blending (:mod:`tfi_quat.blending`).
     rotation_length : float, optional
-        Two-level formulation: thickness of the wall layer in which residual
+        ``method="two-level"``: thickness of the wall layer in which residual
         (non-rigid) wall rotations act.  Default:
-        ``ROTATION_LENGTH_FRACTION`` x the walls' size (twice the largest
+        :data:`tfi_quat.deform.twolevel.ROTATION_LENGTH_FRACTION` x the walls' size (twice the largest
         distance of a wall point from their centroid).
     idw_power : float
         Exponent of the inverse-distance weights of free vertices.
@@ -151,23 +187,19 @@ class Deformer:
     """
 
     def __init__(self, grid: Grid, walls=(), symmetry=(), fixed=(), connectivity=None,
-                 method: str = "quaternion", formulation: str = "two-level", centre=None,
+                 method: str = "two-level", formulation: str | None = None, centre=None,
                  tol: float | None = None, blending: str | None = None,
                  rotation_length: float | None = None, idw_power: float = 3.0,
                  max_idw_sources: int = 2000):
         if not isinstance(grid, Grid):
             raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
-        if method not in ("quaternion", "tfi"):
-            raise CaseError(f"method must be 'quaternion' or 'tfi', got {method!r}")
-        if formulation not in FORMULATIONS:
-            raise CaseError(f"formulation must be one of {', '.join(map(repr, FORMULATIONS))}, "
-                            f"got {formulation!r}")
-        two = method == "quaternion" and formulation == "two-level"
+        method = resolve_method(method, formulation)
+        two = method == "two-level"
         if blending is not None and blending not in BLENDINGS:
             raise CaseError(f"blending must be one of {', '.join(BLENDINGS)}, got {blending!r}")
         if blending is not None and two:
-            raise CaseError("blending applies to formulation='samareh' and method='tfi'; the "
-                            "two-level formulation blends with its wall layer (rotation_length)")
+            raise CaseError("blending applies to method='samareh' and method='tfi'; the "
+                            "two-level method blends with its wall layer (rotation_length)")
         if rotation_length is not None:
             try:
                 rotation_length = float(rotation_length)
@@ -177,13 +209,12 @@ class Deformer:
             if not (rotation_length > 0.0 and math.isfinite(rotation_length)):
                 raise CaseError(f"rotation_length must be a positive number, got {rotation_length!r}")
             if not two:
-                raise CaseError("rotation_length applies to the two-level formulation only")
+                raise CaseError("rotation_length applies to method='two-level' only")
         t0 = time.perf_counter()
         self.grid = grid
         self.ndim = grid.ndim
         self.method = method
-        self.formulation = formulation if method == "quaternion" else None
-        self._use_q = method == "quaternion"
+        self._use_q = method != "tfi"
         self.blending = None if two else (blending or "hermite")
         _check_block_sizes(grid)
         walls = as_patch_specs(walls, "walls")
@@ -353,10 +384,10 @@ class Deformer:
             head = f"method tfi (plain TFI), {self.blending} blending"
         elif self.two_level is not None:
             nb = len(self.two_level.bodies)
-            head = (f"method quaternion, formulation two-level, rotation length "
+            head = (f"method two-level (quaternion TFI), rotation length "
                     f"{self.rotation_length:.6g}, {nb} wall bod{'y' if nb == 1 else 'ies'}")
         else:
-            head = f"method quaternion, formulation samareh, {self.blending} blending"
+            head = f"method samareh (quaternion TFI, the memo's update), {self.blending} blending"
         lines = [
             head + f", centre ({', '.join(f'{v:.6g}' for v in self.centre)})",
             f"{self.n_global} boundary points: {int((k == WALL).sum())} wall, "
