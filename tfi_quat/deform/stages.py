@@ -2,8 +2,11 @@
 
 Each kernel works on the arrays of one hierarchy level (the gaps of the
 segments, the derived patches, the symmetry points, the wall halos) and
-neither validates nor raises; the Python drivers in :mod:`.deformer`,
-:mod:`.skeleton` and :mod:`.twolevel` check their inputs and call them.
+neither validates nor raises.  Below them, one thin driver per level
+(:func:`vertex_stage`, :func:`segment_stage`, :func:`patch_stage`,
+:func:`symmetry_stage`, :func:`wall_quaternions`, :func:`volumes`) calls them
+on a :class:`~.skeleton.Skeleton`; the Deformer front validates the user's
+input before any of them runs.
 """
 
 from __future__ import annotations
