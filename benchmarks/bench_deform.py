@@ -25,19 +25,17 @@ from tfi_quat import topology
 from tfi_quat.case import Motion
 from tfi_quat.deform import Deformer
 
-METHODS = (("quaternion", "two-level"), ("quaternion", "samareh"), ("tfi", None))
+METHODS = ("two-level", "samareh", "tfi")
 
 
 def _kept_bytes(d: Deformer) -> int:
     """Bytes a Deformer keeps per block: blending parameters, the kernels' kept tables and the
     two-level base tables."""
     n = 0
-    for plan in d._blocks:
-        n += plan.s.nbytes
-        if plan.base is not None:
-            n += sum(t.nbytes for t in plan.base)
-        if plan.gather is not None:
-            n += plan.gather.nbytes
+    for plan in d.skeleton.blocks:
+        n += plan.s.nbytes + plan.gather.nbytes
+    if d.two_level is not None:
+        n += sum(t.nbytes for base in d.two_level.base for t in base)
     return n
 
 
@@ -73,22 +71,19 @@ def main(argv=None):
     t0 = time.perf_counter()
     small = gen.wing(ni=33, nj=13, nk_wing=12, nk_cap=5, nk_out=7)
     sp = gen.boundary_patches("wing", small)
-    for method, form in METHODS:
-        kw = {"method": method} if form is None else {"method": method, "formulation": form}
-        Deformer(small, walls=sp["walls"], symmetry=sp["symmetry"], fixed=sp["fixed"], **kw).deform(move)
+    for method in METHODS:
+        Deformer(small, walls=sp["walls"], symmetry=sp["symmetry"], fixed=sp["fixed"], method=method).deform(move)
     print(f"warm-up on a small wing (compilation or numba cache load) {time.perf_counter() - t0:.1f} s")
-    for method, form in METHODS:
-        name = form or method
-        if want is not None and name not in want:
+    for method in METHODS:
+        if want is not None and method not in want:
             continue
-        kw = {"method": method} if form is None else {"method": method, "formulation": form}
         # set-up: best of 3 builds, like the steps' best of N; the first build, which also
         # pays the first touch of the blending parameters' pages, is printed beside it
         setups = []
         for _ in range(3):
             d = None
             t0 = time.perf_counter()
-            d = Deformer(grid, connectivity=conn, **kw)
+            d = Deformer(grid, connectivity=conn, method=method)
             setups.append(time.perf_counter() - t0)
         setup = min(setups)
         d.deform(move)                                   # first call: compilation excluded
@@ -104,8 +99,7 @@ def main(argv=None):
         _, peak = tracemalloc.get_traced_memory()
         tracemalloc.stop()
         dt, tm = best
-        label = method if form is None else f"{method} ({form})"
-        print(f"\n{label}: set-up {setup:.2f} s = {setup / dt:.1f} steps "
+        print(f"\n{method}: set-up {setup:.2f} s = {setup / dt:.1f} steps "
               f"(+ {tc:.2f} s connectivity = {(setup + tc) / dt:.1f} steps); "
               f"first build {setups[0]:.2f} s = {setups[0] / dt:.1f} steps")
         print(f"  step {dt:.3f} s = {npts / dt / 1e6:.1f} M points/s end to end")

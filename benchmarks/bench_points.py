@@ -124,9 +124,9 @@ def wall_sets(grid, bp, conn, which: str):
     else:
         bp = gen.boundary_patches("wing", grid)
         d = Deformer(grid, walls=bp["walls"], symmetry=bp["symmetry"], fixed=bp["fixed"])
-    P = d._P
-    W = np.ascontiguousarray(P[d._kind == WALL])
-    Q = P if which == "all" else P[np.isfinite(d._dwall)]
+    P = d.skeleton.points.P
+    W = np.ascontiguousarray(P[d.skeleton.points.kind == WALL])
+    Q = P if which == "all" else P[np.isfinite(d.two_level.layer.dwall)]
     return W, np.ascontiguousarray(Q), 20.0 * d.rotation_length
 
 

@@ -15,7 +15,7 @@ face, then ``deform_block(..., check=False)``), whole call and the
 O(surface) tables alone.
 
 With ``--setup-wing SCALE`` it times instead the Deformer's volume-sized
-set-up on the blocks of the multiblock wing (``Deformer._block_params``):
+set-up on the blocks of the multiblock wing (``tfi_quat.deform.twolevel.WallLayer.block``):
 ``tfi.arclength`` then ``blending.wall_layer_block(..., out=s)``, against the
 kernels they replaced (frozen copies below, run in the same process,
 interleaved) and against the fused ``blending.wall_layer_arclength``; it
@@ -257,9 +257,9 @@ def _old_wall_layer_block(xyz, s, lam, out):
 
 
 def _wing_blocks(scale, pickled):
-    """The wing's blocks and their layer thicknesses as ``Deformer._block_params`` builds them."""
+    """The wing's blocks and their layer thicknesses as ``tfi_quat.deform.twolevel.WallLayer.block`` builds them."""
     from tfi_quat import generate as gen, topology
-    from tfi_quat.deform import Deformer, _faces_of
+    from tfi_quat.deform import Deformer
     if pickled:
         with open(pickled, "rb") as f:
             grid, _, conn = pickle.load(f)
@@ -275,7 +275,7 @@ def _wing_blocks(scale, pickled):
     ell = d.rotation_length
     out = []
     for b, blk in enumerate(grid):
-        out.append((blk.xyz, [ell * d._omega[d._face_gid[(b, f)]] for f in _faces_of(3)]))
+        out.append((blk.xyz, [ell * d.two_level.layer.omega[g] for g in d.skeleton.blocks[b].face_gid]))
     return out
 
 

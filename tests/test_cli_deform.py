@@ -12,7 +12,7 @@ import pytest
 import tfi_quat as tq
 from tfi_quat.case import load_case
 from tfi_quat.cli import _deform, main
-from tfi_quat.deform import FORMULATIONS, Deformer, rigid_motion
+from tfi_quat.deform import METHODS, Deformer, rigid_motion
 
 GRIDS = Path(__file__).resolve().parents[1] / "grids"
 
@@ -43,7 +43,7 @@ def test_case_file_motion_end_to_end(capsys, cgrid):
     rc, so, se = run_cli(capsys, "deform", "--case", case_path, "-o", out)
     assert rc == 0, se
     lines = so.strip().splitlines()
-    assert "case file's motion" in lines[0] and "quaternion (two-level)" in lines[0]
+    assert "case file's motion" in lines[0] and lines[0].endswith("; method two-level")
     assert lines[1].startswith("set-up") and "M points/s" in lines[1]
     assert lines[-1].startswith(f"wrote {out}: 0 negative cells, smallest volume ratio")
     got = tq.read(out)
@@ -55,7 +55,8 @@ def test_case_file_motion_end_to_end(capsys, cgrid):
 @pytest.mark.parametrize("extra,kw", [
     ([], {}),
     (["--method", "tfi"], {"method": "tfi"}),
-    (["--formulation", "samareh"], {"formulation": "samareh"}),
+    (["--method", "samareh"], {"method": "samareh"}),
+    (["--method", "two-level"], {}),
     (["--rotation-length", "0.05"], {"rotation_length": 0.05}),
 ])
 def test_rigid_motion_options(capsys, cgrid, extra, kw):
@@ -102,7 +103,8 @@ def test_existing_output_and_the_input_are_not_overwritten(capsys, cgrid):
 @pytest.mark.parametrize("argv,fragment", [
     (["--rotate", "5", "--moved", "X.x"], "not both"),
     (["--method", "tfi", "--rotation-length", "0.1"], "--rotation-length"),
-    (["--formulation", "samareh", "--rotation-length", "0.1"], "--rotation-length"),
+    (["--method", "samareh", "--rotation-length", "0.1"], "--rotation-length"),
+    (["--method", "samareh", "--formulation", "two-level"], "disagree"),
     (["--rotation-length", "-2"], "rotation_length"),
 ])
 def test_bad_options_are_one_line_errors(capsys, cgrid, argv, fragment):
@@ -135,8 +137,26 @@ def test_progress_bar_draws_on_a_terminal(monkeypatch):
     assert quiet.getvalue() == ""
 
 
-def test_formulation_names_match_the_library():
-    assert _deform.FORMULATIONS == FORMULATIONS
+def test_method_names_match_the_library():
+    assert _deform.METHODS == METHODS
+
+
+@pytest.mark.parametrize("old,new", [
+    (["--method", "quaternion"], "two-level"),
+    (["--method", "quaternion", "--formulation", "samareh"], "samareh"),
+    (["--formulation", "samareh"], "samareh"),
+    (["--formulation", "two-level"], "two-level"),
+    (["--method", "tfi", "--formulation", "samareh"], "tfi"),
+])
+def test_old_method_spellings_are_accepted_with_a_note(capsys, cgrid, old, new):
+    grid_path, case_path = cgrid
+    out = grid_path.parent / "old.x"
+    rc, so, se = run_cli(capsys, "deform", "--case", case_path, "-o", out, *old)
+    assert rc == 0, se
+    assert "deprecated" in se and f"use --method {new}" in se and len(se.strip().splitlines()) == 1
+    assert so.splitlines()[0].endswith(f"; method {new}")
+    ref = _api(grid_path, case_path, load_case(case_path).motion.apply, method=new)
+    assert [b.xyz.tobytes() for b in tq.read(out)] == [b.xyz.tobytes() for b in ref]
 
 
 def test_connectivity_and_nmf_files(capsys, cgrid):

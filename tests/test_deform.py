@@ -1,4 +1,4 @@
-"""The Deformer against the properties of DESIGN section 4, on several grid shapes."""
+"""The Deformer against the properties of docs/method.md §4, on several grid shapes."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import pytest
 
 from tfi_quat import CaseError, DeformationError, Grid
 from tfi_quat import quaternion as qa
-from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.deform import Deformer, rigid_motion, twolevel
 from tfi_quat.quality import negative_cells
 
 import _deform_grids as G
 
-FORMULATIONS = ["two-level", "samareh"]
+QUATERNION = ["two-level", "samareh"]
 
 CASES = {
     "o-grid": G.o_grid,
@@ -42,7 +42,7 @@ def _wall_mask(deformer, grid):
         for p in deformer.connectivity.patches:
             if p.kind != "wall" or p.spec.block != b:
                 continue
-            from tfi_quat.deform import _face_ijk
+            from tfi_quat.deform.skeleton import _face_ijk
             ijk = _face_ijk(blk.dims, p.spec.face, p.spec.range).reshape(-1, 3)
             m[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
         out.append(m)
@@ -58,10 +58,10 @@ def _motion_for(name):
     return rigid_motion(20.0, (0, 0, 1), (0.3, 0.0, 0.0), (0.2, -0.1, 0.0))
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_walls_land_exactly(case, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_walls_land_exactly(case, method):
     name, grid, walls, sym, fixed = case
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
     move = _motion_for(name)
     out = d.deform(move)
     for blk, ref, m in zip(out, grid, _wall_mask(d, grid)):
@@ -70,20 +70,20 @@ def test_walls_land_exactly(case, formulation):
     assert not negative_cells(out, grid)
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_zero_motion_returns_the_grid(case, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_zero_motion_returns_the_grid(case, method):
     name, grid, walls, sym, fixed = case
-    for method in ("quaternion", "tfi"):
-        out = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method, formulation=formulation).deform(lambda p: p)
+    for m in (method, "tfi"):
+        out = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=m).deform(lambda p: p)
         for blk, ref in zip(out, grid):
             np.testing.assert_allclose(blk.xyz, ref.xyz, rtol=0, atol=1e-13 * _scale(grid))
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_reference_untouched_and_no_drift(case, formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_reference_untouched_and_no_drift(case, method):
     name, grid, walls, sym, fixed = case
     before = grid.copy()
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
     a = d.deform(_motion_for(name))
     d.deform(rigid_motion(40.0, (0, 0, 1)))
     b = d.deform(_motion_for(name))
@@ -91,13 +91,13 @@ def test_reference_untouched_and_no_drift(case, formulation):
     assert a == b
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, formulation):
-    """DESIGN property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
+@pytest.mark.parametrize("method", QUATERNION)
+def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, method):
+    """docs/method.md §4, property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
     name, grid, walls, sym, fixed = case
     faces = ("imin", "imax", "jmin", "jmax") + (("kmin", "kmax") if grid.ndim == 3 else ())
     every = [f"{b + 1}:{f}" for b in range(len(grid)) for f in faces]
-    d = Deformer(grid, walls=every, formulation=formulation)
+    d = Deformer(grid, walls=every, method=method)
     move = rigid_motion(35.0, (0.2, 0.3, 1.0) if grid.ndim == 3 else (0, 0, 1), (0.5, -0.2, 0.1 if grid.ndim == 3 else 0.0),
                         (0.3, 0.1, 0.05 if grid.ndim == 3 else 0.0))
     out = d.deform(move)
@@ -106,15 +106,15 @@ def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, formulation):
                                    rtol=0, atol=1e-10 * _scale(grid))
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_interface_points_stay_bit_identical(formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_interface_points_stay_bit_identical(method):
     for builder in (G.o_grid, G.two_block_o, G.box_pair):
         grid, walls, sym, fixed = builder()
-        d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+        d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
         out = d.deform(rigid_motion(15.0, (0, 0, 1), (0.4, 0.1, 0.0), (0.1, 0.2, 0.0)))
         assert d.connectivity.interfaces, builder.__name__
         for itf in d.connectivity.interfaces:
-            from tfi_quat.deform import _face_ijk
+            from tfi_quat.deform.skeleton import _face_ijk
             m = itf.master
             mi = _face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
             si = np.asarray(itf.slave_index(mi)).reshape(-1, 3)
@@ -123,10 +123,10 @@ def test_interface_points_stay_bit_identical(formulation):
             assert np.array_equal(a, b), f"{builder.__name__}: interface {m} not bit-identical"
 
 
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_fixed_patches_do_not_move_and_symmetry_stays_in_plane(formulation):
+@pytest.mark.parametrize("method", QUATERNION)
+def test_fixed_patches_do_not_move_and_symmetry_stays_in_plane(method):
     grid, walls, sym, fixed = G.o_grid_3d()
-    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation)
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method)
     out = d.deform(rigid_motion(25.0, (0, 0, 1), (0.2, 0.0, 0.0), (0.1, 0.3, 0.0)))
     x, r = out[0].xyz, grid[0].xyz
     assert np.array_equal(x[:, -1], r[:, -1])                      # far field fixed, bit for bit
@@ -153,13 +153,13 @@ def _orthogonality_change(out, ref, layers=5):
 
 
 @pytest.mark.parametrize("angle", [10.0, 30.0, 45.0])
-@pytest.mark.parametrize("formulation", ["samareh"])
-def test_near_wall_orthogonality_kept_under_rigid_rotation(angle, formulation):
-    """DESIGN property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
+@pytest.mark.parametrize("method", ["samareh"])
+def test_near_wall_orthogonality_kept_under_rigid_rotation(angle, method):
+    """docs/method.md §4, property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
     grid, walls, sym, fixed = G.o_grid(65, 33)
     move = rigid_motion(angle, (0, 0, 1), (0.5, 0.0, 0.0), (0.3, 0.2, 0.0))
-    q = Deformer(grid, walls=walls, fixed=fixed, formulation=formulation).deform(move)
-    t = Deformer(grid, walls=walls, fixed=fixed, method="tfi", formulation=formulation).deform(move)
+    q = Deformer(grid, walls=walls, fixed=fixed, method=method).deform(move)
+    t = Deformer(grid, walls=walls, fixed=fixed, method="tfi").deform(move)
     dq = _orthogonality_change(q, grid)
     dt = _orthogonality_change(t, grid)
     assert dq <= 0.1, dq
@@ -174,12 +174,12 @@ def _transform_grid(grid, f):
 
 
 @pytest.mark.parametrize("name", ["o-grid", "box-pair", "o-grid-3d"])
-@pytest.mark.parametrize("formulation", FORMULATIONS)
-def test_translation_and_rotation_of_the_whole_problem(name, formulation):
-    """DESIGN property 5: moving the whole problem moves the result the same way."""
+@pytest.mark.parametrize("method", QUATERNION)
+def test_translation_and_rotation_of_the_whole_problem(name, method):
+    """docs/method.md §4, property 5: moving the whole problem moves the result the same way."""
     grid, walls, sym, fixed = CASES[name]()
     move = _motion_for(name)
-    base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(move)
+    base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method).deform(move)
     scale = _scale(grid)
     T = np.array([3.0, -2.0, 0.0 if grid.ndim == 2 else 1.5])
     if grid.ndim == 2:
@@ -191,7 +191,7 @@ def test_translation_and_rotation_of_the_whole_problem(name, formulation):
         g2 = _transform_grid(grid, f)
         if name == "o-grid-3d" and f(np.zeros(3))[2] != 0.0:
             continue
-        out = Deformer(g2, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(lambda p: f(move(finv(p))))
+        out = Deformer(g2, walls=walls, symmetry=sym, fixed=fixed, method=method).deform(lambda p: f(move(finv(p))))
         for a, b in zip(out, base):
             np.testing.assert_allclose(a.xyz.reshape(-1, 3, order="F"),
                                        f(b.xyz.reshape(-1, 3, order="F")), rtol=0, atol=1e-9 * scale)
@@ -207,7 +207,7 @@ def test_moved_as_grid_and_as_mapping_agree_with_callable():
     mapping = {}
     for p in d.connectivity.patches:
         if p.kind == "wall":
-            from tfi_quat.deform import _face_ijk
+            from tfi_quat.deform.skeleton import _face_ijk
             ijk = _face_ijk(grid[p.spec.block].dims, p.spec.face, p.spec.range)
             pts = grid[p.spec.block].xyz[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
             mapping[p.spec] = move(pts.reshape(-1, 3)).reshape(pts.shape)
@@ -235,17 +235,54 @@ def test_bad_inputs_are_clear_errors():
         d.deform(G.channel()[0])
 
 
-def test_unknown_formulation_and_misplaced_options_are_errors():
+def test_unknown_method_and_misplaced_options_are_errors():
     grid, walls, sym, fixed = G.o_grid()
-    with pytest.raises(CaseError, match="formulation"):
-        Deformer(grid, walls=walls, formulation="local")
+    with pytest.raises(CaseError, match="method must be one of 'two-level', 'samareh', 'tfi'"):
+        Deformer(grid, walls=walls, method="local")
     with pytest.raises(CaseError, match="blending"):
         Deformer(grid, walls=walls, blending="linear")              # two-level has its own
     with pytest.raises(CaseError, match="rotation_length"):
-        Deformer(grid, walls=walls, formulation="samareh", rotation_length=0.1)
+        Deformer(grid, walls=walls, method="samareh", rotation_length=0.1)
     with pytest.raises(CaseError, match="rotation_length"):
         Deformer(grid, walls=walls, rotation_length=-1.0)
-    Deformer(grid, walls=walls, formulation="samareh", blending="linear")
+    Deformer(grid, walls=walls, method="samareh", blending="linear")
+
+
+@pytest.mark.parametrize("old,new", [
+    ({"method": "quaternion"}, "two-level"),
+    ({"method": "quaternion", "formulation": "samareh"}, "samareh"),
+    ({"method": "quaternion", "formulation": "two-level"}, "two-level"),
+    ({"formulation": "samareh"}, "samareh"),
+    ({"formulation": "two-level"}, "two-level"),
+    ({"method": "tfi", "formulation": "samareh"}, "tfi"),
+])
+def test_old_spellings_warn_and_give_the_same_grid(old, new):
+    """``method="quaternion"`` and ``formulation=`` still work, with a DeprecationWarning."""
+    grid, walls, sym, fixed = G.o_grid(25, 9)
+    move = rigid_motion(10.0, (0, 0, 1), (0.3, 0.0, 0.0))
+    with pytest.warns(DeprecationWarning, match="deprecated") as seen:
+        d = Deformer(grid, walls=walls, fixed=fixed, **old)
+    assert all(w.filename == __file__ for w in seen)            # points at the caller
+    assert d.method == new
+    assert d.deform(move) == Deformer(grid, walls=walls, fixed=fixed, method=new).deform(move)
+
+
+def test_old_spellings_are_still_checked():
+    grid, walls, sym, fixed = G.o_grid(25, 9)
+    with pytest.warns(DeprecationWarning), pytest.raises(CaseError, match="formulation must be"):
+        Deformer(grid, walls=walls, formulation="local")
+    with pytest.warns(DeprecationWarning), pytest.raises(CaseError, match="rotation_length"):
+        Deformer(grid, walls=walls, formulation="samareh", rotation_length=0.1)
+
+
+def test_the_package_exports_the_deformer_lazily():
+    import subprocess
+    import sys
+    code = ("import sys, tfi_quat as tq; assert 'tfi_quat.deform' not in sys.modules; "
+            "from tfi_quat import deform; "
+            "assert (tq.Deformer, tq.rigid_motion, tq.StepTimings, tq.deformer_from_case) == "
+            "(deform.Deformer, deform.rigid_motion, deform.StepTimings, deform.deformer_from_case)")
+    subprocess.run([sys.executable, "-c", code], check=True)
 
 
 def test_two_wall_bodies_get_their_own_rigid_fits():
@@ -254,7 +291,7 @@ def test_two_wall_bodies_get_their_own_rigid_fits():
     is zero; walls exact, no negative cells, the middle moves half way."""
     grid, _, _, _ = G.channel()
     d = Deformer(grid, walls=["1:jmin", "1:jmax"], fixed=["1:imin", "1:imax"])
-    assert len(d._bodies) == 2
+    assert len(d.two_level.bodies) == 2
 
     def move(p):
         p = np.array(p, dtype=np.float64)
@@ -263,11 +300,14 @@ def test_two_wall_bodies_get_their_own_rigid_fits():
         p[~lower, 1] += 0.04
         return p
 
-    fits, y = d._fits(d._wall_targets(move))
+    P, wall = d.skeleton.points.P, d.skeleton.points.wall
+    rd, y = P.copy(), P.copy()
+    rd[wall] = move(P[wall])
+    fits = twolevel.fit_bodies(d.skeleton, d.two_level, rd, y)
     for q, t in fits:
         np.testing.assert_allclose(q, [1.0, 0.0, 0.0, 0.0], atol=1e-14)
         assert abs(abs(t[1]) - 0.04) < 1e-14 and abs(t[0]) < 1e-14
-    np.testing.assert_allclose(y[d._wall_gids], d._P[d._wall_gids], atol=1e-14)   # no residual
+    np.testing.assert_allclose(y[wall], P[wall], atol=1e-14)   # no residual
     out = d.deform(move)
     x, r = out[0].xyz, grid[0].xyz
     np.testing.assert_allclose(x[:, 0, 0, 1], r[:, 0, 0, 1] - 0.04, atol=1e-14)

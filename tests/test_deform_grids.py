@@ -1,4 +1,4 @@
-"""The Deformer on the shipped grids: DESIGN section 4, every property, on every topology.
+"""The Deformer on the shipped grids: docs/method.md §4, every property, on every topology.
 
 Grids: the 2-D C-grid and O-grid airfoils and their one-cell-thick 3-D
 extrusions (wall normal j, not the last index), the 2-D two-block case, the
@@ -16,18 +16,15 @@ import pytest
 import tfi_quat as tq
 from tfi_quat import quaternion as qa
 from tfi_quat.case import Motion, load_case
-from tfi_quat.deform import Deformer, _face_ijk, rigid_motion
+from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.deform.skeleton import _face_ijk
 from tfi_quat.quality import orthogonality_change, volume_ratio_summary
 from tfi_quat.spec import parse_patch_spec
 
 import _deform_grids as G
 
 GRIDS = Path(__file__).resolve().parents[1] / "grids"
-METHODS = [("quaternion", "two-level"), ("quaternion", "samareh"), ("tfi", None)]
-
-
-def _kw(method, formulation):
-    return {"method": method} if formulation is None else {"method": method, "formulation": formulation}
+METHODS = ["two-level", "samareh", "tfi"]
 
 
 def _shipped(name):
@@ -76,12 +73,11 @@ def _case(name):
     return _cache[name]
 
 
-def _deformer(name, method="quaternion", formulation="two-level", **kw):
-    key = (name, method, formulation, tuple(sorted(kw.items())))
+def _deformer(name, method="two-level", **kw):
+    key = (name, method, tuple(sorted(kw.items())))
     if key not in _cache:
         grid, walls, sym, fixed = _case(name)
-        _cache[key] = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, **_kw(method, formulation),
-                               **kw)
+        _cache[key] = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, method=method, **kw)
     return _cache[key]
 
 
@@ -93,24 +89,24 @@ def _scale(grid):
 def _copies(d):
     """Per global boundary point, every (block, flat index) copy of it."""
     out = []
-    for b, (local, gid) in enumerate(d._scatter):
+    for b, (local, gid) in enumerate(d.skeleton.scatter):
         out.append((b, local, gid))
     return out
 
 
 # ----------------------------------------------------------------------------- properties 1, 4, 8
-@pytest.mark.parametrize("method,formulation", METHODS)
+@pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_walls_fixed_symmetry_interfaces(name, method, formulation):
+def test_walls_fixed_symmetry_interfaces(name, method):
     """Walls exact (1), interface and cut copies bit-identical (4), fixed at rest and symmetry
     points in their plane (8); no negative cells for the two-level formulation and plain TFI."""
     grid, walls, sym, fixed = _case(name)
-    d = _deformer(name, method, formulation)
+    d = _deformer(name, method)
     move = CASES[name][1]
     out = d.deform(move)
     scale = _scale(grid)
-    P = d._P
-    kinds = d._kind
+    P = d.skeleton.points.P
+    kinds = d.skeleton.points.kind
     seen = {}
     for b, local, gid in _copies(d):
         x = out[b].xyz.reshape(-1, 3, order="F")[local]
@@ -138,28 +134,28 @@ def test_walls_fixed_symmetry_interfaces(name, method, formulation):
         c = before.mean(0)
         _, _, vt = np.linalg.svd(before - c)
         np.testing.assert_allclose((after - c) @ vt[-1], 0.0, atol=1e-12 * scale)
-    if not (method == "quaternion" and formulation == "samareh"):
+    if method != "samareh":
         assert volume_ratio_summary(out, grid)["negative"] == 0
 
 
 # ----------------------------------------------------------------------------- property 2
-@pytest.mark.parametrize("method,formulation", METHODS)
+@pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_zero_motion_returns_the_grid(name, method, formulation):
+def test_zero_motion_returns_the_grid(name, method):
     grid = _case(name)[0]
-    out = _deformer(name, method, formulation).deform(lambda p: p)
+    out = _deformer(name, method).deform(lambda p: p)
     for blk, ref in zip(out, grid):
         np.testing.assert_allclose(blk.xyz, ref.xyz, rtol=0, atol=1e-13 * _scale(grid))
 
 
 # ----------------------------------------------------------------------------- property 3
-@pytest.mark.parametrize("formulation", ["two-level", "samareh"])
+@pytest.mark.parametrize("method", ["two-level", "samareh"])
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_rigid_motion_of_every_boundary_is_rigid_everywhere(name, formulation):
+def test_rigid_motion_of_every_boundary_is_rigid_everywhere(name, method):
     grid, _, _, _ = _case(name)
     faces = ("imin", "imax", "jmin", "jmax") + (("kmin", "kmax") if grid.ndim == 3 else ())
     every = [f"{b + 1}:{f}" for b in range(len(grid)) for f in faces]
-    d = Deformer(grid, walls=every, formulation=formulation)
+    d = Deformer(grid, walls=every, method=method)
     if grid.ndim == 3:
         move = rigid_motion(35.0, (0.2, 0.3, 1.0), (0.5, -0.2, 0.1), (0.3, 0.1, 0.05))
     else:
@@ -176,12 +172,12 @@ def _transform(grid, f):
                              name=b.name) for b in grid], grid.ndim)
 
 
-@pytest.mark.parametrize("formulation", ["two-level", "samareh"])
+@pytest.mark.parametrize("method", ["two-level", "samareh"])
 @pytest.mark.parametrize("name", ["c-grid", "c-grid-3d", "two-block", "wing"])
-def test_moving_the_whole_problem_moves_the_result(name, formulation):
+def test_moving_the_whole_problem_moves_the_result(name, method):
     grid, walls, sym, fixed = _case(name)
     move = CASES[name][1]
-    base = _deformer(name, "quaternion", formulation).deform(move)
+    base = _deformer(name, method).deform(move)
     T = np.array([3.0, -2.0, 0.0 if grid.ndim == 2 else 1.5])
     if grid.ndim == 2:
         R = np.array([np.cos(0.6), 0.0, 0.0, np.sin(0.6)])
@@ -191,7 +187,7 @@ def test_moving_the_whole_problem_moves_the_result(name, formulation):
                     (lambda p: qa.rotate(R, p), lambda p: qa.rotate(qa.conjugate(R), p))):
         g2 = _transform(grid, f)
         out = Deformer(g2, walls=walls, symmetry=sym, fixed=fixed,
-                       formulation=formulation).deform(lambda p: f(move(finv(p))))
+                       method=method).deform(lambda p: f(move(finv(p))))
         for a, b in zip(out, base):
             np.testing.assert_allclose(a.xyz.reshape(-1, 3, order="F"), f(b.xyz.reshape(-1, 3, order="F")),
                                        rtol=0, atol=1e-9 * _scale(grid))
@@ -200,13 +196,13 @@ def test_moving_the_whole_problem_moves_the_result(name, formulation):
 # ----------------------------------------------------------------------------- property 6
 @pytest.mark.parametrize("angle", [10.0, 30.0, 45.0])
 @pytest.mark.parametrize("name", ["c-grid", "o-grid", "c-grid-3d"])
-@pytest.mark.parametrize("formulation", ["two-level", "samareh"])
-def test_near_wall_orthogonality_under_rigid_rotation(name, angle, formulation):
+@pytest.mark.parametrize("method", ["two-level", "samareh"])
+def test_near_wall_orthogonality_under_rigid_rotation(name, angle, method):
     """<= 0.1 deg change in the first 5 layers; plain TFI turns them by about the angle."""
     grid, walls, _, _ = _case(name)
     move = rigid_motion(-angle, (0, 0, 1), (0.25, 0.0, 0.0), (0.0, 0.05, 0.0))
-    q = _deformer(name, "quaternion", formulation).deform(move)
-    t = _deformer(name, "tfi", None).deform(move)
+    q = _deformer(name, method).deform(move)
+    t = _deformer(name, "tfi").deform(move)
     oq = orthogonality_change(q, grid, walls, 5)
     ot = orthogonality_change(t, grid, walls, 5)
     assert oq["max"] <= 0.1, oq
@@ -221,19 +217,19 @@ def test_non_rigid_wall_motions_keep_the_near_wall_angles():
     for name, move, bound in (("c-grid", DemoMotion(), 0.5), ("channel", _bump(0.12, 1.0, 2.0), 1.5)):
         grid, walls, _, _ = _case(name)
         q = orthogonality_change(_deformer(name).deform(move), grid, walls, 5)
-        t = orthogonality_change(_deformer(name, "tfi", None).deform(move), grid, walls, 5)
+        t = orthogonality_change(_deformer(name, "tfi").deform(move), grid, walls, 5)
         assert q["max"] <= bound and q["mean"] <= 0.05 * t["mean"], (name, q, t)
 
 
 # ----------------------------------------------------------------------------- property 7
-@pytest.mark.parametrize("formulation", ["two-level", "samareh"])
-def test_one_d_derived_structure_gives_the_one_d_interpolation(formulation):
+@pytest.mark.parametrize("method", ["two-level", "samareh"])
+def test_one_d_derived_structure_gives_the_one_d_interpolation(method):
     """An annulus (O-grid) whose wall turns about its centre: the seam (a 1-D derived cut)
     and every other radial line move the same way, so the result has the grid's rotational
     symmetry: each line is the seam's line turned by its angle."""
     ni = 49
     grid, walls, _, fixed = G.o_grid(ni, 25)
-    out = Deformer(grid, walls=walls, fixed=fixed, formulation=formulation).deform(
+    out = Deformer(grid, walls=walls, fixed=fixed, method=method).deform(
         rigid_motion(25.0, (0, 0, 1), (0.0, 0.0, 0.0)))
     x = out[0].xyz[:, :, 0]
     seam = x[0]
@@ -253,7 +249,7 @@ def test_wing_bending_and_twist_without_negative_cells(bend, twist):
     q = volume_ratio_summary(out, grid)
     assert q["negative"] == 0 and q["min_ratio"] > 0.2, q
     oq = orthogonality_change(out, grid, walls, 5)
-    ot = orthogonality_change(_deformer("wing", "tfi", None).deform(move), grid, walls, 5)
+    ot = orthogonality_change(_deformer("wing", "tfi").deform(move), grid, walls, 5)
     assert oq["mean"] < 0.03 * ot["mean"], (oq, ot)
 
 
@@ -261,7 +257,7 @@ def test_the_memos_formulation_folds_the_bent_wing():
     """Why two-level is the default: Samareh's update carries small differences of the
     fitted wall rotations over lever arms of chords into thin cells (docs/deformer.md)."""
     grid = _case("wing")[0]
-    out = _deformer("wing", "quaternion", "samareh").deform(WING_MOTION)
+    out = _deformer("wing", "samareh").deform(WING_MOTION)
     assert volume_ratio_summary(out, grid)["negative"] > 100
 
 

@@ -14,8 +14,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from tfi_quat import quaternion as qa
 from tfi_quat import tfi
-from tfi_quat import deform as D
-from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.deform import stages as S
+from tfi_quat.deform import Deformer, rigid_motion, twolevel
 
 import _deform_grids as G
 
@@ -70,7 +70,7 @@ def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
         tfi.tfi_patch(dr, qr, s, lead=lead)
         refs.append((dr, qr))
     gd0, gq0 = gd.copy(), gq.copy()
-    D._patch_level(gd, gq, True, *D._level_pack(patches), D._NONE, D._NONE3)
+    S.patch_level(gd, gq, True, *S.level_pack(patches), np.zeros(0), np.zeros((0, 3)))
     touched = np.zeros(len(gd), dtype=bool)
     for (g, s, lead, write), (dr, qr) in zip(patches, refs):
         np.testing.assert_allclose(gd[g[write]], dr[write], rtol=0, atol=1e-13)
@@ -80,7 +80,7 @@ def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
     np.testing.assert_array_equal(gq[~touched], gq0[~touched])
     # translations only (method="tfi"): the same interpolation of Δ, Q untouched
     gd2, gq2 = gd0.copy(), gq0.copy()
-    D._patch_level(gd2, gq2, False, *D._level_pack(patches), D._NONE, D._NONE3)
+    S.patch_level(gd2, gq2, False, *S.level_pack(patches), np.zeros(0), np.zeros((0, 3)))
     np.testing.assert_array_equal(gd2, gd)
     np.testing.assert_array_equal(gq2, gq0)
 
@@ -106,7 +106,7 @@ def test_patch_level_takes_the_rotation_vector_fallback():
     write = np.zeros((na, nb), dtype=bool)
     write[1:-1, 1:-1] = True
     gd, gq = d.reshape(-1, 3).copy(), q.reshape(-1, 4).copy()
-    D._patch_level(gd, gq, True, *D._level_pack([(g, s, 1, write)]), D._NONE, D._NONE3)
+    S.patch_level(gd, gq, True, *S.level_pack([(g, s, 1, write)]), np.zeros(0), np.zeros((0, 3)))
     dr, qr = d.copy(), q.copy()
     tfi.tfi_patch(dr, qr, s, lead=1)
     np.testing.assert_allclose(gq.reshape(na, nb, 4), qr, rtol=0, atol=1e-13)
@@ -129,7 +129,7 @@ def test_fade_and_rebase_against_scipy_slerp():
     fc = np.clip(f, 0.0, 1.0)
     for m in range(n):
         qm, km = q[m].copy(), k[m].copy()
-        D._fade_and_rebase.py_func(qm, f[m], shift[m], km, one, tmp2, r)
+        S.fade_and_rebase.py_func(qm, f[m], shift[m], km, one, tmp2, r)
         key = Rotation.from_quat([[0, 0, 0, 1], np.r_[q[m, 1:], q[m, 0]]])
         want = Slerp([0.0, 1.0], key)([fc[m]])
         assert np.isclose(abs(np.dot(qm, _wxyz(want)[0])), 1.0, rtol=0, atol=1e-14)
@@ -137,7 +137,7 @@ def test_fade_and_rebase_against_scipy_slerp():
         np.testing.assert_allclose(km, k[m] + want.apply(shift[m])[0], rtol=0, atol=1e-14)
     # the compiled kernel (inlined into _patch_level / _fill_gaps) is the same function
     qm, km = q[7].copy(), k[7].copy()
-    D._fill_gaps(km[None].repeat(3, 0), np.stack([one, qm, qm]), np.array([0]), np.array([1]),
+    S.fill_gaps(km[None].repeat(3, 0), np.stack([one, qm, qm]), np.array([0]), np.array([1]),
                  np.array([0, 1]), np.array([2]), np.array([1.0]), True,
                  np.array([1.0, 1.0, f[7]]), np.array([[0.0] * 3, [0.0] * 3, shift[7]]))
 
@@ -157,7 +157,7 @@ def test_rigid_blend_is_the_weighted_rotation_vector(nb, seed):
     idx = rng.permutation(2 * n)[:n]
     gd = np.full((2 * n, 3), 7.0)
     gq = np.full((2 * n, 4), 7.0)
-    D._rigid_blend(phi, idx, Db, qa.log(Qb), gd, gq)
+    S.rigid_blend(phi, idx, Db, qa.log(Qb), gd, gq)
     rv = phi @ Rotation.from_quat(np.c_[Qb[:, 1:], Qb[:, :1]]).as_rotvec().reshape(nb, 3)
     want = _wxyz(Rotation.from_rotvec(rv))
     dots = np.abs(np.sum(gq[idx] * want, axis=1))
@@ -188,14 +188,14 @@ def test_symmetry_fix_keeps_the_projected_position_and_twists_about_the_normal()
     pos0 = carm + F + qa.rotate(q, X - carm)
     want = pos0 - np.sum((pos0 - point) * normal, axis=1, keepdims=True) * normal
     F2, q2 = F.copy(), q.copy()
-    D._symmetry_fix(F2, q2, True, X, carm, idx, point, normal)
+    S.symmetry_fix(F2, q2, True, X, carm, idx, point, normal)
     np.testing.assert_allclose(carm + F2 + qa.rotate(q2, X - carm), want, rtol=0, atol=1e-13)
     np.testing.assert_allclose(np.cross(q2[:, 1:], normal), 0.0, atol=1e-15)
     np.testing.assert_allclose(np.linalg.norm(q2, axis=1), 1.0, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(q2[0], [1.0, 0.0, 0.0, 0.0])
     # translations only: the position X + F is projected, Q untouched
     F3 = F.copy()
-    D._symmetry_fix(F3, np.empty((1, 4)), False, X, np.zeros(3), idx, point, normal)
+    S.symmetry_fix(F3, np.empty((1, 4)), False, X, np.zeros(3), idx, point, normal)
     p3 = X + F
     p3 -= np.sum((p3 - point) * normal, axis=1, keepdims=True) * normal
     np.testing.assert_allclose(X + F3, p3, rtol=0, atol=1e-13)
@@ -206,7 +206,7 @@ def test_halo_points_gather_mirror_and_mark_missing():
     po = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     pn = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     out = np.empty((4, 3))
-    D._halo_points(X, np.array([2, -1, 3, 4]), np.array([-1, -1, 0, 1]), po, pn, out)
+    S.halo_points(X, np.array([2, -1, 3, 4]), np.array([-1, -1, 0, 1]), po, pn, out)
     np.testing.assert_array_equal(out[0], X[2])
     assert np.all(np.isnan(out[1]))
     np.testing.assert_array_equal(out[2], [-9.0, 10.0, 11.0])
@@ -221,8 +221,10 @@ def test_rigid_part_of_two_bodies_with_different_axes():
     grid, _, _, _ = G.box_pair(n=7)
     walls = ["1:jmin", "2:imin", "1:jmax", "2:imax"]
     d = Deformer(grid, walls=walls)
-    assert len(d._bodies) == 2
-    lower = np.array([d._P[b.gids][:, 1].max() < 0.5 for b in d._bodies])
+    sk, two = d.skeleton, d.two_level
+    P = sk.points.P
+    assert len(two.bodies) == 2
+    lower = np.array([P[b.gids][:, 1].max() < 0.5 for b in two.bodies])
     m_low = rigid_motion(6.0, (1, 0, 0), (1.0, 0.0, 0.5))
     m_up = rigid_motion(-4.0, (0, 0, 1), (1.0, 1.0, 0.5))
 
@@ -230,21 +232,23 @@ def test_rigid_part_of_two_bodies_with_different_axes():
         return np.where((p[:, 1] < 0.5)[:, None], m_low(p), m_up(p))
 
     out = d.deform(move)
-    rd = d._wall_targets(move)
-    fits, _ = d._fits(rd)
-    gdelta, gq, _, _ = d._global_fields(fits)
+    rd = P.copy()
+    rd[sk.points.wall] = move(P[sk.points.wall])
+    fits = twolevel.fit_bodies(sk, two, rd, P.copy())
+    gdelta, gq = np.zeros((sk.n_global, 3)), np.zeros((sk.n_global, 4))
+    twolevel.rigid_fields(sk, two, fits, d.centre, gdelta, gq)
     v = [Rotation.from_quat(np.r_[q[1:], q[0]]).as_rotvec() for q, _ in fits]
     itf = d.connectivity.interfaces[0]
-    g = d._rect_gid(itf.master)
-    pt = next(p for p in d._patches if np.array_equal(p.gid, g))
+    g = sk.points.rect_gid(itf.master)
+    pt = next(p for p in sk.patches.items if np.array_equal(p.gid, g))
     phis = []
-    der = np.searchsorted(d._derived, g)
-    is_der = d._derived[np.minimum(der, d._derived.size - 1)] == g
-    for k, b in enumerate(d._bodies):
+    der = np.searchsorted(sk.derived, g)
+    is_der = sk.derived[np.minimum(der, sk.derived.size - 1)] == g
+    for k, b in enumerate(two.bodies):
         # the sides: walls 1 or 0, derived side points (segments) their own weights
         ind = np.zeros(g.shape + (3,))
         ind[..., 0] = np.isin(g, b.gids)
-        ind[is_der, 0] = d._phi[der[is_der], k]
+        ind[is_der, 0] = two.phi[der[is_der], k]
         tfi.tfi_patch(ind, None, pt.s, lead=pt.lead)
         phis.append(ind[..., 0])
     inner = (slice(1, -1), slice(1, -1))

@@ -21,13 +21,16 @@ __all__ = [
     "read", "write",
     "TfiQuatError", "GridFormatError", "GridValueError", "ConnectivityError",
     "CaseError", "DeformationError", "OverwriteError",
-    "Deformer", "connect", "Connectivity",
+    "Deformer", "StepTimings", "rigid_motion", "deformer_from_case", "connect", "Connectivity",
 ]
 
 # The numba-backed parts load on first use, so ``import tfi_quat`` (and the
 # CLI's start-up) stays fast.
 _LAZY = {
     "Deformer": (".deform", "Deformer"),
+    "StepTimings": (".deform", "StepTimings"),
+    "rigid_motion": (".deform", "rigid_motion"),
+    "deformer_from_case": (".deform", "deformer_from_case"),
     "connect": (".topology", "connect"),
     "Connectivity": (".topology", "Connectivity"),
 }

@@ -5,8 +5,8 @@ deformed, rotated and translated "to simulate aeroelastic deformation"
 (Samareh, NASA/TM-2002-211646, figure 4): the aft part of the section is
 bent down (camber), the airfoil pitched nose-up about the quarter chord and
 plunged.  The volume grid is deformed by plain TFI (``method="tfi"``), by
-quaternion TFI with the memo's update (``formulation="samareh"``) and by the
-default two-level quaternion TFI; the three grids are written, a figure like
+quaternion TFI with the memo's update (``method="samareh"``) and by the
+default two-level quaternion TFI (``method="two-level"``); the three grids are written, a figure like
 the memo's (plain TFI left, quaternion TFI right, zooms at the leading and
 trailing edges) is drawn, and a table compares near-wall orthogonality,
 cell volumes and time per step.
@@ -95,11 +95,11 @@ class DemoResult:
                 "first_step_seconds": self.first_step_seconds}
 
 
-#: table label -> (method, formulation, output file); plain TFI left as in the memo's figure 4
+#: table label -> (Deformer method, output file); plain TFI left as in the memo's figure 4
 METHODS = {
-    "plain TFI": ("tfi", None, "naca0012_tfi.x"),
-    "quaternion TFI, memo's update": ("quaternion", "samareh", "naca0012_samareh.x"),
-    "quaternion TFI": ("quaternion", "two-level", "naca0012_quaternion.x"),
+    "plain TFI": ("tfi", "naca0012_tfi.x"),
+    "quaternion TFI, memo's update": ("samareh", "naca0012_samareh.x"),
+    "quaternion TFI": ("two-level", "naca0012_quaternion.x"),
 }
 
 
@@ -136,7 +136,7 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
         raise CaseError(f"{case_path}: the demo grid's case file is missing")
     motion = motion or DemoMotion()
     out = Path(outdir)
-    targets = [out / m[2] for m in METHODS.values()] + [out / "demo.md", out / "demo.json"]
+    targets = [out / m[1] for m in METHODS.values()] + [out / "demo.md", out / "demo.json"]
     if figure:
         targets.append(out / "demo.png")
     if not overwrite:
@@ -149,10 +149,9 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
     case = load_case(case_path)
     result = DemoResult(motion.describe())
     grids = {}
-    for label, (method, formulation, fname) in METHODS.items():
+    for label, (method, fname) in METHODS.items():
         t0 = time.perf_counter()
-        kw = {} if formulation is None else {"formulation": formulation}
-        d = Deformer(ref, walls=case.walls, symmetry=case.symmetry, fixed=case.fixed, method=method, **kw)
+        d = Deformer(ref, walls=case.walls, symmetry=case.symmetry, fixed=case.fixed, method=method)
         moved = d.deform(motion)
         result.first_step_seconds[label] = time.perf_counter() - t0
         best = np.inf
@@ -162,7 +161,7 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
             best = min(best, time.perf_counter() - t)
         q = volume_ratio_summary(moved, ref)
         oc = orthogonality_change(moved, ref, case.walls, layers=5)
-        result.rows[label] = {"method": method, "formulation": formulation,
+        result.rows[label] = {"method": method,
                               "ortho_max": float(oc["max"]), "ortho_mean": float(oc["mean"]),
                               "min_ratio": float(q["min_ratio"]), "negative": int(q["negative"]),
                               "step_ms": 1e3 * best, "setup_s": d.setup_seconds}

@@ -9,8 +9,8 @@ import time
 from ..errors import CaseError
 from ._common import case_and_grid, check_output
 
-#: tfi_quat.deform.FORMULATIONS, spelled out so the CLI starts without numba
-FORMULATIONS = ("two-level", "samareh")
+#: tfi_quat.deform.METHODS, spelled out so the CLI starts without numba
+METHODS = ("two-level", "samareh", "tfi")
 
 HELP = "deform a volume grid when its walls move (quaternion TFI or plain TFI)"
 DESCRIPTION = """Deform GRID for a wall motion and write the deformed grid to OUT.
@@ -49,11 +49,10 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--about", type=_vec, default=None, metavar="X,Y,Z",
                    help="point on the rotation axis (default 0,0,0)")
     p.add_argument("--translate", type=_vec, default=None, metavar="X,Y,Z", help="translate the walls")
-    p.add_argument("--method", choices=("quaternion", "tfi"), default="quaternion",
-                   help="quaternion TFI (default) or plain TFI of displacements")
-    p.add_argument("--formulation", choices=FORMULATIONS, default="two-level",
-                   help="how rotations act (quaternion method): two-level (default) or samareh "
-                        "(the memo's update); docs/deformer.md")
+    p.add_argument("--method", choices=METHODS + ("quaternion",), metavar="{" + ",".join(METHODS) + "}",
+                   help="quaternion TFI in the two-level formulation (default) or in the memo's "
+                        "update (samareh), or plain TFI of displacements (tfi); docs/deformer.md")
+    p.add_argument("--formulation", choices=METHODS[:2], help=argparse.SUPPRESS)   # deprecated
     p.add_argument("--rotation-length", type=float, metavar="L",
                    help="two-level: thickness of the wall layer where non-rigid wall rotations act "
                         "(default 1%% of the walls' size)")
@@ -82,6 +81,24 @@ def _motion(args, case):
         raise CaseError("no wall motion: give --moved, --rotate/--translate, or a case file with [motion]")
     desc = f"walls rotated {rot:g} deg about axis {tuple(axis)} through {tuple(about)}, translated {tuple(tr)}"
     return rigid_motion(rot, axis, about, tr), desc
+
+
+def _method(args) -> str:
+    """``--method``, with the old ``--method quaternion`` and ``--formulation X`` (deprecated, a
+    note on stderr) mapped as the library maps them."""
+    method = args.method or "two-level"
+    if args.method == "quaternion":
+        method = args.formulation or "two-level"
+        print(f"tfi-quat deform: --method quaternion is deprecated; use --method {method}",
+              file=sys.stderr)
+    elif args.formulation is not None:
+        if args.method not in (None, "tfi", args.formulation):
+            raise CaseError(f"--method {args.method} and --formulation {args.formulation} disagree; "
+                            "give --method only")
+        if args.method is None:
+            method = args.formulation
+        print(f"tfi-quat deform: --formulation is deprecated; use --method {method}", file=sys.stderr)
+    return method
 
 
 class _Progress:
@@ -124,22 +141,20 @@ def run(args) -> int:
         walls, sym, fixed = list(case.walls), list(case.symmetry), list(case.fixed)
     moved, desc = _motion(args, case)
     t0 = time.perf_counter()
+    method = _method(args)
     kw = {}
-    if args.method == "quaternion":
-        kw["formulation"] = args.formulation
-        if args.formulation == "two-level" and args.rotation_length is not None:
-            kw["rotation_length"] = args.rotation_length
+    if method == "two-level" and args.rotation_length is not None:
+        kw["rotation_length"] = args.rotation_length
     if args.rotation_length is not None and "rotation_length" not in kw:
-        raise CaseError("--rotation-length applies to --method quaternion --formulation two-level")
+        raise CaseError("--rotation-length applies to --method two-level")
     deformer = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, connectivity=conn,
-                        method=args.method, **kw)
+                        method=method, **kw)
     t1 = time.perf_counter()
     result = deformer.deform(moved, callback=_Progress(not args.quiet and grid.npoints > 2_000_000))
     t2 = time.perf_counter()
     io.write(out, result, like=grid, overwrite=args.force)
     q = volume_ratio_summary(result, grid)
-    label = args.method if args.method == "tfi" else f"{args.method} ({args.formulation})"
-    print(f"{desc}; method {label}")
+    print(f"{desc}; method {method}")
     print(f"set-up {t1 - t0:.3f} s, step {t2 - t1:.3f} s ({grid.npoints / max(t2 - t1, 1e-12) / 1e6:.1f} M points/s)")
     where = ""
     if q["where"] is not None:

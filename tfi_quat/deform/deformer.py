@@ -1,0 +1,486 @@
+"""The Deformer front: options, the two formulations' steps, the result grid.
+
+Set-up (once per grid) builds the frozen :class:`~.skeleton.Skeleton` and, for
+the two-level formulation, its :class:`~.twolevel.TwoLevel` parts; a step
+(:meth:`Deformer.deform`) reads them, fills the boundary fields level by level
+(:mod:`.stages`) and runs one fused TFI kernel per block.
+
+Methods (``docs/deformer.md`` has the derivation and the measurements):
+
+``method="two-level"`` (default)
+    The wall motion of each wall body is split into the rigid motion that
+    fits it best and a residual deformation (:mod:`.twolevel`).  Rigid
+    motions are reproduced exactly, near-wall grid lines turn with the wall,
+    and small irregularities of the fitted wall rotations are not carried
+    over long lever arms into thin far-field cells.
+``method="samareh"``
+    The memo's update ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``, Δ and Q
+    interpolated from the boundaries (Hermite blending by default).
+
+``method="tfi"``
+    The classic baseline: the same hierarchy with Q ≡ 1 and Δ the
+    displacement.
+
+The old spellings ``method="quaternion"`` and ``formulation=`` are accepted
+with a :class:`DeprecationWarning` (:func:`resolve_method`).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+import numpy as np
+
+from .. import quaternion as qa
+from ..errors import CaseError, DeformationError
+from ..grid import Block, Grid
+from ..spec import PatchSpec, as_patch_specs, parse_patch_spec
+from . import stages, twolevel
+from .skeleton import BLENDINGS, FIXED, WALL, ArclengthParams, boundary_points, build_skeleton
+
+__all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "METHODS",
+           "resolve_method"]
+
+_ORIGIN = np.zeros(3)
+_IDENT = np.array([1.0, 0.0, 0.0, 0.0])
+
+#: the deformation methods: quaternion TFI in the two-level formulation (default) or in the
+#: memo's (Samareh's) form, and plain TFI of displacements
+METHODS = ("two-level", "samareh", "tfi")
+_FORMULATIONS = ("two-level", "samareh")
+
+
+def resolve_method(method: str = "two-level", formulation: str | None = None) -> str:
+    """The method (one of :data:`METHODS`) for ``method`` and the deprecated ``formulation``.
+
+    ``method="quaternion"`` (deprecated) means ``formulation`` or ``"two-level"``;
+    ``formulation`` (deprecated) replaces a quaternion method (``"two-level"``,
+    ``"samareh"``, ``"quaternion"``) and is ignored with ``"tfi"``, as before.  Each
+    deprecated spelling warns with a :class:`DeprecationWarning`.
+    """
+    if formulation is not None:
+        warnings.warn("Deformer(formulation=...) is deprecated; give method='two-level', "
+                      "'samareh' or 'tfi'", DeprecationWarning, stacklevel=3)
+        if formulation not in _FORMULATIONS:
+            raise CaseError(f"formulation must be one of {', '.join(map(repr, _FORMULATIONS))}, "
+                            f"got {formulation!r}")
+    if method == "quaternion":
+        warnings.warn("Deformer(method='quaternion') is deprecated; give method='two-level' (the "
+                      "default) or method='samareh'", DeprecationWarning, stacklevel=3)
+        return formulation or "two-level"
+    if method not in METHODS:
+        raise CaseError(f"method must be one of {', '.join(map(repr, METHODS))}, got {method!r}")
+    if formulation is not None and method != "tfi":
+        return formulation
+    return method
+
+
+def rigid_motion(rotate_deg: float = 0.0, axis=(0.0, 0.0, 1.0), about=(0.0, 0.0, 0.0),
+                 translate=(0.0, 0.0, 0.0)) -> Callable[[np.ndarray], np.ndarray]:
+    """A callable moving points ``(n, 3)`` by a rotation about a point, then a translation.
+
+    ``x -> about + rot(axis, angle)(x - about) + translate``.
+    """
+    axis = np.asarray(axis, dtype=np.float64)
+    n = np.linalg.norm(axis)
+    if not np.isfinite(n) or n == 0.0:
+        raise CaseError(f"rotation axis {tuple(axis)} has no direction")
+    half = math.radians(float(rotate_deg)) / 2.0
+    q = np.concatenate([[math.cos(half)], axis / n * math.sin(half)])
+    about = np.asarray(about, dtype=np.float64)
+    translate = np.asarray(translate, dtype=np.float64)
+
+    def move(points: np.ndarray) -> np.ndarray:
+        return about + qa.rotate(q, np.asarray(points, dtype=np.float64) - about) + translate
+
+    return move
+
+
+@dataclass
+class StepTimings:
+    """Seconds spent in each stage of the last :meth:`Deformer.deform` call.
+
+    ``walls``: wall targets, rigid fits, wall quaternions; ``skeleton``:
+    vertices and segments; ``faces``: patches, symmetry and boundary
+    positions; ``volumes``: the block kernels and the copy of boundary points.
+    """
+
+    walls: float = 0.0
+    skeleton: float = 0.0
+    faces: float = 0.0
+    volumes: float = 0.0
+
+    @property
+    def total(self) -> float:
+        return self.walls + self.skeleton + self.faces + self.volumes
+
+
+class _Work:
+    """Boundary-sized buffers a step reuses (a step holds the Deformer's lock).  Entries a step
+    never writes keep their values here: fixed points ``Δ = 0``, ``Q = 1``, ``K = c`` and
+    their undeformed position; non-wall rows of ``rd`` and ``y``."""
+
+    def __init__(self, P: np.ndarray, c: np.ndarray | None):
+        self.rd = P.copy()                          # wall targets
+        self.y = P.copy()                           # two-level: pulled-back residual targets
+        self.K = None if c is None else c.copy()    # two-level: K (Q = 1: position c + A = P)
+        self.ql = np.zeros((P.shape[0], 4))         # two-level: residual Q
+        self.ql[:, 0] = 1.0
+        self.gd = np.zeros((P.shape[0], 3))         # Δ (Samareh's form)
+        self.qg = self.ql.copy()                    # Q (Samareh's form)
+        self.pos = P.copy()                         # boundary positions
+
+
+class Deformer:
+    """Deform a multiblock volume grid when its walls move.
+
+    Parameters
+    ----------
+    grid : Grid
+        The reference (undeformed) grid.  It is kept by reference and never
+        modified; do not modify it while the Deformer is in use.
+    walls, symmetry, fixed : sequence of PatchSpec or "BLOCK:FACE[:A1-A2,B1-B2]"
+        Boundary patches by kind (1-based text, 0-based PatchSpec).  A whole
+        face given as a wall is reduced by the interfaces on it.  Faces not
+        given are ``fixed``.
+    connectivity : tfi_quat.topology.Connectivity, optional
+        Interfaces and patches (e.g. loaded from JSON or an ``.nmf``); found
+        with :func:`tfi_quat.topology.connect` when omitted.  When given with
+        ``walls``/``symmetry``/``fixed``, those kinds are applied to it.
+    method : {"two-level", "samareh", "tfi"}
+        ``two-level`` (default) and ``samareh``: interpolate translations and
+        rotations (quaternion TFI), the rotations acting in the two-level
+        formulation or in the memo's update (see the module docstring and
+        ``docs/deformer.md``); ``tfi``: the classic baseline, displacements
+        only.  ``"quaternion"`` is a deprecated spelling of ``"two-level"``.
+    formulation : {"two-level", "samareh"}, optional
+        Deprecated: give ``method`` instead (it replaces ``method`` unless
+        that is ``"tfi"``).
+    centre : array_like (3,), optional
+        Rotation centre ``c`` of the Samareh update (the whole update for
+        ``"samareh"``, the rigid part for ``"two-level"``).  Default: the
+        centroid of the undeformed wall points (it moves with the problem,
+        docs/method.md §3.6).
+    tol : float, optional
+        Coincidence tolerance for merging boundary points; default
+        1e-10 x the grid's bounding-box diagonal.
+    blending : {"hermite", "linear"}, optional
+        Blending function of ``"samareh"`` and ``"tfi"`` applied to the
+        normalised arclength ``s``: ``hermite`` (default) ``3 s^2 - 2 s^3``,
+        ``linear`` Soni's original.  The two-level formulation always uses its
+        wall-layer blending (:mod:`tfi_quat.blending`).
+    rotation_length : float, optional
+        ``method="two-level"``: thickness of the wall layer in which residual
+        (non-rigid) wall rotations act.  Default:
+        :data:`tfi_quat.deform.twolevel.ROTATION_LENGTH_FRACTION` x the walls' size (twice the largest
+        distance of a wall point from their centroid).
+    idw_power : float
+        Exponent of the inverse-distance weights of free vertices.
+    max_idw_sources : int
+        At most this many (evenly sampled) wall points serve as sources of the
+        vertex blend.
+    """
+
+    def __init__(self, grid: Grid, walls=(), symmetry=(), fixed=(), connectivity=None,
+                 method: str = "two-level", formulation: str | None = None, centre=None,
+                 tol: float | None = None, blending: str | None = None,
+                 rotation_length: float | None = None, idw_power: float = 3.0,
+                 max_idw_sources: int = 2000):
+        if not isinstance(grid, Grid):
+            raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
+        method = resolve_method(method, formulation)
+        two = method == "two-level"
+        if blending is not None and blending not in BLENDINGS:
+            raise CaseError(f"blending must be one of {', '.join(BLENDINGS)}, got {blending!r}")
+        if blending is not None and two:
+            raise CaseError("blending applies to method='samareh' and method='tfi'; the "
+                            "two-level method blends with its wall layer (rotation_length)")
+        if rotation_length is not None:
+            try:
+                rotation_length = float(rotation_length)
+            except (TypeError, ValueError):
+                raise CaseError(f"rotation_length must be a positive number, got "
+                                f"{rotation_length!r}") from None
+            if not (rotation_length > 0.0 and math.isfinite(rotation_length)):
+                raise CaseError(f"rotation_length must be a positive number, got {rotation_length!r}")
+            if not two:
+                raise CaseError("rotation_length applies to method='two-level' only")
+        t0 = time.perf_counter()
+        self.grid = grid
+        self.ndim = grid.ndim
+        self.method = method
+        self._use_q = method != "tfi"
+        self.blending = None if two else (blending or "hermite")
+        _check_block_sizes(grid)
+        walls = as_patch_specs(walls, "walls")
+        symmetry = as_patch_specs(symmetry, "symmetry")
+        fixed = as_patch_specs(fixed, "fixed")
+        from .. import topology
+        if connectivity is None:
+            connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
+        elif walls or symmetry or fixed:
+            connectivity = topology.classify(connectivity, grid, walls=walls, symmetry=symmetry,
+                                             fixed=fixed)
+        self.connectivity = connectivity
+        lo, hi = grid.bbox()
+        diag = float(np.linalg.norm(hi - lo)) or 1.0
+        self._scale = diag
+        self.tol = float(tol) if tol is not None else 1e-10 * diag
+        if not (math.isfinite(self.tol) and self.tol >= 0.0):
+            raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
+        pts = boundary_points(grid, connectivity, self.tol)
+        if not pts.wall.size:
+            raise CaseError("no wall points: give at least one wall patch")
+        self.centre = _centre(pts, centre)
+        if two:
+            layer = twolevel.wall_layer(pts, rotation_length, diag)
+            params = layer
+            self.rotation_length = layer.ell
+        else:
+            params = ArclengthParams(BLENDINGS[self.blending])
+            self.rotation_length = None
+        #: the frozen skeleton (:class:`tfi_quat.deform.skeleton.Skeleton`)
+        self.skeleton = build_skeleton(grid, connectivity, pts, params, tol=self.tol,
+                                       idw_power=idw_power, max_idw_sources=max_idw_sources)
+        #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
+        self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
+        self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
+        self._lock = threading.Lock()
+        self.setup_seconds = time.perf_counter() - t0
+        self.timings = StepTimings()
+
+    @property
+    def n_global(self) -> int:
+        """The number of distinct boundary points."""
+        return self.skeleton.n_global
+
+    def wall_points(self) -> np.ndarray:
+        """Undeformed positions ``(n, 3)`` of the (distinct) wall points, in the order
+        :meth:`deform` passes them to a motion callable."""
+        pts = self.skeleton.points
+        return pts.P[pts.wall].copy()
+
+    def deform(self, moved, *, callback: Callable[[int, int], None] | None = None) -> Grid:
+        """Deform the grid for new wall positions.
+
+        Parameters
+        ----------
+        moved : callable, Grid or mapping
+            * a callable ``f(points (n, 3)) -> (n, 3)`` giving the new
+              position of each wall point (see :meth:`wall_points`);
+            * a Grid with the reference's dimensions whose wall points hold
+              the new positions (other points are ignored);
+            * a mapping ``PatchSpec or "B:FACE[:range]" -> array (na, nb, 3)``
+              covering every wall point.
+        callback : callable(done, total), optional
+            Called after each block kernel (progress reporting).
+
+        Returns
+        -------
+        Grid
+            A new grid; the reference is not modified.  Every call starts from
+            the reference, so repeated steps do not drift.
+        """
+        with self._lock:
+            t0 = time.perf_counter()
+            rd = _wall_targets(self.skeleton, self.grid, moved, self._work.rd)
+            if self.two_level is not None:
+                outs, pos, ts, t1, t3 = self._two_level_step(rd, callback)
+            else:
+                outs, pos, ts, t1, t3 = self._samareh_step(rd, callback)
+            grid = _assemble(self.skeleton, self.grid, outs, pos)
+            t4 = time.perf_counter()
+            self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=t3 - t1 - ts, volumes=t4 - t3)
+            return grid
+
+    def _samareh_step(self, rd, callback):
+        """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q)."""
+        sk = self.skeleton
+        wall = sk.points.wall
+        c = self.centre
+        P = sk.points.P
+        w = self._work
+        gdelta, gq, pos = w.gd, w.qg, w.pos
+        if self._use_q:
+            qw = stages.wall_quaternions(sk, rd, c)
+            gq[wall] = qw
+            # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
+            gdelta[wall] = rd[wall] - c - qa.rotate(qw, P[wall] - c)
+        else:
+            gq = None
+            gdelta[wall] = rd[wall] - P[wall]
+        t1 = time.perf_counter()
+        stages.vertex_stage(sk, gdelta, gq)
+        stages.segment_stage(sk, gdelta, gq)
+        ts = time.perf_counter() - t1
+        stages.patch_stage(sk, gdelta, gq)
+        stages.symmetry_stage(sk, gdelta, gq, c)
+        der = sk.derived
+        if gq is not None:
+            pos[der] = P[der]
+            stages.positions_global(gdelta, gq, c, der, pos)
+        else:
+            pos[der] = P[der] + gdelta[der]
+        # symmetry points on their plane, walls exact (fixed points are never written: they
+        # keep the buffer's undeformed position)
+        stages.onto_symmetry(sk, pos)
+        pos[wall] = rd[wall]
+        t3 = time.perf_counter()
+        outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
+        stages.volumes(sk, self.grid, [blk.xyz for blk in self.grid], gdelta, gq, c, outs, callback)
+        return outs, pos, ts, t1, t3
+
+    def _two_level_step(self, rd, callback):
+        """The residual motion (:func:`twolevel.local_fields`) where the walls deform, then
+        the bodies' rigid motions (:func:`twolevel.rigid_fields`) where they move."""
+        sk = self.skeleton
+        two = self.two_level
+        wall = sk.points.wall
+        P = sk.points.P
+        w = self._work
+        fits = twolevel.fit_bodies(sk, two, rd, w.y)
+        y = w.y
+        tiny = 1e-14 * self._scale
+        local = bool(np.max(np.abs(y[wall] - P[wall]), initial=0.0) > tiny)
+        rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
+        qwall = stages.wall_quaternions(sk, y, self.centre) if local else None
+        t1 = time.perf_counter()
+        ts = 0.0
+        pos = w.pos
+        if local:
+            ts += twolevel.local_fields(sk, two, y, qwall, w.K, w.ql, pos)
+        else:
+            pos[sk.derived] = P[sk.derived]
+        if rigid:
+            twolevel.rigid_fields(sk, two, fits, self.centre, w.gd, w.qg)
+            stages.positions_global(w.gd, w.qg, self.centre, sk.derived, pos)
+        stages.onto_symmetry(sk, pos)
+        pos[wall] = rd[wall]
+        t3 = time.perf_counter()
+        grid = self.grid
+        outs = [np.empty_like(blk.xyz, order="F") for blk in grid]
+        total = len(grid) * (int(local) + int(rigid))
+        if local:
+            stages.volumes(sk, grid, [blk.xyz for blk in grid], w.K, w.ql, _ORIGIN, outs, callback,
+                           0, total, base_tables=two.base)
+        else:
+            for out, blk in zip(outs, grid):
+                np.copyto(out, blk.xyz)
+        if rigid:
+            stages.volumes(sk, grid, outs, w.gd, w.qg, self.centre, outs, callback,
+                           len(grid) * int(local), total)
+        return outs, pos, ts, t1, t3
+
+    def summary(self) -> str:
+        """A few lines describing the skeleton (for the CLI and logs)."""
+        sk = self.skeleton
+        k = sk.points.kind
+        if self.method == "tfi":
+            head = f"method tfi (plain TFI), {self.blending} blending"
+        elif self.two_level is not None:
+            nb = len(self.two_level.bodies)
+            head = (f"method two-level (quaternion TFI), rotation length "
+                    f"{self.rotation_length:.6g}, {nb} wall bod{'y' if nb == 1 else 'ies'}")
+        else:
+            head = f"method samareh (quaternion TFI, the memo's update), {self.blending} blending"
+        lines = [
+            head + f", centre ({', '.join(f'{v:.6g}' for v in self.centre)})",
+            f"{self.n_global} boundary points: {int((k == WALL).sum())} wall, "
+            f"{int((k == FIXED).sum())} fixed, {int((sk.points.sym_of >= 0).sum())} symmetry",
+            f"{len(sk.vertices.corners)} vertices ({len(sk.vertices.free)} free), "
+            f"{0 if sk.segments is None else len(sk.segments.left)} derived segments, "
+            f"{len(sk.patches.items)} derived patches, {len(sk.blocks)} blocks",
+        ]
+        return "\n".join(lines)
+
+
+def _check_block_sizes(grid: Grid) -> None:
+    if grid.ndim == 3:
+        for b, blk in enumerate(grid):
+            if min(blk.dims) < 2:
+                raise CaseError(f"block {b + 1}: a 3-D volume block needs at least 2 points in "
+                                f"each direction, got {blk.dims}")
+    else:
+        for b, blk in enumerate(grid):
+            if min(blk.dims[:2]) < 2:
+                raise CaseError(f"block {b + 1}: a 2-D block needs at least 2 points in i and j, "
+                                f"got {blk.dims[:2]}")
+
+
+def _centre(pts, centre) -> np.ndarray:
+    if centre is None:
+        return pts.P[pts.kind == WALL].mean(axis=0)
+    c = np.asarray(centre, dtype=np.float64).reshape(-1)
+    if c.shape != (3,) or not np.all(np.isfinite(c)):
+        raise CaseError(f"centre must be 3 finite numbers, got {centre!r}")
+    return c
+
+
+def _wall_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
+    """Deformed positions of every global point, in ``rd`` (only wall rows are written)."""
+    pts = sk.points
+    wall = pts.wall
+    if callable(moved):
+        new = np.asarray(moved(pts.P[wall].copy()), dtype=np.float64)
+        if new.shape != (wall.size, 3):
+            raise DeformationError(f"the motion callable returned shape {new.shape}, expected "
+                                   f"({wall.size}, 3) for the {wall.size} wall points")
+        rd[wall] = new
+    elif isinstance(moved, Grid):
+        if moved.dims != ref.dims:
+            raise DeformationError(f"moved grid dimensions {moved.dims} differ from the "
+                                   f"reference {ref.dims}")
+        key = pts.rep_key[wall]
+        blk_of = np.searchsorted(pts.offsets, key, side="right") - 1
+        for b, blk in enumerate(moved):
+            sel = blk_of == b
+            rd[wall[sel]] = blk.xyz.reshape(-1, 3, order="F")[key[sel] - pts.offsets[b]]
+    elif isinstance(moved, Mapping):
+        seen = np.zeros(pts.n_global, dtype=bool)
+        for k, arr in moved.items():
+            spec = k if isinstance(k, PatchSpec) else parse_patch_spec(str(k))
+            spec = spec.resolve(ref)
+            gid = pts.rect_gid(spec)
+            a = np.asarray(arr, dtype=np.float64)
+            if a.shape[:-1] != gid.shape and a.shape[:-1] != (gid.size,):
+                raise DeformationError(f"moved patch {spec}: array shape {a.shape}, expected "
+                                       f"{gid.shape + (3,)}")
+            rd[gid.ravel()] = a.reshape(-1, 3)
+            seen[gid.ravel()] = True
+        missing = wall[~seen[wall]]
+        if missing.size:
+            raise DeformationError(f"{missing.size} wall point(s) have no new position in the "
+                                   f"mapping, e.g. at {tuple(np.round(pts.P[missing[0]], 6))}")
+    else:
+        raise DeformationError("moved must be a callable, a Grid, or a mapping patch -> array")
+    bad = ~np.isfinite(rd[wall])
+    if bad.any():
+        raise DeformationError(f"{int(bad.any(axis=1).sum())} moved wall point(s) are not finite")
+    if sk.ndim == 2 and np.any(rd[wall, 2] != 0.0):
+        raise DeformationError("moved wall points of a 2-D grid must have z = 0")
+    return rd
+
+
+def _assemble(sk, ref: Grid, outs, pos) -> Grid:
+    """The result grid: the block kernels' outputs with every boundary copy from ``pos``."""
+    blocks = []
+    for b, (blk, out) in enumerate(zip(ref, outs)):
+        local, gid = sk.scatter[b]
+        stages.scatter_rows(pos, gid, local, out.reshape(-1, 3, order="F"))
+        if sk.ndim == 2:
+            out[..., 2] = 0.0
+        blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
+    return Grid(blocks, ref.ndim, source_format=ref.source_format)
+
+
+def deformer_from_case(case, grid: Grid | None = None, **kw) -> Deformer:
+    """Build a :class:`Deformer` from a :class:`tfi_quat.case.Case` (walls, symmetry, fixed)."""
+    from .. import io
+    if grid is None:
+        grid = io.read(case.grid)
+    return Deformer(grid, walls=case.walls, symmetry=case.symmetry, fixed=case.fixed, **kw)

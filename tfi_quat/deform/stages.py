@@ -1,0 +1,564 @@
+"""The Deformer's compiled stages: numba kernels on the global boundary arrays.
+
+Each kernel works on the arrays of one hierarchy level (the gaps of the
+segments, the derived patches, the symmetry points, the wall halos) and
+neither validates nor raises.  Below them, one thin driver per level
+(:func:`vertex_stage`, :func:`segment_stage`, :func:`patch_stage`,
+:func:`symmetry_stage`, :func:`wall_quaternions`, :func:`volumes`) calls them
+on a :class:`~.skeleton.Skeleton`; the Deformer front validates the user's
+input before any of them runs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import quaternion as qa
+from .. import tfi
+from .._jit import jit, pjit, prange, serial_below
+
+@pjit
+def hermite_kernel(s):
+    """``s <- 3 s^2 - 2 s^3`` in place on a flat array, the sums of the numpy form."""
+    for m in prange(s.shape[0]):
+        x = s[m]
+        s[m] = (x * -2.0 + 3.0) * (x * x)
+
+
+def hermite(s: np.ndarray) -> np.ndarray:
+    """In place: s -> 3 s^2 - 2 s^3 (0 and 1 stay exact, zero slope at both ends)."""
+    if s.flags.f_contiguous or s.flags.c_contiguous:
+        flat = s.reshape(-1, order="F" if s.flags.f_contiguous else "C")
+        with serial_below(flat.size):
+            hermite_kernel(flat)
+        return s
+    s2 = s * s
+    s *= -2.0
+    s += 3.0
+    s *= s2
+    return s
+
+
+
+@jit(inline="always")
+def fade_and_rebase(q, f, shift, k, one, tmp2, r):
+    """Two-level: ``q <- slerp(1, q, f)`` in place (exact at f = 0 and 1) and ``k += rot(q, shift)``
+    (``k``, ``shift``: rows of K and of the re-basing shifts)."""
+    if f <= 0.0:
+        q[0] = 1.0
+        q[1] = q[2] = q[3] = 0.0
+    elif f < 1.0:
+        # slerp(1, q, f) along the short arc, with the volume kernels' polynomial weights
+        sg = -1.0 if q[0] < 0.0 else 1.0
+        w2, sw = tfi._slerp_angle(1.0, 0.0, 0.0, 0.0, sg * q[0], sg * q[1], sg * q[2], sg * q[3])
+        wa, wb = tfi._slerp_weights(f, w2, sw)
+        wb *= sg
+        q[0] = wa + wb * q[0]
+        for c in range(1, 4):
+            q[c] = wb * q[c]
+    if shift[0] != 0.0 or shift[1] != 0.0 or shift[2] != 0.0:
+        qa.krotate(q, shift, r)
+        for c in range(3):
+            k[c] += r[c]
+
+
+@jit
+def fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
+    """Segments, gap by gap (a gap's ends may be points of earlier gaps): K linear and Q
+    slerp in the blending parameter between the known end points.
+
+    The two-level formulation also passes ``damp`` and ``shift`` (length G; empty
+    otherwise): Q is then faded towards 1 by ``damp`` and K re-based by ``rot(Q, shift)``.
+    """
+    one = np.array([1.0, 0.0, 0.0, 0.0])
+    local = damp.shape[0] > 0
+    tmp = np.empty(4)
+    tmp2 = np.empty(4)
+    r = np.empty(3)
+    for g in range(left.shape[0]):
+        a = left[g]
+        b = right[g]
+        for m in range(ptr[g], ptr[g + 1]):
+            p = pts[m]
+            t = s[m]
+            for c in range(3):
+                K[p, c] = (1.0 - t) * K[a, c] + t * K[b, c]
+            if not use_q:
+                continue
+            qa.kslerp(gq[a], gq[b], t, tmp)
+            if local:
+                fade_and_rebase(tmp, damp[p], shift[p], K[p], one, tmp2, r)
+            for c in range(4):
+                gq[p, c] = tmp[c]
+
+
+@jit
+def merge_quaternions(gid, q, acc, count):
+    """Hemisphere-aligned sum of the quaternions given for each global point."""
+    for n in range(gid.shape[0]):
+        g = gid[n]
+        if count[g] == 0:
+            for c in range(4):
+                acc[g, c] = q[n, c]
+        else:
+            d = acc[g, 0] * q[n, 0] + acc[g, 1] * q[n, 1] + acc[g, 2] * q[n, 2] + acc[g, 3] * q[n, 3]
+            sg = 1.0 if d >= 0.0 else -1.0
+            for c in range(4):
+                acc[g, c] += sg * q[n, c]
+        count[g] += 1
+
+
+@jit
+def rebase_gaps(c, left, right, ptr, pts, s, target, shift):
+    """Set-up twin of the two-level :func:`fill_gaps` for the centres: interpolate, then re-base."""
+    for g in range(left.shape[0]):
+        a = left[g]
+        b = right[g]
+        for m in range(ptr[g], ptr[g + 1]):
+            p = pts[m]
+            t = s[m]
+            for k in range(3):
+                ci = (1.0 - t) * c[a, k] + t * c[b, k]
+                shift[p, k] = target[p, k] - ci
+                c[p, k] = target[p, k]
+
+
+@jit
+def positions_local(K, gq, A, idx, pos):
+    """``pos[p] = K[p] + rot(q[p], A[p])`` for the listed points."""
+    r = np.empty(3)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        qa.krotate(gq[p], A[p], r)
+        for c in range(3):
+            pos[p, c] = K[p, c] + r[c]
+
+
+@jit
+def positions_global(gdelta, gq, centre, idx, pos):
+    """In place, for the listed points: ``pos = c + Δ + rot(q, pos - c)``."""
+    v = np.empty(3)
+    r = np.empty(3)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        for c in range(3):
+            v[c] = pos[p, c] - centre[c]
+        qa.krotate(gq[p], v, r)
+        for c in range(3):
+            pos[p, c] = centre[c] + gdelta[p, c] + r[c]
+
+
+@jit
+def blend_rows(P, foot, w, out):
+    """``out[p] = w[p] P[foot[p]] + (1 - w[p]) P[p]`` (the sums of the numpy form)."""
+    for p in range(P.shape[0]):
+        f = foot[p]
+        for c in range(3):
+            out[p, c] = w[p] * P[f, c] + (1.0 - w[p]) * P[p, c]
+
+
+@jit
+def halo_points(X, hidx, mirror, po, pn, out):
+    """``out[h] = X[hidx[h]]``, mirrored across plane ``mirror[h]`` (``po``, ``pn``: plane
+    points and unit normals) where that is >= 0, NaN where ``hidx[h] < 0``."""
+    for h in range(hidx.shape[0]):
+        g = hidx[h]
+        if g < 0:
+            for c in range(3):
+                out[h, c] = np.nan
+            continue
+        for c in range(3):
+            out[h, c] = X[g, c]
+        s = mirror[h]
+        if s >= 0:
+            d = 0.0
+            for c in range(3):
+                d += (out[h, c] - po[s, c]) * pn[s, c]
+            for c in range(3):
+                out[h, c] -= 2.0 * d * pn[s, c]
+
+
+@jit
+def scatter_rows(src, gid, local, dst):
+    """``dst[local[m]] = src[gid[m]]`` (dst: a block's points as (n, 3), any layout)."""
+    for m in range(gid.shape[0]):
+        g = gid[m]
+        r = local[m]
+        for c in range(3):
+            dst[r, c] = src[g, c]
+
+
+@jit(inline="always")
+def lm_flat(lead, nb, l, m):
+    """Flat (C order) position in an (na, nb) patch of the point ``l`` along the leading
+    direction on line ``m``."""
+    if lead == 0:
+        return l * nb + m
+    return m * nb + l
+
+
+@jit(inline="always")
+def patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD, lineQ, resD, resQ, fb):
+    """One patch's tables: per line of the leading direction its end values, aligned end
+    quaternions and slerp angle; per point of the two other sides the residuals F - U."""
+    for m in range(nm):
+        g0 = gidf[off + lm_flat(lead, nb, 0, m)]
+        g1 = gidf[off + lm_flat(lead, nb, nl - 1, m)]
+        for c in range(3):
+            lineD[m, 0, c] = gd[g0, c]
+            lineD[m, 0, 3 + c] = gd[g1, c]
+        if use_q:
+            lq = lineQ[m, 0]
+            # the lines' first ends in one hemisphere, neighbour to neighbour (as tfi's
+            # _coherent does for the leading face), then each second end aligned to its first
+            s0 = 1.0
+            if m > 0:
+                d = lineQ[m - 1, 0, 0] * gq[g0, 0] + lineQ[m - 1, 0, 1] * gq[g0, 1] + \
+                    lineQ[m - 1, 0, 2] * gq[g0, 2] + lineQ[m - 1, 0, 3] * gq[g0, 3]
+                if d < 0.0:
+                    s0 = -1.0
+            for c in range(4):
+                lq[c] = s0 * gq[g0, c]
+            d = lq[0] * gq[g1, 0] + lq[1] * gq[g1, 1] + lq[2] * gq[g1, 2] + lq[3] * gq[g1, 3]
+            sg = -1.0 if d < 0.0 else 1.0
+            for c in range(4):
+                lq[4 + c] = sg * gq[g1, c]
+            w2, sw = tfi._slerp_angle(lq[0], lq[1], lq[2], lq[3], lq[4], lq[5], lq[6], lq[7])
+            lq[8] = w2
+            lq[9] = sw
+    for side in range(2):
+        m = 0 if side == 0 else nm - 1
+        for l in range(nl):
+            f = off + lm_flat(lead, nb, l, m)
+            g = gidf[f]
+            t = sf[f, lead]
+            x, y, z = tfi._u_d(lineD, m, 0, t)
+            rd = resD[l, 0]
+            rd[3 * side] = gd[g, 0] - x
+            rd[3 * side + 1] = gd[g, 1] - y
+            rd[3 * side + 2] = gd[g, 2] - z
+            if use_q:
+                qw, qx, qy, qz = tfi._u_q(lineQ, m, 0, t)
+                d = qw * gq[g, 0] + qx * gq[g, 1] + qy * gq[g, 2] + qz * gq[g, 3]
+                sg = -1.0 if d < 0.0 else 1.0
+                rq = resQ[l, 0]
+                o = 4 * side
+                rq[o] = sg * gq[g, 0] - qw
+                rq[o + 1] = sg * gq[g, 1] - qx
+                rq[o + 2] = sg * gq[g, 2] - qy
+                rq[o + 3] = sg * gq[g, 3] - qz
+                n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+                fl = fb[l, 0]
+                o = 8 * side
+                fl[o] = qw / n
+                fl[o + 1] = qx / n
+                fl[o + 2] = qy / n
+                fl[o + 3] = qz / n
+                for c in range(4):
+                    fl[o + 4 + c] = sg * gq[g, c]
+
+
+@pjit
+def patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
+    """Every derived patch of one level: 2-D Soni TFI of (Δ, Q) from the patch's four
+    sides, read from and written to the global arrays ``gd`` (G, 3), ``gq`` (G, 4).
+
+    ``meta[p] = (offset, na, nb, lead, line offset, side offset)``; ``gidf``, ``sf``
+    (n, 2), ``wf``: the patches' global ids, blending parameters and write flags, flat
+    in C order; ``tasks`` (T, 2): (patch, line) of every interior line; ``work``: the
+    tables (:func:`level_pack`).  The formulas are
+    :func:`tfi_quat.tfi.tfi_patch_fast`'s (slerp along the leading direction,
+    hemisphere-aligned residuals of the two other sides, normalised; the
+    rotation-vector blend where the norm falls below ``QNORM_MIN``).  Patches only read
+    their sides, which earlier levels define, so the tables come first (serially,
+    O(perimeter)) and then the interior lines in parallel.  ``damp``/``shift``
+    (two-level, length G; else empty): Q is faded and K re-based as in :func:`fill_gaps`.
+    """
+    lineD, lineQ, resD, resQ, fb = work
+    for p in range(meta.shape[0]):
+        off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
+            meta[p, 5]
+        nl, nm = (na, nb) if lead == 0 else (nb, na)
+        patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD[lo:lo + nm],
+                      lineQ[lo:lo + nm], resD[ro:ro + nl], resQ[ro:ro + nl], fb[ro:ro + nl])
+    local = damp.shape[0] > 0
+    qmin = tfi.QNORM_MIN
+    for tk in prange(tasks.shape[0]):
+        p = tasks[tk, 0]
+        m = tasks[tk, 1]
+        off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
+            meta[p, 5]
+        nl, nm = (na, nb) if lead == 0 else (nb, na)
+        lD = lineD[lo:lo + nm]
+        lQ = lineQ[lo:lo + nm]
+        rD = resD[ro:ro + nl]
+        rQ = resQ[ro:ro + nl]
+        fbp = fb[ro:ro + nl]
+        one = np.array([1.0, 0.0, 0.0, 0.0])
+        tmp2 = np.empty(4)
+        r = np.empty(3)
+        q = np.empty(4)
+        nofb = np.zeros((1, 1, 16))
+        for l in range(1, nl - 1):
+            f = off + lm_flat(lead, nb, l, m)
+            if not wf[f]:
+                continue
+            g = gidf[f]
+            t = sf[f, lead]
+            sm = sf[f, 1 - lead]
+            dx, dy, dz = tfi._v_d(lD, m, 0, t, rD, l, 0, sm)
+            gd[g, 0] = dx
+            gd[g, 1] = dy
+            gd[g, 2] = dz
+            if not use_q:
+                continue
+            qw, qx, qy, qz = tfi._v_q(lQ, m, 0, t, rQ, l, 0, sm)
+            n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            if n < qmin:
+                qw, qx, qy, qz = tfi._fallback_q(lQ, m, 0, t, fbp, l, 0, sm, nofb, 0, 0, 0.0, False)
+                n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            q[0] = qw / n
+            q[1] = qx / n
+            q[2] = qy / n
+            q[3] = qz / n
+            if local:
+                fade_and_rebase(q, damp[g], shift[g], gd[g], one, tmp2, r)
+            for c in range(4):
+                gq[g, c] = q[c]
+
+
+def level_pack(patches) -> tuple:
+    """Pack ``(gid (na, nb), s (na, nb, 2), lead, write (na, nb))`` patches for
+    :func:`patch_level`: ``(meta, gidf, sf, wf, tasks, work)``."""
+    meta = np.zeros((len(patches), 6), dtype=np.int64)
+    off = lo = ro = 0
+    tasks = []
+    for m, (g, s, lead, w) in enumerate(patches):
+        na, nb = g.shape
+        nl, nm = (na, nb) if lead == 0 else (nb, na)
+        meta[m] = (off, na, nb, lead, lo, ro)
+        tasks += [(m, k) for k in range(1, nm - 1)]
+        off += g.size
+        lo += nm
+        ro += nl
+    cat = lambda xs, sh, dt: np.ascontiguousarray(np.concatenate(xs) if xs else np.zeros(sh, dt))  # noqa: E731
+    work = (np.zeros((lo, 1, 6)), np.zeros((lo, 1, 10)), np.zeros((ro, 1, 6)), np.zeros((ro, 1, 8)),
+            np.zeros((ro, 1, 16)))
+    return (meta,
+            cat([p[0].ravel() for p in patches], (0,), np.int64),
+            cat([np.reshape(p[1], (-1, 2)) for p in patches], (0, 2), np.float64),
+            cat([p[3].ravel() for p in patches], (0,), bool),
+            np.array(tasks, dtype=np.int64).reshape(-1, 2), work)
+
+
+@jit
+def rigid_blend(phi, idx, Db, Rb, gd, gq):
+    """The rigid part of the two-level formulation on the listed points (rows of ``phi``):
+    ``Δ = Σ_b φ_b Δ_b`` and ``Q = exp(Σ_b φ_b v_b)`` (``v_b``: the rotation vector of body
+    ``b``'s fitted rotation, ``Δ_b`` its translation in Samareh's form)."""
+    nb = Db.shape[0]
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        dx = dy = dz = 0.0
+        vx = vy = vz = 0.0
+        for b in range(nb):
+            f = phi[m, b]
+            dx += f * Db[b, 0]
+            dy += f * Db[b, 1]
+            dz += f * Db[b, 2]
+            vx += f * Rb[b, 0]
+            vy += f * Rb[b, 1]
+            vz += f * Rb[b, 2]
+        gd[p, 0] = dx
+        gd[p, 1] = dy
+        gd[p, 2] = dz
+        th = math.sqrt(vx * vx + vy * vy + vz * vz)
+        h = 0.5 * th
+        if th > 1e-8:
+            f = math.sin(h) / th
+        else:
+            f = 0.5 - th * th / 48.0
+        gq[p, 0] = math.cos(h)
+        gq[p, 1] = f * vx
+        gq[p, 2] = f * vy
+        gq[p, 3] = f * vz
+
+
+@jit
+def onto_planes(pos, idx, point, normal):
+    """``pos[idx[m]]`` projected onto the plane (``point[m]``, unit ``normal[m]``), in place."""
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        d = 0.0
+        for c in range(3):
+            d += (pos[p, c] - point[m, c]) * normal[m, c]
+        for c in range(3):
+            pos[p, c] -= d * normal[m, c]
+
+
+@jit
+def symmetry_fix(F, gq, use_q, X, carm, idx, point, normal):
+    """Symmetry points: on their plane, rotating about its normal only.
+
+    The position ``carm + F + rot(q, X - carm)`` is projected onto the plane; ``q``
+    is reduced to its rotation about the normal (its twist; 1 if it has none) and
+    ``F`` recomputed so that the projected position is kept.  (Local fields:
+    ``F = K``, ``X = A``, ``carm = 0``; Samareh's: ``F = Δ``, ``X = R_u``, ``carm = c``;
+    ``use_q`` False: Q ≡ 1.)
+    """
+    arm = np.empty(3)
+    r = np.empty(3)
+    pos = np.empty(3)
+    tw = np.empty(4)
+    for m in range(idx.shape[0]):
+        p = idx[m]
+        for c in range(3):
+            arm[c] = X[p, c] - carm[c]
+        if use_q:
+            qa.krotate(gq[p], arm, r)
+        else:
+            for c in range(3):
+                r[c] = arm[c]
+        d = 0.0
+        for c in range(3):
+            pos[c] = carm[c] + F[p, c] + r[c]
+            d += (pos[c] - point[m, c]) * normal[m, c]
+        for c in range(3):
+            pos[c] -= d * normal[m, c]
+        if use_q:
+            u = gq[p, 1] * normal[m, 0] + gq[p, 2] * normal[m, 1] + gq[p, 3] * normal[m, 2]
+            tw[0] = gq[p, 0]
+            for c in range(3):
+                tw[1 + c] = u * normal[m, c]
+            n = math.sqrt(tw[0] * tw[0] + tw[1] * tw[1] + tw[2] * tw[2] + tw[3] * tw[3])
+            if n == 0.0:
+                tw[0] = 1.0
+                tw[1] = tw[2] = tw[3] = 0.0
+            else:
+                for c in range(4):
+                    tw[c] /= n
+            for c in range(4):
+                gq[p, c] = tw[c]
+            qa.krotate(tw, arm, r)
+        for c in range(3):
+            F[p, c] = pos[c] - carm[c] - r[c]
+
+
+# ----------------------------------------------------------------------------- drivers
+# One call per hierarchy level on the global boundary arrays of a Skeleton
+# (tfi_quat.deform.skeleton): Δ or K (G, 3) and Q (G, 4), ``gq`` None for
+# translations only.
+
+#: "no damping" / "no re-basing" for fill_gaps and patch_level
+NONE = np.zeros(0)
+NONE3 = np.zeros((0, 3))
+_ORIGIN = np.zeros(3)
+#: a derived patch point costs about as much as this many volume points (the patch
+#: level runs on all threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
+PATCH_WORK = 8
+
+
+def vertex_q(vertices, gq: np.ndarray, decay: np.ndarray) -> np.ndarray:
+    """Quaternions of the free vertices: the hemisphere-aligned weighted mean of the sources,
+    normalised (the strongest source where it vanishes), slerped from 1 by ``decay``."""
+    src, w, _, ref = vertices.idw
+    qs = gq[src]                                         # (ns, 4)
+    qref = qs[ref]                                       # (nv, 4)
+    sign = np.where(qref @ qs.T >= 0.0, 1.0, -1.0)       # (nv, ns)
+    qbar = (w * sign) @ qs
+    norm = np.linalg.norm(qbar, axis=1)
+    small = norm < 1e-6
+    qbar[small] = qref[small]
+    qbar[~small] /= norm[~small, None]
+    ident = np.zeros_like(qbar)
+    ident[:, 0] = 1.0
+    return qa.slerp(ident, qbar, decay)
+
+
+def vertex_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None) -> None:
+    """The free vertices: inverse-distance blend of the wall sources, decaying to fixed points."""
+    if sk.vertices.idw is None:
+        return
+    src, w, decay, _ = sk.vertices.idw
+    free = sk.vertices.free
+    gdelta[free] = decay[:, None] * (w @ gdelta[src])
+    if gq is not None:
+        gq[free] = vertex_q(sk.vertices, gq, decay)
+
+
+def segment_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None) -> None:
+    """The segments' gaps (:func:`fill_gaps`)."""
+    if sk.segments is None:
+        return
+    fill_gaps(gdelta, gq if gq is not None else np.empty((1, 4)), *sk.segments.arrays(),
+              gq is not None, NONE, NONE3)
+
+
+def patch_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None, damp: np.ndarray = NONE,
+                shift: np.ndarray = NONE3) -> None:
+    """The derived patches (:func:`patch_level`); ``damp``/``shift``: the two-level fade and
+    re-basing."""
+    use_q = gq is not None
+    gqa = gq if use_q else np.empty((1, 4))
+    with serial_below(PATCH_WORK * sk.patches.npoints):
+        patch_level(gdelta, gqa, use_q, *sk.patches.pack, damp, shift)
+
+
+def symmetry_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None, centre: np.ndarray) -> None:
+    """Symmetry points of Samareh's fields (:func:`symmetry_fix`): on their plane, rotating
+    about its normal only."""
+    sym = sk.symmetry
+    if sym.gids.size:
+        use_q = gq is not None
+        symmetry_fix(gdelta, gq if use_q else np.empty((1, 4)), use_q, sk.points.P,
+                     centre if use_q else _ORIGIN, sym.gids, sym.point, sym.normal)
+
+
+def onto_symmetry(sk, pos: np.ndarray) -> None:
+    """The symmetry points of the global array ``pos`` (G, 3) projected onto their planes,
+    in place."""
+    onto_planes(pos, sk.symmetry.gids, sk.symmetry.point, sk.symmetry.normal)
+
+
+def wall_quaternions(sk, rd: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Merged boundary quaternions ``(n_wall, 4)`` of the wall points moved to ``rd`` (G, 3)."""
+    with serial_below(sk.points.wall.size):
+        return _wall_quaternions(sk, rd, centre)
+
+
+def _wall_quaternions(sk, rd, centre):
+    from ..boundary import _motion_padded
+    nw = sk.points.wall.size
+    acc = np.zeros((nw, 4))
+    count = np.zeros(nw, dtype=np.int64)
+    curve = sk.ndim == 2
+    e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
+    for w, lid in zip(sk.walls.patches, sk.walls.local):
+        pd = np.empty_like(w.pu)
+        halo_points(rd, w.halo.ravel(), w.mirror.ravel(), sk.points.plane_o, sk.points.plane_n,
+                    pd.reshape(-1, 3))
+        na = pd.shape[0] - 2
+        nb = 1 if curve else pd.shape[1] - 2
+        q, _ = _motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, centre, na, nb)
+        merge_quaternions(lid, q.reshape(-1, 4), acc, count)
+    acc /= np.linalg.norm(acc, axis=1, keepdims=True)
+    return acc
+
+
+def volumes(sk, grid, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None,
+            base_tables=None) -> None:
+    """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``.
+
+    The face values are read from the global boundary arrays through each block's
+    :func:`tfi.gather_plan` (no per-face copies).  ``base_tables`` (per block): the base
+    point is ``bases[b] + TFI(-c)`` (the two-level arms).
+    """
+    total = total or len(grid)
+    for b, plan in enumerate(sk.blocks):
+        with serial_below(grid[b].npoints):
+            tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre,
+                                      out=outs[b], base=None if base_tables is None else base_tables[b])
+        if callback is not None:
+            callback(done0 + b + 1, total)
