@@ -15,8 +15,8 @@ Runs, in one process and one run, on the shipped grids:
 each with four methods:
 
 ``plain TFI``           ``Deformer(..., method="tfi")``
-``quaternion two-level`` ``Deformer(...)`` (the default formulation)
-``quaternion samareh``  ``Deformer(..., formulation="samareh")`` (the memo's update)
+``quaternion two-level`` ``Deformer(...)`` (the default, ``method="two-level"``)
+``quaternion samareh``  ``Deformer(..., method="samareh")`` (the memo's update)
 ``RBF``                 :class:`RBFBaseline` below: ``scipy.interpolate.RBFInterpolator``,
                         thin-plate spline, displacements, centres on the walls and
                         the far field
@@ -76,7 +76,7 @@ LAYERS = 5
 DEFORMERS = {
     "plain TFI": {"method": "tfi"},
     "quaternion two-level": {},
-    "quaternion samareh": {"formulation": "samareh"},
+    "quaternion samareh": {"method": "samareh"},
 }
 RBF = "RBF"
 METHODS = (*DEFORMERS, RBF)
