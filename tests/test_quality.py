@@ -496,6 +496,10 @@ def test_report_bad_arguments():
         quality_report(g, ref=_grid3(box(3, 3, 4)))
     with pytest.raises(CaseError, match="block"):
         quality_report(g, walls=["3:imin"])
+    with pytest.raises(CaseError, match="walls: cannot read 42"):
+        wall_orthogonality(g, walls=[42])
+    with pytest.raises(CaseError, match="range exceeds the face size 3 x 3"):
+        cell_orthogonality(g, walls=["1:kmax:1-4,1-3"])
     with pytest.raises(ValueError, match="layers"):
         quality_report(g, walls=["1:imin"], layers=0)
     with pytest.raises(GridValueError, match="Grid"):
