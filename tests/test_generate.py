@@ -12,8 +12,8 @@ import tfi_quat
 from tfi_quat import Grid, GridValueError
 from tfi_quat import generate as gen
 from tfi_quat.case import load_case
-from tfi_quat.generate import _cell_volumes, _corner_jacobians
 
+from _cells import cell_volumes, corner_jacobians
 from conftest import sheared_box
 
 
@@ -126,16 +126,16 @@ def test_cell_volumes_exact_for_affine_grids():
     a = np.array([[2.0, 0.3, 0.1], [0.2, 1.5, 0.0], [0.0, 0.4, 1.0]])
     i, j, k = np.meshgrid(np.arange(4.0), np.arange(3.0), np.arange(5.0), indexing="ij")
     xyz = np.asfortranarray(np.stack([i, j, k], axis=-1) @ a.T)
-    v = _cell_volumes(xyz)
+    v = cell_volumes(xyz)
     assert v.shape == (3, 2, 4) and np.allclose(v, np.linalg.det(a), rtol=1e-12)
-    assert np.all(_cell_volumes(xyz[::-1]) < 0)
+    assert np.all(cell_volumes(xyz[::-1]) < 0)
     box = sheared_box(6, 5, 4)
     # the sheared box's cells are bilinear; their volumes are positive and sum to the box volume
-    assert np.all(_cell_volumes(box) > 0)
+    assert np.all(cell_volumes(box) > 0)
     flat = np.zeros((3, 2, 1, 3))
     flat[..., 0] = np.arange(3.0)[:, None, None] * 2.0
     flat[..., 1] = np.arange(2.0)[None, :, None] * 0.5
-    assert np.allclose(_cell_volumes(flat), 1.0)
+    assert np.allclose(cell_volumes(flat), 1.0)
 
 
 # ----------------------------------------------------------------- airfoils
@@ -163,10 +163,10 @@ def test_airfoil_quality(naca, topo, fs, blunt, ni, nj):
     g = gen.airfoil(naca, topo, ni=ni, nj=nj, first_spacing=fs, blunt_te=blunt)
     assert isinstance(g, Grid) and g.ndim == 2 and g.dims == [(ni, nj, 1)]
     xy = xy_of(g)
-    area = _cell_volumes(g[0].xyz)
+    area = cell_volumes(g[0].xyz)
     assert area.min() > 0.0, f"{(area <= 0).sum()} non-positive cells"
     # every quad convex and none degenerate: each corner angle in (5.7, 174.3) deg
-    assert _corner_jacobians(g[0].xyz).min() > 0.1
+    assert corner_jacobians(g[0].xyz).min() > 0.1
     lo, hi = gen.airfoil_wall_range(ni, topo)
     closed = topo == "O"
     assert max_deviation_2d(xy, lo, hi, closed) <= 0.5
@@ -193,7 +193,7 @@ def test_tanh_stretched_airfoils(naca, topo, fs, blunt):
     ni, nj = 193, 65
     g = gen.airfoil(naca, topo, ni=ni, nj=nj, first_spacing=fs, blunt_te=blunt, stretching="tanh")
     x = g[0].xyz[:, :, 0, :2]
-    assert _corner_jacobians(g[0].xyz).min() > 0.1
+    assert corner_jacobians(g[0].xyz).min() > 0.1
     lo, hi = gen.airfoil_wall_range(ni, topo)
     assert max_deviation_2d(x, lo, hi, topo == "O") <= 0.5
     # the wall-normal distribution is the tanh one (straight lines near the wall)
@@ -243,7 +243,7 @@ def test_c_grid_trailing_edge_limit(naca):
     # every other point stays orthogonal
     ni = 257
     g = gen.airfoil(naca, "C", ni=ni, nj=65, first_spacing=1e-4)
-    assert _corner_jacobians(g[0].xyz).min() > 0.1
+    assert corner_jacobians(g[0].xyz).min() > 0.1
     lo, hi = gen.airfoil_wall_range(ni, "C")
     dev = deviations_2d(g[0].xyz[:, :, 0, :2], lo, hi, False)
     i_bad, layer_bad = np.nonzero(dev > 0.5)
@@ -256,8 +256,8 @@ def test_small_c_grids_do_not_fold():
     # regression: coarse C-grids used to fold cells at the trailing-edge junction
     for ni, nj, fs in ((33, 9, 1e-5), (65, 17, 1e-4), (49, 13, 1e-3), (97, 25, 1e-3), (65, 17, 1e-3)):
         g = gen.airfoil("0012", "C", ni=ni, nj=nj, first_spacing=fs)
-        assert _cell_volumes(g[0].xyz).min() > 0.0, (ni, nj, fs)
-        assert _corner_jacobians(g[0].xyz).min() > 0.0, (ni, nj, fs)
+        assert cell_volumes(g[0].xyz).min() > 0.0, (ni, nj, fs)
+        assert corner_jacobians(g[0].xyz).min() > 0.0, (ni, nj, fs)
 
 
 def test_c_grid_wake_cut_is_bit_identical():
@@ -293,19 +293,19 @@ def test_corner_jacobians_catch_what_volumes_miss():
     # an arrowhead quad: positive area (by its diagonals) but a reflex corner
     q = np.zeros((2, 2, 1, 3), order="F")
     q[0, 0, 0, :2], q[1, 0, 0, :2], q[0, 1, 0, :2], q[1, 1, 0, :2] = [0, 0], [2, 0], [0, 2], [0.4, 0.4]
-    assert _cell_volumes(q)[0, 0] > 0.0 and _corner_jacobians(q)[0, 0] < 0.0
+    assert cell_volumes(q)[0, 0] > 0.0 and corner_jacobians(q)[0, 0] < 0.0
     with pytest.raises(GridValueError, match="1 folded or degenerate"):
         gen._checked(Grid([q], ndim=2), "arrow")
     # the unit square: every corner angle 90 deg
     q[1, 1, 0, :2] = [2, 2]
-    assert _corner_jacobians(q)[0, 0] == pytest.approx(1.0)
+    assert corner_jacobians(q)[0, 0] == pytest.approx(1.0)
     # a hexahedron with one corner pushed through the opposite face: its
     # tetrahedral volume stays positive, one corner Jacobian does not
     i, j, k = np.meshgrid([0.0, 1.0], [0.0, 1.0], [0.0, 1.0], indexing="ij")
     h = np.asfortranarray(np.stack([i, j, k], axis=-1))
-    assert _corner_jacobians(h)[0, 0, 0] == pytest.approx(1.0)
+    assert corner_jacobians(h)[0, 0, 0] == pytest.approx(1.0)
     h[1, 1, 1] = [0.3, 0.3, 0.3]
-    assert _cell_volumes(h)[0, 0, 0] > 0.0 and _corner_jacobians(h)[0, 0, 0] < 0.0
+    assert cell_volumes(h)[0, 0, 0] > 0.0 and corner_jacobians(h)[0, 0, 0] < 0.0
     with pytest.raises(GridValueError, match="hex: 1 folded"):
         gen._checked(Grid([h], ndim=3), "hex")
 
@@ -330,36 +330,6 @@ def test_compiled_marcher_is_the_numpy_one(monkeypatch, kind, kw):
     monkeypatch.setattr(gen, "_COMPILED", False)
     ref = gen.GENERATORS[kind](**kw)
     assert all(a.xyz.tobytes() == b.xyz.tobytes() for a, b in zip(fast, ref))
-
-
-def _bad_reference(xyz, planar):
-    v, cj = _cell_volumes(xyz), _corner_jacobians(xyz)
-    bad = (v <= 0.0) | ((cj <= 0.0) if planar else (cj < -gen.CORNER_TOL))
-    first = tuple(int(c) for c in np.argwhere(bad)[0]) if bad.any() else None
-    return int(bad.sum()), first
-
-
-@pytest.mark.parametrize("compiled", [True, False])
-def test_bad_cell_kernel_agrees_with_the_reference(compiled):
-    kernel = gen._bad_cells if compiled else gen._bad_cells.py_func
-    rng = np.random.default_rng(3)
-    box = sheared_box(6, 5, 4) if compiled else sheared_box(4, 3, 3)
-    plane = np.asfortranarray(gen.channel(9, 7)[0].xyz)
-    for xyz, planar in ((box, False), (plane, True)):
-        scale = np.abs(np.diff(xyz, axis=0)).max()
-        for trial in range(6):
-            x = xyz.copy(order="F")
-            # perturb a few points hard enough to fold some cells
-            for _ in range(trial):
-                idx = tuple(int(rng.integers(0, n)) for n in x.shape[:3])
-                x[idx][:2 if planar else 3] += rng.normal(0.0, 1.5 * scale, 2 if planar else 3)
-            count, i, j, k = kernel(x, planar, gen.CORNER_TOL)
-            ref_count, ref_first = _bad_reference(x, planar)
-            assert count == ref_count
-            if ref_first is None:
-                assert (i, j, k) == (-1, -1, -1)
-            else:
-                assert (i, j) + (() if planar else (k,)) == ref_first
 
 
 def test_airfoil_is_deterministic():
@@ -407,7 +377,7 @@ def test_cylinder(ni, nj, fs):
     assert np.allclose(r[:, 0], 0.5, rtol=1e-14) and np.allclose(r[:, -1], 20.0, rtol=1e-14)
     assert np.allclose(r[:, 1] - 0.5, fs, rtol=1e-9)
     assert np.array_equal(xy[0], xy[-1])
-    assert _cell_volumes(g[0].xyz).min() > 0.0
+    assert cell_volumes(g[0].xyz).min() > 0.0
     assert max_deviation_2d(xy, 0, ni - 1, True, layers=min(10, nj - 1)) <= 1e-5
 
 
@@ -423,7 +393,7 @@ def test_channel(kw):
     assert np.allclose(xy[:, 0, 1], expect, atol=1e-15)
     assert np.all(xy[:, -1, 1] == 1.0)
     assert np.allclose(xy[0, :, 0], 0.0) and np.allclose(xy[-1, :, 0], 3.0)
-    assert _cell_volumes(g[0].xyz).min() > 0.0
+    assert cell_volumes(g[0].xyz).min() > 0.0
     assert max_deviation_2d(xy, 0, ni - 1, False) <= 0.5
 
 
@@ -437,7 +407,7 @@ def test_two_block_interface(ni, nj):
     # block 1 jmax == block 2 imax (block 2's axes are turned): bit-identical
     assert np.array_equal(lower[:, -1], upper[-1, :])
     for b in g:
-        assert _cell_volumes(b.xyz).min() > 0.0
+        assert cell_volumes(b.xyz).min() > 0.0
     assert np.all(upper[0, :, 0, 1] == 1.0)           # block 2 imin: the upper wall
     assert max_deviation_2d(xy_of(g, 0), 0, ni - 1, False, layers=min(10, nh - 1)) <= 0.5
 
@@ -531,8 +501,8 @@ def assert_wing_cells_valid(grid):
     # positive volumes; corner Jacobians positive except the exact 180-degree
     # corners where the C wraps round the collapsed edge (zero to round-off)
     for n, (b, edge) in enumerate(zip(grid, collapsed_edge_cells(grid))):
-        assert _cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
-        cj = _corner_jacobians(b.xyz)
+        assert cell_volumes(b.xyz).min() > 0.0, f"block {n + 1}"
+        cj = corner_jacobians(b.xyz)
         assert cj.min() >= -gen.CORNER_TOL, f"block {n + 1}"
         assert {tuple(map(int, c)) for c in np.argwhere(cj <= 1e-6)} == edge, f"block {n + 1}"
 
@@ -643,7 +613,7 @@ def test_shipped_small_grids_match_the_generator(name):
         (case.walls, case.symmetry, case.fixed, case.motion)
     loaded.check(shipped)
     for b in shipped:
-        assert _cell_volumes(b.xyz).min() > 0.0
+        assert cell_volumes(b.xyz).min() > 0.0
 
 
 def test_shipped_naca0012_is_the_memo_case():

@@ -14,9 +14,10 @@ from hypothesis import strategies as st
 import tfi_quat
 from tfi_quat import Block, CaseError, Grid, GridValueError
 from tfi_quat import quality as Q
-from tfi_quat.quality import (METRICS, cell_metrics, cell_orthogonality, cell_volumes, quality_report,
+from tfi_quat.quality import (METRICS, cell_metrics, cell_orthogonality, cell_volumes, invalid_cells, quality_report,
                               wall_orthogonality)
 
+import _cells
 from conftest import annulus, sheared_box
 
 CORNERS = list(itertools.product((0, 1), repeat=3))
@@ -291,6 +292,70 @@ def test_bad_arguments():
         cell_metrics(box(3, 3, 3), ref=box(3, 3, 4))
 
 
+
+# ------------------------------------------------------------------ cell validity
+def _folded(xyz, seed, nfold, planar):
+    """``xyz`` with ``nfold`` points pushed hard enough to fold some cells."""
+    rng = np.random.default_rng(seed)
+    x = xyz.copy(order="F")
+    scale = np.abs(np.diff(xyz, axis=0)).max()
+    for _ in range(nfold):
+        idx = tuple(int(rng.integers(0, n)) for n in x.shape[:3])
+        x[idx][:2 if planar else 3] += rng.normal(0.0, 1.5 * scale, 2 if planar else 3)
+    return x
+
+
+@given(seed=st.integers(0, 2**31), nfold=st.integers(0, 6), planar=st.booleans(),
+       tol=st.sampled_from([0.0, 1e-9, 0.2]))
+def test_invalid_cells_agree_with_the_numpy_reference(seed, nfold, planar, tol):
+    xyz = annulus(9, 7) if planar else sheared_box(6, 5, 4)
+    x = _folded(xyz, seed, nfold, planar)
+    count, first = invalid_cells(x, corner_tol=tol)
+    ref_count, ref_first = _cells.invalid(x, tol)
+    assert count == ref_count
+    assert first == (None if ref_first is None else ref_first + ((0,) if planar else ()))
+
+
+@pytest.mark.parametrize("planar", [True, False])
+def test_invalid_cell_kernel_compiled_and_uncompiled_agree(planar):
+    x = _folded(annulus(7, 5) if planar else sheared_box(4, 3, 3), 3, 4, planar)
+    ndim = 2 if planar else 3
+    got = [k(x, ndim, 1e-9) for k in (Q._invalid_cells, Q._invalid_cells.py_func)]
+    assert got[0] == got[1] and got[0][0] > 0
+    assert got[0] == (_cells.invalid(x, 1e-9)[0], *invalid_cells(x, ndim, 1e-9)[1])
+
+
+def test_invalid_cells_right_handed_strict_and_tolerant_corners():
+    x = box(3, 3, 3)
+    assert invalid_cells(x) == (0, None)
+    # validity is absolute: a left-handed block is all invalid (the report calls it valid)
+    assert invalid_cells(np.asfortranarray(x[::-1])) == (8, (0, 0, 0))
+    # a collapsed edge: the cell keeps a positive volume, two corners get a scaled Jacobian of 0
+    y = box(2, 2, 2)
+    y[1, 1, 1] = y[1, 1, 0]
+    assert invalid_cells(y) == (1, (0, 0, 0)) and invalid_cells(y, corner_tol=1e-9) == (0, None)
+    # an arrowhead quad: positive area, a reflex corner
+    q = np.zeros((2, 2, 1, 3), order="F")
+    q[0, 0, 0, :2], q[1, 0, 0, :2], q[0, 1, 0, :2], q[1, 1, 0, :2] = [0, 0], [2, 0], [0, 2], [0.4, 0.4]
+    assert cell_volumes(q)[0, 0, 0] > 0 and invalid_cells(q) == (1, (0, 0, 0))
+    assert invalid_cells(q, corner_tol=0.9) == (0, None)      # its reflex corner: -0.88
+    # NaN coordinates make their cells invalid; blocks without cells have none
+    z = box(3, 3, 3)
+    z[2, 2, 2, 0] = np.nan
+    assert invalid_cells(z, corner_tol=1e-9) == (1, (1, 1, 1))
+    assert invalid_cells(box(1, 3, 3)) == (0, None) and invalid_cells(box(3, 3, 1), ndim=3) == (0, None)
+
+
+def test_invalid_cells_bad_arguments():
+    for bad in (-1e-3, np.nan, np.inf, "x"):
+        with pytest.raises(GridValueError, match="corner_tol must be a finite number >= 0"):
+            invalid_cells(box(2, 2, 2), corner_tol=bad)
+    with pytest.raises(GridValueError, match="nk == 1"):
+        invalid_cells(box(2, 2, 2), ndim=2)
+    with pytest.raises(GridValueError, match="shape"):
+        invalid_cells(np.zeros((3, 3, 3)))
+
+
 # ------------------------------------------------------------------ the report
 def _grid3(x):
     return Grid([Block(x)], ndim=3)
@@ -431,6 +496,10 @@ def test_report_bad_arguments():
         quality_report(g, ref=_grid3(box(3, 3, 4)))
     with pytest.raises(CaseError, match="block"):
         quality_report(g, walls=["3:imin"])
+    with pytest.raises(CaseError, match="walls: cannot read 42"):
+        wall_orthogonality(g, walls=[42])
+    with pytest.raises(CaseError, match="range exceeds the face size 3 x 3"):
+        cell_orthogonality(g, walls=["1:kmax:1-4,1-3"])
     with pytest.raises(ValueError, match="layers"):
         quality_report(g, walls=["1:imin"], layers=0)
     with pytest.raises(GridValueError, match="Grid"):

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from tfi_quat import CaseError, Grid
-from tfi_quat.spec import PatchSpec, face_shape, parse_patch_spec
+from tfi_quat.grid import face_shape
+from tfi_quat.spec import PatchSpec, parse_patch_spec
 
 from conftest import sheared_box
 

@@ -64,7 +64,7 @@ def check_interfaces(grid, conn, tol=1e-9):
         np.testing.assert_array_equal(it.master_index(s), ii)
         # the image is exactly the slave range on the slave face
         sp = it.slave
-        from tfi_quat.topology import face_axes
+        from tfi_quat.grid import face_axes
         d, a, b = face_axes(sp.face)
         (c0, c1), (e0, e1) = sp.range
         assert s[:, a].min() == c0 and s[:, a].max() == c1 and s[:, b].min() == e0 and s[:, b].max() == e1
@@ -72,7 +72,7 @@ def check_interfaces(grid, conn, tol=1e-9):
 
 def covered_once(conn, grid):
     """Every boundary cell is covered by exactly one interface side or patch."""
-    from tfi_quat.spec import face_shape
+    from tfi_quat.grid import face_shape
     for b, f in conn.faces():
         na, nb = face_shape(grid[b].dims, f)
         cnt = np.zeros((max(na - 1, 1), max(nb - 1, 1)), dtype=int)

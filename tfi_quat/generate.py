@@ -35,9 +35,10 @@ import math
 
 import numpy as np
 
-from ._jit import jit, pjit, prange
+from ._jit import jit
 from .errors import GridValueError
 from .grid import Block, Grid
+from .quality import invalid_cells
 
 __all__ = ["naca4", "airfoil", "airfoil_wall_range", "cylinder", "channel", "two_block", "wing",
            "wing_geometry", "wing_wall_range", "geometric_spacing", "tanh_spacing", "STRETCHINGS",
@@ -539,216 +540,26 @@ def _block2d(xy: np.ndarray, name: str) -> Block:
     return Block(xyz, name=name)
 
 
-def _cell_volumes(xyz: np.ndarray) -> np.ndarray:
-    """Cell sizes of one block: signed areas (nk == 1) or hexahedron volumes.
-
-    Parameters
-    ----------
-    xyz : ndarray, shape (ni, nj, nk, 3)
-
-    Returns
-    -------
-    ndarray of float64
-        ``(ni-1, nj-1)`` signed quad areas ``(d/di x d/dj) . e_z`` (half the
-        cross product of the diagonals) when ``nk == 1``, else
-        ``(ni-1, nj-1, nk-1)`` hexahedron volumes (sum of the six tetrahedra
-        of the Kuhn split along the (0,0,0)-(1,1,1) diagonal).
-    """
-    x = np.asarray(xyz, dtype=np.float64)
-    if x.shape[2] == 1:
-        p = x[:, :, 0, :2]
-        d1 = p[1:, 1:] - p[:-1, :-1]
-        d2 = p[:-1, 1:] - p[1:, :-1]
-        return 0.5 * (d1[..., 0] * d2[..., 1] - d1[..., 1] * d2[..., 0])
-    c = {}
-    for a in (0, 1):
-        for b in (0, 1):
-            for g in (0, 1):
-                c[a, b, g] = x[a:x.shape[0] - 1 + a, b:x.shape[1] - 1 + b, g:x.shape[2] - 1 + g]
-    p0, p7 = c[0, 0, 0], c[1, 1, 1]
-    e = [(1, 0, 0), (0, 1, 0), (0, 0, 1)]
-    vol = np.zeros(p0.shape[:3])
-    for perm, sign in (((0, 1, 2), 1), ((1, 2, 0), 1), ((2, 0, 1), 1),
-                       ((0, 2, 1), -1), ((2, 1, 0), -1), ((1, 0, 2), -1)):
-        a = e[perm[0]]
-        ab = tuple(e[perm[0]][m] + e[perm[1]][m] for m in range(3))
-        v1 = c[a] - p0
-        v2 = c[ab] - p0
-        v3 = p7 - p0
-        vol += sign * np.einsum("...i,...i->...", np.cross(v1, v2), v3)
-    return vol / 6.0
-
-
-def _corner_jacobians(xyz: np.ndarray) -> np.ndarray:
-    """Smallest scaled corner Jacobian of every cell of one block.
-
-    Parameters
-    ----------
-    xyz : ndarray, shape (ni, nj, nk, 3)
-
-    Returns
-    -------
-    ndarray of float64, in [-1, 1]
-        ``(ni-1, nj-1)`` when ``nk == 1``: per quad, the smallest over its
-        four corners of ``(a x b) . e_z / (|a| |b|)``, ``a`` and ``b`` the
-        cell's edges along +i and +j at that corner (the sine of the corner
-        angle); positive for convex, positively oriented quads only.  Else
-        ``(ni-1, nj-1, nk-1)``: per hexahedron, the smallest over its eight
-        corners of ``det(a, b, c) / (|a| |b| |c|)``.  A cell of positive
-        volume (:func:`_cell_volumes`) may still have a negative corner here
-        (an arrowhead quad, a twisted hexahedron).  Zero-length edges give 0.
-    """
-    x = np.asarray(xyz, dtype=np.float64)
-
-    def unit(d):
-        n = np.linalg.norm(d, axis=-1, keepdims=True)
-        return d / np.where(n > 0.0, n, np.inf)
-
-    if x.shape[2] == 1:
-        p = x[:, :, 0, :2]
-        di = unit(p[1:] - p[:-1])                     # (ni-1, nj, 2)
-        dj = unit(p[:, 1:] - p[:, :-1])               # (ni, nj-1, 2)
-        out = None
-        for a in (0, 1):
-            for b in (0, 1):
-                u = di[:, b:b + dj.shape[1]]
-                v = dj[a:a + di.shape[0]]
-                c = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-                out = c if out is None else np.minimum(out, c)
-        return out
-    di = unit(x[1:] - x[:-1])
-    dj = unit(x[:, 1:] - x[:, :-1])
-    dk = unit(x[:, :, 1:] - x[:, :, :-1])
-    ni, nj, nk = x.shape[:3]
-    out = None
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                u = di[:, b:b + nj - 1, c:c + nk - 1]
-                v = dj[a:a + ni - 1, :, c:c + nk - 1]
-                w = dk[a:a + ni - 1, b:b + nj - 1]
-                d = np.einsum("...i,...i->...", np.cross(u, v), w)
-                out = d if out is None else np.minimum(out, d)
-    return out
-
-
 #: a hexahedron corner counts as inside out below this scaled Jacobian
 #: (round-off on the 180-degree corners of a wing's collapsed edges)
 CORNER_TOL = 1e-9
 
 
-@jit(inline="always")
-def _corner_sj(x, i0, j0, k0, a, b, c):
-    """Scaled Jacobian at corner (a, b, c) of hexahedron (i0, j0, k0); 0 on zero edges."""
-    i, j, k = i0 + a, j0 + b, k0 + c
-    u0 = x[i0 + 1, j, k, 0] - x[i0, j, k, 0]
-    u1 = x[i0 + 1, j, k, 1] - x[i0, j, k, 1]
-    u2 = x[i0 + 1, j, k, 2] - x[i0, j, k, 2]
-    v0 = x[i, j0 + 1, k, 0] - x[i, j0, k, 0]
-    v1 = x[i, j0 + 1, k, 1] - x[i, j0, k, 1]
-    v2 = x[i, j0 + 1, k, 2] - x[i, j0, k, 2]
-    w0 = x[i, j, k0 + 1, 0] - x[i, j, k0, 0]
-    w1 = x[i, j, k0 + 1, 1] - x[i, j, k0, 1]
-    w2 = x[i, j, k0 + 1, 2] - x[i, j, k0, 2]
-    lu = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
-    lv = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    lw = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-    if lu == 0.0 or lv == 0.0 or lw == 0.0:
-        return 0.0
-    d = (u1 * v2 - u2 * v1) * w0 + (u2 * v0 - u0 * v2) * w1 + (u0 * v1 - u1 * v0) * w2
-    return d / (lu * lv * lw)
-
-
-@jit(inline="always")
-def _tet6(x, i, j, k, a0, a1, a2, b0, b1, b2):
-    """6 x volume of the tetrahedron p000, p_a, p_b, p111 of hexahedron (i, j, k)."""
-    p0, p1, p2 = x[i, j, k, 0], x[i, j, k, 1], x[i, j, k, 2]
-    u0 = x[i + a0, j + a1, k + a2, 0] - p0
-    u1 = x[i + a0, j + a1, k + a2, 1] - p1
-    u2 = x[i + a0, j + a1, k + a2, 2] - p2
-    v0 = x[i + b0, j + b1, k + b2, 0] - p0
-    v1 = x[i + b0, j + b1, k + b2, 1] - p1
-    v2 = x[i + b0, j + b1, k + b2, 2] - p2
-    w0 = x[i + 1, j + 1, k + 1, 0] - p0
-    w1 = x[i + 1, j + 1, k + 1, 1] - p1
-    w2 = x[i + 1, j + 1, k + 1, 2] - p2
-    return (u1 * v2 - u2 * v1) * w0 + (u2 * v0 - u0 * v2) * w1 + (u0 * v1 - u1 * v0) * w2
-
-
-@pjit
-def _bad_cells(x, planar, tol):
-    """Count the invalid cells of one block and find the first (C order of (i, j, k)).
-
-    The compiled form of the test in :func:`_checked` (no temporaries the
-    size of the block): a cell is bad when its area or volume
-    (:func:`_cell_volumes`) is not positive, or a scaled corner Jacobian
-    (:func:`_corner_jacobians`) is not positive (``planar``: 2-D grids) or
-    below ``-tol``.  Returns ``(count, i, j, k)``, ``(0, -1, -1, -1)`` when
-    every cell is valid.
-    """
-    ni, nj, nk = x.shape[0], x.shape[1], x.shape[2]
-    nkc = 1 if planar else nk - 1
-    count = np.zeros(nkc, np.int64)
-    first = np.full(nkc, -1, np.int64)
-    for k in prange(nkc):
-        for j in range(nj - 1):
-            for i in range(ni - 1):
-                bad = False
-                if planar:
-                    d10 = x[i + 1, j + 1, 0, 0] - x[i, j, 0, 0]
-                    d11 = x[i + 1, j + 1, 0, 1] - x[i, j, 0, 1]
-                    d20 = x[i, j + 1, 0, 0] - x[i + 1, j, 0, 0]
-                    d21 = x[i, j + 1, 0, 1] - x[i + 1, j, 0, 1]
-                    bad = not 0.5 * (d10 * d21 - d11 * d20) > 0.0
-                    for a in range(2):
-                        for b in range(2):
-                            u0 = x[i + 1, j + b, 0, 0] - x[i, j + b, 0, 0]
-                            u1 = x[i + 1, j + b, 0, 1] - x[i, j + b, 0, 1]
-                            v0 = x[i + a, j + 1, 0, 0] - x[i + a, j, 0, 0]
-                            v1 = x[i + a, j + 1, 0, 1] - x[i + a, j, 0, 1]
-                            lu = math.sqrt(u0 * u0 + u1 * u1)
-                            lv = math.sqrt(v0 * v0 + v1 * v1)
-                            if not (lu > 0.0 and lv > 0.0 and (u0 * v1 - u1 * v0) / (lu * lv) > 0.0):
-                                bad = True
-                else:
-                    vol = (_tet6(x, i, j, k, 1, 0, 0, 1, 1, 0) + _tet6(x, i, j, k, 0, 1, 0, 0, 1, 1)
-                           + _tet6(x, i, j, k, 0, 0, 1, 1, 0, 1) - _tet6(x, i, j, k, 1, 0, 0, 1, 0, 1)
-                           - _tet6(x, i, j, k, 0, 0, 1, 0, 1, 1) - _tet6(x, i, j, k, 0, 1, 0, 1, 1, 0))
-                    bad = not vol > 0.0
-                    for a in range(2):
-                        for b in range(2):
-                            for c in range(2):
-                                if not _corner_sj(x, i, j, k, a, b, c) >= -tol:
-                                    bad = True
-                if bad:
-                    count[k] += 1
-                    flat = (i * (nj - 1) + j) * nkc + k
-                    if first[k] < 0 or flat < first[k]:
-                        first[k] = flat
-    total = 0
-    best = -1
-    for k in range(nkc):
-        total += count[k]
-        if first[k] >= 0 and (best < 0 or first[k] < best):
-            best = first[k]
-    if best < 0:
-        return total, -1, -1, -1
-    return total, best // ((nj - 1) * nkc), (best // nkc) % (nj - 1), best % nkc
-
-
 def _checked(grid: Grid, what: str) -> Grid:
     """Return ``grid`` if every cell is valid, else raise naming the first bad cell.
 
-    Valid: positive area or volume (:func:`_cell_volumes`) and no negative
-    corner Jacobian (:func:`_corner_jacobians`); 2-D quads must be strictly
-    convex.  A hexahedron may have a zero corner (to :data:`CORNER_TOL`): on
-    a wing's collapsed edge (the leading edge of the zero-thickness sheet
-    beyond the tip cap) the C wraps round a line, and the grid lines meet
-    there at 180 degrees.
+    Valid (:func:`tfi_quat.quality.invalid_cells`): positive area or volume
+    and positive scaled corner Jacobians, 2-D quads strictly convex.  A
+    hexahedron may have a zero corner (to :data:`CORNER_TOL`): on a wing's
+    collapsed edge (the leading edge of the zero-thickness sheet beyond the
+    tip cap) the C wraps round a line, and the grid lines meet there at 180
+    degrees.
     """
+    tol = 0.0 if grid.ndim == 2 else CORNER_TOL
     for n, b in enumerate(grid):
-        count, i, j, k = _bad_cells(b.xyz, grid.ndim == 2, CORNER_TOL)
+        count, first = invalid_cells(b, grid.ndim, tol)
         if count:
+            i, j, k = first
             idx = (i + 1, j + 1) if grid.ndim == 2 else (i + 1, j + 1, k + 1)
             raise GridValueError(
                 f"{what}: {int(count)} folded or degenerate cell(s) in block {n + 1}, first at "

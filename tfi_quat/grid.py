@@ -22,14 +22,21 @@ import numpy as np
 
 from .errors import GridValueError
 
-__all__ = ["Block", "Grid", "FACES", "face_index"]
+__all__ = ["Block", "Grid", "FACES", "faces_of", "face_index", "face_axis", "face_axes", "face_shape",
+           "face_layer", "face_ijk", "face_cells"]
 
 #: face names in the order used everywhere (imin=0 ... kmax=5)
 FACES = ("imin", "imax", "jmin", "jmax", "kmin", "kmax")
 
 
 def face_index(face: str | int) -> int:
-    """Return the face number 0..5 of a face name (``"imin"`` ... ``"kmax"``) or number."""
+    """Return the face number 0..5 of a face name (``"imin"`` ... ``"kmax"``) or number.
+
+    Raises
+    ------
+    GridValueError
+        An unknown name or a number outside 0..5.
+    """
     if isinstance(face, (int, np.integer)) and not isinstance(face, bool):
         if 0 <= int(face) < 6:
             return int(face)
@@ -38,6 +45,142 @@ def face_index(face: str | int) -> int:
         return FACES.index(str(face).strip().lower())
     except ValueError:
         raise GridValueError(f"unknown face {face!r}: expected one of {', '.join(FACES)}") from None
+
+
+# ---------------------------------------------------------------- face geometry
+# Every function below takes a face as a name or a number (:func:`face_index`)
+# and block dimensions ``dims = (ni, nj, nk)``.  A face's two *running*
+# indices ``(a, b)`` are the block's other two indices in order:
+# imin/imax -> (j, k), jmin/jmax -> (i, k), kmin/kmax -> (i, j).  Ranges are
+# 0-based and inclusive: ``((a0, a1), (b0, b1))``.
+
+def faces_of(ndim: int) -> tuple[str, ...]:
+    """The boundary faces of a block of a ``ndim``-D grid: all six in 3-D, imin..jmax in 2-D."""
+    return FACES if ndim == 3 else FACES[:4]
+
+
+def face_axis(face: str | int) -> tuple[int, int]:
+    """``(axis, side)`` of a face: the block axis normal to it (0 = i, 1 = j, 2 = k)
+    and its side (0 = min, 1 = max).
+
+    >>> face_axis("jmax")
+    (1, 1)
+    """
+    return divmod(face_index(face), 2)
+
+
+def face_axes(face: str | int) -> tuple[int, int, int]:
+    """``(normal, a, b)``: the block axis normal to a face and the axes of its running indices.
+
+    >>> face_axes("jmin")
+    (1, 0, 2)
+    """
+    d = face_index(face) // 2
+    a, b = [m for m in range(3) if m != d]
+    return d, a, b
+
+
+def face_shape(dims, face: str | int) -> tuple[int, int]:
+    """``(na, nb)``: the number of points along a face's running indices.
+
+    >>> face_shape((5, 4, 3), "kmax")
+    (5, 4)
+    """
+    _, a, b = face_axes(face)
+    return int(dims[a]), int(dims[b])
+
+
+def face_layer(dims, face: str | int, depth: int = 0) -> int:
+    """Index along the face's normal axis of the layer ``depth`` steps in from the face.
+
+    ``depth = 0`` is the face itself (0 on a min face, ``n - 1`` on a max
+    face, ``n = dims[normal]``); ``depth = 1`` the next layer inside, and so
+    on.  Given the per-cell shape instead of the point dimensions it numbers
+    the cell layers.
+
+    >>> face_layer((5, 4, 3), "imax"), face_layer((5, 4, 3), "imax", 1), face_layer((5, 4, 3), "imin", 1)
+    (4, 3, 1)
+    """
+    d, side = face_axis(face)
+    return int(dims[d]) - 1 - depth if side else depth
+
+
+def _check_range(dims, face, rng) -> tuple[tuple[int, int], tuple[int, int]]:
+    na, nb = face_shape(dims, face)
+    if rng is None:
+        return (0, na - 1), (0, nb - 1)
+    try:
+        (a0, a1), (b0, b1) = ((int(u), int(v)) for u, v in rng)
+    except (TypeError, ValueError):
+        raise GridValueError(f"face {FACES[face_index(face)]}: a range is ((a0, a1), (b0, b1)), "
+                             f"got {rng!r}") from None
+    if not (0 <= a0 <= a1 < na and 0 <= b0 <= b1 < nb):
+        raise GridValueError(f"face {FACES[face_index(face)]}: range {rng!r} is not an increasing "
+                             f"range inside the face's {na} x {nb} points (0-based, inclusive)")
+    return (a0, a1), (b0, b1)
+
+
+def face_ijk(dims, face: str | int, rng=None) -> np.ndarray:
+    """Block indices of the points of a face, or of a range of it.
+
+    Parameters
+    ----------
+    dims : (ni, nj, nk)
+    face : str or int
+    rng : ((a0, a1), (b0, b1)), optional
+        0-based inclusive range of the running indices; default the whole face.
+
+    Returns
+    -------
+    ndarray, int64, shape (a1 - a0 + 1, b1 - b0 + 1, 3)
+        ``out[p, q]`` is the ``(i, j, k)`` of running indices
+        ``(a0 + p, b0 + q)``, so ``xyz[out[..., 0], out[..., 1], out[..., 2]]``
+        is the range's part of :meth:`Block.face`.
+
+    Raises
+    ------
+    GridValueError
+        An unknown face, or a range that is not inside the face.
+    """
+    (a0, a1), (b0, b1) = _check_range(dims, face, rng)
+    d, a, b = face_axes(face)
+    out = np.empty((a1 - a0 + 1, b1 - b0 + 1, 3), dtype=np.int64)
+    out[..., d] = face_layer(dims, face)
+    out[..., a] = np.arange(a0, a1 + 1)[:, None]
+    out[..., b] = np.arange(b0, b1 + 1)[None, :]
+    return out
+
+
+def face_cells(dims, face: str | int, rng=None, depth: int = 0) -> tuple:
+    """Index of the cells next to a face (range) in a per-cell array of a block.
+
+    Parameters
+    ----------
+    dims : (ni, nj, nk)
+        Point dimensions of the block; the per-cell array has shape
+        ``(ni - 1, nj - 1, nk - 1)``, with one cell along a dimension of one
+        point (the k of a 2-D block: ``(ni - 1, nj - 1, 1)``).
+    face : str or int
+    rng : ((a0, a1), (b0, b1)), optional
+        Point range of the running indices; default the whole face.  A
+        running index with cells covers cells ``a0 .. a1 - 1``; one with a
+        single point covers its one cell.
+    depth : int
+        Cell layer counted from the face (0: the cells touching it).
+
+    Returns
+    -------
+    tuple of (int, slice, slice) in block axis order
+        ``cells[face_cells(...)]`` is an ``(na - 1, nb - 1)`` view (a single
+        point counting one cell).
+    """
+    (a0, a1), (b0, b1) = _check_range(dims, face, rng)
+    d, a, b = face_axes(face)
+    idx: list = [None, None, None]
+    idx[d] = face_layer([max(n - 1, 1) for n in dims], face, depth)
+    idx[a] = slice(a0, a1) if dims[a] > 1 else slice(0, 1)
+    idx[b] = slice(b0, b1) if dims[b] > 1 else slice(0, 1)
+    return tuple(idx)
 
 
 def has_z(xyz: np.ndarray) -> bool:
@@ -149,8 +292,7 @@ class Block:
         The two running indices are the block's remaining indices in order:
         imin/imax -> (j, k), jmin/jmax -> (i, k), kmin/kmax -> (i, j).
         """
-        f = face_index(face)
-        d, side = divmod(f, 2)
+        d, side = face_axis(face)
         idx = [slice(None)] * 3
         idx[d] = -1 if side else 0
         return self.xyz[tuple(idx)]

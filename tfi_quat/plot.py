@@ -21,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import CaseError, GridValueError
-from .grid import FACES, Grid
+from .grid import Grid, face_axes, face_cells, face_ijk, face_layer
+from .spec import resolve_patch_specs
 
 __all__ = ["COLOR_METRICS", "Cut", "parse_cut", "cell_values", "wall_points", "zoom_windows",
            "plot_grid_2d", "plot_walls_2d", "plot_cells_2d", "plot_metric_2d", "plot_compare",
@@ -105,11 +106,9 @@ def _check_ref(grid: Grid, ref: Grid | None) -> None:
 
 def wall_points(grid: Grid, walls) -> list:
     """Points of each wall patch, ``(na, nb, 3)`` arrays (2-D walls: ``nb == 1``)."""
-    from .quality import _face_ijk, _wall_specs
-
     out = []
-    for spec in _wall_specs(grid, walls):
-        ijk = _face_ijk(grid[spec.block].dims, spec.face, spec.range)
+    for spec in resolve_patch_specs(grid, walls, "walls"):
+        ijk = face_ijk(grid[spec.block].dims, spec.face, spec.range)
         out.append(grid[spec.block].xyz[ijk[..., 0], ijk[..., 1], ijk[..., 2]])
     return out
 
@@ -612,22 +611,14 @@ def _cut_values(values: list, cut: Cut) -> np.ndarray:
     return vals[tuple(idx)]
 
 
-def _wall_face_values(spec, vals: np.ndarray) -> np.ndarray:
+def _wall_face_values(grid: Grid, spec, vals: np.ndarray) -> np.ndarray:
     """The cells on a wall patch, (na-1, nb-1), from one block's per-cell values."""
-    d, side = divmod(FACES.index(spec.face), 2)
-    idx = [slice(None)] * 3
-    idx[d] = vals.shape[d] - 1 if side else 0
-    run = [m for m in range(3) if m != d]
-    (a0, a1), (b0, b1) = spec.range
-    idx[run[0]] = slice(a0, a1)
-    idx[run[1]] = slice(b0, b1)
-    return vals[tuple(idx)]
+    return vals[face_cells(grid[spec.block].dims, spec.face, spec.range)]
 
 
 def _wall_values(grid: Grid, walls, values: list) -> np.ndarray:
-    from .quality import _wall_specs
-    return np.concatenate([_wall_face_values(s, np.asarray(values[s.block])).ravel()
-                           for s in _wall_specs(grid, walls)])
+    return np.concatenate([_wall_face_values(grid, s, np.asarray(values[s.block])).ravel()
+                           for s in resolve_patch_specs(grid, walls, "walls")])
 
 
 def plot_cut(ax, grid: Grid, cut: Cut, *, ref: Grid | None = None, values: list | None = None, cmap="viridis",
@@ -681,38 +672,32 @@ def default_cuts(grid: Grid, walls) -> list:
     wall's second running index at its middle and at its end (for a wing
     with its span along that index: mid-span and tip).  Without walls: the
     middle k- and j-planes of block 1."""
-    from .quality import _wall_specs
-
-    specs = _wall_specs(grid, walls) if walls else []
+    specs = resolve_patch_specs(grid, walls, "walls") if walls else []
     if not specs:
         dims = grid[0].dims
         return [Cut(0, "k", dims[2] // 2), Cut(0, "j", dims[1] // 2)]
     s = specs[0]
-    d = FACES.index(s.face) // 2
-    axis = "ijk"[[m for m in range(3) if m != d][1]]
+    axis = "ijk"[face_axes(s.face)[2]]
     b0, b1 = s.range[1]
     return [Cut(s.block, axis, (b0 + b1) // 2), Cut(s.block, axis, b1)]
 
 
 def _wall_in_cut(grid: Grid, walls, cut: Cut):
     """Points (n, 3) of the walls of the cut's block that lie in the cut plane (None if none)."""
-    from .quality import _wall_specs
-
     if not walls:
         return None
     pts = []
-    for spec, w in zip(_wall_specs(grid, walls), wall_points(grid, walls)):
+    for spec, w in zip(resolve_patch_specs(grid, walls, "walls"), wall_points(grid, walls)):
         if spec.block != cut.block:
             continue
-        d = FACES.index(spec.face) // 2
-        run = [m for m in range(3) if m != d]
+        d, *run = face_axes(spec.face)
         axis = "ijk".index(cut.axis)
         if axis in run:
             r = run.index(axis)
             lo, hi = spec.range[r]
             if lo <= cut.index <= hi:
                 pts.append(w[cut.index - lo] if r == 0 else w[:, cut.index - lo])
-        elif cut.index == (grid[spec.block].dims[d] - 1 if FACES.index(spec.face) % 2 else 0):
+        elif cut.index == face_layer(grid[spec.block].dims, spec.face):
             pts.append(w.reshape(-1, 3))
     return np.concatenate(pts) if pts else None
 
@@ -736,11 +721,9 @@ def plot_wall_3d(ax, grid: Grid, walls, *, values: list | None = None, cmap="vir
     """
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from .quality import _wall_specs
-
     if grid.ndim != 3:
         raise GridValueError("plot_wall_3d: needs a 3-D grid")
-    specs = _wall_specs(grid, walls)
+    specs = resolve_patch_specs(grid, walls, "walls")
     if not specs:
         raise CaseError("plot_wall_3d: no wall patch given (--walls or --case)")
     out = []
@@ -752,7 +735,7 @@ def plot_wall_3d(ax, grid: Grid, walls, *, values: list | None = None, cmap="vir
         lo = np.minimum(lo, w.reshape(-1, 3).min(axis=0))
         hi = np.maximum(hi, w.reshape(-1, 3).max(axis=0))
         if values is not None:
-            fv = _wall_face_values(spec, np.asarray(values[spec.block])).reshape(-1)
+            fv = _wall_face_values(grid, spec, np.asarray(values[spec.block])).reshape(-1)
             coll = Poly3DCollection(verts, cmap=cmap, norm=norm, edgecolors=edgecolor, linewidths=linewidth)
             coll.set_array(np.ma.masked_invalid(fv))
         else:

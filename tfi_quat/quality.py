@@ -51,11 +51,12 @@ import numpy as np
 
 from ._jit import jit, pjit, prange
 from .errors import GridValueError
-from .grid import Block, Grid
+from .grid import Block, Grid, face_axis, face_cells, face_ijk, face_layer
+from .spec import resolve_patch_specs
 
 __all__ = ["METRICS", "cell_volumes", "cell_metrics", "cell_orthogonality", "quality_report",
            "QualityReport", "BlockQuality", "MetricStats", "WallOrthogonality",
-           "volume_ratio_summary", "negative_cells", "wall_orthogonality", "orthogonality_change"]
+           "volume_ratio_summary", "negative_cells", "invalid_cells", "wall_orthogonality", "orthogonality_change"]
 
 #: per-cell metrics, in the order of the kernels' output
 METRICS = ("volume", "jacobian", "scaled_jacobian", "skewness", "aspect_ratio", "volume_ratio")
@@ -406,6 +407,44 @@ def _block_fields(x, xr, has_ref, ndim, s, rtol, rows, out, flags):
             flags[i, q] = rf[i]
             for m in range(nm):
                 out[i, q, m] = rb[i, m]
+
+
+@pjit
+def _invalid_cells(x, ndim, corner_tol):
+    """Count the invalid cells of one block and find the first in C order of ``(i, j, k)``.
+
+    A cell is invalid unless its volume (area) is positive and its smallest
+    scaled corner Jacobian is above ``-corner_tol``, both as right-handed
+    (orientation +1; the per-cell metrics of :func:`_row`).  Rows of cells
+    in parallel, no temporaries the size of the block.  Returns ``(count,
+    i, j, k)``, ``(0, -1, -1, -1)`` when every cell is valid.
+    """
+    nci = x.shape[0] - 1
+    ncj = x.shape[1] - 1
+    nck = x.shape[2] - 1 if ndim == 3 else 1
+    nrows = max(ncj, 0) * max(nck, 0)
+    count = np.zeros(nrows, np.int64)
+    first = np.full(nrows, -1, np.int64)
+    for r in prange(nrows):
+        rb = np.empty((max(nci, 0), _NM + 1))
+        rf = np.empty(max(nci, 0), dtype=np.uint8)
+        _row(x, x, False, ndim, r, 1.0, 0.0, rb, rf)
+        for i in range(nci):
+            if not (rb[i, 0] > 0.0 and rb[i, 2] > -corner_tol):
+                count[r] += 1
+                if first[r] < 0:
+                    first[r] = i
+    total = 0
+    best = -1
+    for r in range(nrows):
+        total += count[r]
+        if first[r] >= 0:
+            key = (first[r] * ncj + r % ncj) * nck + r // ncj      # C order of (i, j, k)
+            if best < 0 or key < best:
+                best = key
+    if best < 0:
+        return total, -1, -1, -1
+    return total, best // (ncj * nck), (best // nck) % ncj, best % nck
 
 
 # ------------------------------------------------------------------ per-cell drivers
@@ -956,6 +995,45 @@ def _orientation(vol: np.ndarray) -> float:
     return -1.0 if vol.sum() < 0.0 else 1.0
 
 
+def invalid_cells(block: Block | np.ndarray, ndim: int | None = None,
+                  corner_tol: float = 0.0) -> tuple[int, tuple[int, int, int] | None]:
+    """Count the invalid cells of one block (the validity test of the grid generators).
+
+    A cell is **valid** when its volume (area in 2-D) is positive and every
+    scaled corner Jacobian is greater than ``-corner_tol``, both taken as a
+    right-handed cell (counter-clockwise in 2-D), unlike the handedness-
+    relative counts of :func:`quality_report`.  With ``corner_tol = 0`` every
+    corner must be strictly convex; a small ``corner_tol`` admits corners
+    where the grid lines meet at 180 degrees (a collapsed edge).  A
+    zero-length edge gives its corners a scaled Jacobian of 0; NaN
+    coordinates make a cell invalid.
+
+    Parameters
+    ----------
+    block : Block or ndarray (ni, nj, nk, 3)
+    ndim : {2, 3}, optional
+        Default: 2 when ``nk == 1``, else 3.
+    corner_tol : float
+        Tolerance on the scaled corner Jacobians, >= 0.
+
+    Returns
+    -------
+    (count, first)
+        The number of invalid cells and the 0-based ``(i, j, k)`` of the
+        first in C order (``k = 0`` in 2-D), or None when every cell is valid.
+    """
+    xyz = _xyz(block)
+    ndim = _ndim(xyz, ndim)
+    try:
+        tol = float(corner_tol)
+    except (TypeError, ValueError):
+        tol = math.nan
+    if not (math.isfinite(tol) and tol >= 0.0):
+        raise GridValueError(f"corner_tol must be a finite number >= 0, got {corner_tol!r}")
+    count, i, j, k = _invalid_cells(xyz, ndim, tol)
+    return int(count), (None if count == 0 else (int(i), int(j), int(k)))
+
+
 def negative_cells(grid: Grid, reference: Grid | None = None):
     """Cells whose volume has the wrong sign.
 
@@ -1008,24 +1086,6 @@ def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
 
 
 # ------------------------------------------------------------ near-wall orthogonality
-def _wall_specs(grid: Grid, walls):
-    from .spec import as_patch_specs
-    return [spec.resolve(grid) for spec in as_patch_specs(walls, "walls")]
-
-
-def _face_ijk(dims, face: str, rng) -> np.ndarray:
-    """Block indices (na, nb, 3) int64 of the points of a face range ((a0, a1), (b0, b1))."""
-    from .grid import FACES
-    d, side = divmod(FACES.index(face), 2)
-    (a0, a1), (b0, b1) = rng
-    others = [m for m in range(3) if m != d]
-    out = np.empty((a1 - a0 + 1, b1 - b0 + 1, 3), dtype=np.int64)
-    out[..., d] = dims[d] - 1 if side else 0
-    out[..., others[0]] = np.arange(a0, a1 + 1)[:, None]
-    out[..., others[1]] = np.arange(b0, b1 + 1)[None, :]
-    return out
-
-
 def _patch_normals(w: np.ndarray, ndim: int) -> np.ndarray:
     """Unit normals (na, nb, 3) of a wall patch from central differences
     (one-sided at the patch edges); NaN where degenerate."""
@@ -1046,22 +1106,19 @@ def _patch_normals(w: np.ndarray, ndim: int) -> np.ndarray:
 
 def _wall_angles(grid: Grid, spec, layers: int):
     """Angles (na, nb, layers) on one resolved wall patch and its point indices (na, nb, 3)."""
-    from .grid import FACES
-
     blk = grid[spec.block]
-    d, side = divmod(FACES.index(spec.face), 2)
+    d, _ = face_axis(spec.face)
     nl = min(layers, blk.dims[d] - 1)
-    ijk = _face_ijk(blk.dims, spec.face, spec.range)
+    ijk = face_ijk(blk.dims, spec.face, spec.range)
     x = blk.xyz
     w = x[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
     nrm = _patch_normals(w, grid.ndim)
     ang = np.full(w.shape[:2] + (layers,), np.nan)
-    step = -1 if side else 1
     for lay in range(nl):
         a = ijk.copy()
         b = ijk.copy()
-        a[..., d] += step * lay
-        b[..., d] += step * (lay + 1)
+        a[..., d] = face_layer(blk.dims, spec.face, lay)
+        b[..., d] = face_layer(blk.dims, spec.face, lay + 1)
         e = x[b[..., 0], b[..., 1], b[..., 2]] - x[a[..., 0], a[..., 1], a[..., 2]]
         # atan2 of |n x e| and |n . e|: accurate near 0 deg, where arccos is not
         cr = np.linalg.norm(np.cross(nrm, e), axis=-1)
@@ -1100,7 +1157,7 @@ def wall_orthogonality(grid: Grid, walls, layers: int = 5) -> list[np.ndarray]:
     layers = int(layers)
     if layers < 1:
         raise ValueError(f"layers must be >= 1, got {layers}")
-    return [_wall_angles(grid, spec, layers)[0] for spec in _wall_specs(grid, walls)]
+    return [_wall_angles(grid, spec, layers)[0] for spec in resolve_patch_specs(grid, walls, "walls")]
 
 
 def orthogonality_change(grid: Grid, ref: Grid, walls, layers: int = 5) -> dict:
@@ -1136,7 +1193,7 @@ def _nanstats(a: np.ndarray):
 
 
 def _orthogonality_stats(grid: Grid, ref: Grid | None, walls, layers: int):
-    specs = _wall_specs(grid, walls)
+    specs = resolve_patch_specs(grid, walls, "walls")
     out = []
     allang, allch = [], []
     for spec in specs:
@@ -1182,14 +1239,12 @@ def cell_orthogonality(grid: Grid, walls, layers: int = 5, ref: Grid | None = No
     -------
     list of ndarray, float64, one per block, shaped as :func:`cell_volumes`
     """
-    from .grid import FACES
-
     layers = int(layers)
     if layers < 1:
         raise ValueError(f"layers must be >= 1, got {layers}")
     ndim = grid.ndim
     out = [np.full(_cell_shape(b.dims, ndim), np.nan, order="F") for b in grid]
-    for spec in _wall_specs(grid, walls):
+    for spec in resolve_patch_specs(grid, walls, "walls"):
         ang, _ = _wall_angles(grid, spec, layers)
         if ref is not None:
             ang = np.abs(ang - _wall_angles(ref, spec, layers)[0])
@@ -1198,17 +1253,11 @@ def cell_orthogonality(grid: Grid, walls, layers: int = 5, ref: Grid | None = No
         if ndim == 3:
             c = np.maximum(c[:, :-1], c[:, 1:])           # (na-1, nb-1, L)
         c = np.where(np.isfinite(c), c, np.nan)
-        d, side = divmod(FACES.index(spec.face), 2)
         dims = grid[spec.block].dims
-        (a0, a1), (b0, b1) = spec.range
-        nl = min(layers, dims[d] - 1)
-        others = [m for m in range(3) if m != d]
+        nl = min(layers, dims[face_axis(spec.face)[0]] - 1)
         cells = out[spec.block]
         for lay in range(nl):
-            idx = [None, None, None]
-            idx[d] = dims[d] - 2 - lay if side else lay
-            idx[others[0]] = slice(a0, a1)
-            idx[others[1]] = slice(b0, b1) if ndim == 3 else slice(0, 1)
-            tgt = cells[tuple(idx)]
-            cells[tuple(idx)] = np.fmax(tgt, c[..., lay].reshape(tgt.shape))
+            idx = face_cells(dims, spec.face, spec.range, lay)
+            tgt = cells[idx]
+            cells[idx] = np.fmax(tgt, c[..., lay].reshape(tgt.shape))
     return out

@@ -17,18 +17,11 @@ import re
 from dataclasses import dataclass
 
 from .errors import CaseError
-from .grid import FACES, Grid
+from .grid import FACES, Grid, face_shape
 
-__all__ = ["PatchSpec", "parse_patch_spec", "face_shape"]
+__all__ = ["PatchSpec", "parse_patch_spec", "as_patch_specs", "resolve_patch_specs"]
 
 _RANGE = re.compile(r"^\s*(\d+)\s*-\s*(\d+)\s*$")
-
-
-def face_shape(dims, face: str) -> tuple[int, int]:
-    """``(na, nb)`` of a face of a block with dimensions ``dims = (ni, nj, nk)``."""
-    d = FACES.index(face) // 2
-    rest = [n for m, n in enumerate(dims) if m != d]
-    return rest[0], rest[1]
 
 
 @dataclass(frozen=True)
@@ -142,3 +135,9 @@ def as_patch_specs(items, what: str) -> list[PatchSpec]:
         else:
             raise CaseError(f"{what}: cannot read {it!r} as a patch (BLOCK:FACE[:range] or PatchSpec)")
     return out
+
+
+def resolve_patch_specs(grid: Grid, items, what: str) -> list[PatchSpec]:
+    """:func:`as_patch_specs` resolved against ``grid`` (:meth:`PatchSpec.resolve`):
+    every spec checked and given its explicit range."""
+    return [spec.resolve(grid) for spec in as_patch_specs(items, what)]

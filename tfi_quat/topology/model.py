@@ -29,49 +29,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConnectivityError
-from ..grid import FACES
-from ..spec import PatchSpec, face_shape
+from ..grid import face_axes, face_axis, face_cells, face_ijk, face_index, face_shape, faces_of
+from ..spec import PatchSpec
 
-__all__ = ["Interface", "Patch", "Connectivity", "FaceMap", "KINDS", "face_axes"]
+__all__ = ["Interface", "Patch", "Connectivity", "FaceMap", "KINDS"]
 
 #: patch kinds: prescribed (wall, fixed), derived (symmetry, free)
 KINDS = ("wall", "fixed", "symmetry", "free")
 #: priority where patches meet at a point (DESIGN 3.3: wall beats fixed beats derived)
 _PRIORITY = {"wall": 0, "fixed": 1, "symmetry": 2, "free": 3}
-
-
-def face_axes(face: str) -> tuple[int, int, int]:
-    """``(normal, a, b)`` block axes of a face: normal direction and running indices."""
-    d = FACES.index(face) // 2
-    a, b = [m for m in range(3) if m != d]
-    return d, a, b
-
-
-def _face_fixed(face: str, dims) -> int:
-    d = FACES.index(face) // 2
-    return dims[d] - 1 if FACES.index(face) % 2 else 0
-
-
-def _face_to_ijk(face: str, dims, ab) -> np.ndarray:
-    """Block indices ``(..., 3)`` of face running indices ``(..., 2)``."""
-    ab = np.asarray(ab, dtype=np.int64)
-    d, a, b = face_axes(face)
-    out = np.empty(ab.shape[:-1] + (3,), dtype=np.int64)
-    out[..., d] = _face_fixed(face, dims)
-    out[..., a] = ab[..., 0]
-    out[..., b] = ab[..., 1]
-    return out
-
-
-def _cell_slices(rng, na: int, nb: int) -> tuple[slice, slice]:
-    """Cells of a face range ``((a0, a1), (b0, b1))`` on a face of ``na x nb`` points.
-
-    The face has ``max(na - 1, 1) x max(nb - 1, 1)`` cells: a running index
-    with a single point (the k index of a 2-D side) counts one cell; a range
-    that is one line of points along an index with cells covers none.
-    """
-    (a0, a1), (b0, b1) = rng
-    return (slice(a0, a1) if na > 1 else slice(0, 1)), (slice(b0, b1) if nb > 1 else slice(0, 1))
 
 
 def _signed_perm(transform) -> np.ndarray:
@@ -225,8 +191,8 @@ class Interface:
         for u, ax in enumerate((am, bm)):
             v = int(np.abs(M[:, u]).argmax())
             t[ax] = int(M[v, u]) * (sax[v] + 1)
-        side_m = 1 if FACES.index(master.face) % 2 else -1
-        side_s = 1 if FACES.index(slave_face) % 2 else -1
+        side_m = 1 if face_axis(master.face)[1] else -1
+        side_s = 1 if face_axis(slave_face)[1] else -1
         t[dm] = -side_m * side_s * (ds + 1)
         (a0, a1), (b0, b1) = master.range
         p0 = np.array([a0, b0])
@@ -234,8 +200,9 @@ class Interface:
         q0, q1 = M @ p0 + off, M @ p1 + off
         srange = ((int(min(q0[0], q1[0])), int(max(q0[0], q1[0]))),
                   (int(min(q0[1], q1[1])), int(max(q0[1], q1[1]))))
-        mb = tuple(int(v) for v in _face_to_ijk(master.face, master_dims, p0))
-        sb = tuple(int(v) for v in _face_to_ijk(slave_face, slave_dims, q0))
+        mb = tuple(int(v) for v in face_ijk(master_dims, master.face, ((a0, a0), (b0, b0)))[0, 0])
+        c0, e0 = (int(v) for v in q0)
+        sb = tuple(int(v) for v in face_ijk(slave_dims, slave_face, ((c0, c0), (e0, e0)))[0, 0])
         return Interface(master, PatchSpec(slave_block, slave_face, srange), tuple(t), mb, sb)
 
     def face_map_matrix(self) -> tuple[np.ndarray, np.ndarray]:
@@ -319,7 +286,7 @@ class FaceMap:
 
 
 def _sort_key_spec(s: PatchSpec):
-    return (s.block, FACES.index(s.face), s.range)
+    return (s.block, face_index(s.face), s.range)
 
 
 class Connectivity:
@@ -374,8 +341,7 @@ class Connectivity:
 
     def faces(self):
         """The boundary faces ``(block, face)`` of the grid (4 per block in 2-D, 6 in 3-D)."""
-        names = FACES[:4] if self.ndim == 2 else FACES
-        return [(b, f) for b in range(len(self.dims)) for f in names]
+        return [(b, f) for b in range(len(self.dims)) for f in faces_of(self.ndim)]
 
     def interfaces_on(self, block: int, face: str) -> list[tuple[int, Interface, str]]:
         """``(index, interface, side)`` for the interfaces touching a face; side is "master"/"slave"."""
@@ -437,7 +403,9 @@ class Connectivity:
             if key not in owner:
                 na, nb = face_shape(self.dims[s.block], s.face)
                 owner[key] = np.full((max(na - 1, 1), max(nb - 1, 1)), -1, dtype=np.int64)
-            cells = owner[key][_cell_slices(s.range, *face_shape(self.dims[s.block], s.face))]
+            _, a, b = face_axes(s.face)
+            idx = face_cells(self.dims[s.block], s.face, s.range)
+            cells = owner[key][idx[a], idx[b]]
             taken = cells[cells >= 0]
             if taken.size:
                 out.append((items[int(taken[0])][0], item))

@@ -29,9 +29,9 @@ from scipy.spatial import cKDTree
 
 from .._jit import jit
 from ..errors import CaseError, ConnectivityError
-from ..grid import FACES
+from ..grid import face_axes, face_axis, face_ijk, face_index, face_layer, faces_of
 from ..spec import PatchSpec, parse_patch_spec
-from .model import KINDS, Connectivity, Interface, Patch, face_axes
+from .model import KINDS, Connectivity, Interface, Patch
 
 __all__ = ["connect", "classify", "node_labels", "interface_mismatches", "check_interfaces", "DEFAULT_RTOL",
            "PLANE_RTOL"]
@@ -131,7 +131,6 @@ class _Geometry:
             raise ConnectivityError(f"rtol must be > 0, got {rtol!r}")
         self.grid = grid
         self.ndim = grid.ndim
-        names = FACES[:4] if grid.ndim == 2 else FACES
         self.faces: list[_Face] = []
         self.index = {}
         xyz, hs, bps = [], [], []
@@ -142,8 +141,8 @@ class _Geometry:
             ext = float(np.linalg.norm(np.subtract(*blk.bbox()[::-1])))
             tiny = 1e-10 * ext if ext > 0 else 0.0
             fallback = ext if ext > 0 else 1.0
-            for f in names:
-                d, ax_a, ax_b = face_axes(f)
+            for f in faces_of(grid.ndim):
+                d, _ = face_axis(f)
                 pts = blk.face(f)  # (na, nb, 3)
                 na, nb = pts.shape[:2]
                 h = np.full((na, nb), np.inf)
@@ -159,7 +158,7 @@ class _Geometry:
                     h[:, 1:] = np.minimum(h[:, 1:], e)
                 if dims[d] >= 2:
                     idx = [slice(None)] * 3
-                    idx[d] = dims[d] - 2 if FACES.index(f) % 2 else 1
+                    idx[d] = face_layer(dims, f, 1)
                     e = np.linalg.norm(blk.xyz[tuple(idx)] - pts, axis=-1)
                     h = np.minimum(h, np.where(e > tiny, e, np.inf))
                 h[~np.isfinite(h)] = fallback
@@ -168,12 +167,7 @@ class _Geometry:
                 self.faces.append(fc)
                 xyz.append(pts.reshape(-1, 3, order="F"))
                 hs.append(h.reshape(-1, order="F"))
-                A, B = np.meshgrid(np.arange(na), np.arange(nb), indexing="ij")
-                ijk = np.empty((na, nb, 3), dtype=np.int64)
-                ijk[..., d] = dims[d] - 1 if FACES.index(f) % 2 else 0
-                ijk[..., ax_a] = A
-                ijk[..., ax_b] = B
-                ijk = ijk.reshape(-1, 3, order="F")
+                ijk = face_ijk(dims, f).reshape(-1, 3, order="F")
                 bps.append(boff + ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2]))
                 off += na * nb
             boff += blk.npoints
@@ -371,8 +365,8 @@ def _find_interfaces(geo: _Geometry) -> list[Interface]:
             claimed[fb][cs] = True
             master = PatchSpec(F1.block, F1.face, m_rng)
             found.append(Interface.from_face_map(master, F2.face, Mx, offx, F1.dims, F2.dims, F2.block))
-    found.sort(key=lambda i: (i.master.block, FACES.index(i.master.face), i.master.range,
-                              i.slave.block, FACES.index(i.slave.face), i.slave.range))
+    found.sort(key=lambda i: (i.master.block, face_index(i.master.face), i.master.range,
+                              i.slave.block, face_index(i.slave.face), i.slave.range))
     return found
 
 
@@ -574,7 +568,7 @@ def _classify(geo: _Geometry, interfaces, base_patches, walls, symmetry, fixed, 
                 out.append(Patch(p.spec, "symmetry", p.name, False, "auto", (tuple(c.tolist()), tuple(n.tolist()))))
                 continue
         out.append(p)
-    out.sort(key=lambda p: (p.spec.block, FACES.index(p.spec.face), p.spec.range))
+    out.sort(key=lambda p: (p.spec.block, face_index(p.spec.face), p.spec.range))
     return out
 
 
