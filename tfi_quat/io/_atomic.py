@@ -30,15 +30,18 @@ __all__ = ["atomic_output", "check_target", "read_text", "TEXT_LIMIT"]
 TEXT_LIMIT = 64 << 20
 
 
-def check_target(path, *, overwrite: bool, protect=()) -> Path:
+def check_target(path, *, overwrite: bool, protect=(), replace_existing: bool = True) -> Path:
     """Refuse to write over a protected (input) file unless ``overwrite``.
 
     ``protect`` lists paths that are inputs of the operation (e.g. the grid's
-    ``source_path``).  Returns the target as a :class:`~pathlib.Path`.
+    ``source_path``).  With ``replace_existing=False`` every existing file is
+    refused unless ``overwrite``.  Returns the target as a :class:`~pathlib.Path`.
     """
     target = Path(os.fspath(path))
     if target.is_dir():
         raise OverwriteError(f"{target}: is a directory")
+    if not overwrite and not replace_existing and target.exists():
+        raise OverwriteError(f"{target}: exists (pass overwrite=True, or --force on the command line)")
     if not overwrite and target.exists():
         for p in protect:
             if p is None:

@@ -26,23 +26,14 @@ import os
 import re
 from pathlib import Path
 
-from ..errors import ConnectivityError, OverwriteError
+from ..errors import ConnectivityError
 from ..grid import FACES
-from ..io._atomic import atomic_output, read_text
+from ..io._atomic import atomic_output, check_target, read_text
 from ..spec import PatchSpec
 from .model import MAX_DIM, Connectivity, Interface, Patch, check_dims, face_axes
 
 FORMAT = "tfi_quat.connectivity"
 VERSION = 1
-
-
-def _check_target(path, overwrite: bool) -> Path:
-    target = Path(os.fspath(path))
-    if target.is_dir():
-        raise OverwriteError(f"{target}: is a directory")
-    if target.exists() and not overwrite:
-        raise OverwriteError(f"{target}: exists (pass overwrite=True, or --force on the command line)")
-    return target
 
 
 def _range_ijk(spec: PatchSpec, dims) -> list[list[int]]:
@@ -78,7 +69,7 @@ def to_dict(conn: Connectivity) -> dict:
 
 
 def write_json(conn: Connectivity, path, *, overwrite: bool = False) -> None:
-    target = _check_target(path, overwrite)
+    target = check_target(path, overwrite=overwrite, replace_existing=False)
     doc = to_dict(conn)
     # one interface / patch / note per line: easy to read, diff and edit
     parts = []
