@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
 from .errors import CaseError
-from .io._atomic import atomic_output
+from .io._atomic import atomic_output, read_text
 from .spec import PatchSpec, parse_patch_spec
 
 try:  # Python >= 3.11
@@ -47,16 +48,20 @@ __all__ = ["Case", "Motion", "load_case", "save_case", "DEFORMATIONS"]
 #: named wall deformations of :class:`Motion`
 DEFORMATIONS = ("bend", "twist")
 
+#: largest case file read (bytes)
+CASE_LIMIT = 1 << 20
+
 _PATCH_KEYS = ("walls", "symmetry", "fixed")
 _TOP_KEYS = ("grid", "output") + _PATCH_KEYS + ("motion",)
 
 
 def _vec3(value, what: str) -> tuple[float, float, float]:
-    try:
-        v = tuple(float(c) for c in value)
-    except (TypeError, ValueError):
-        raise CaseError(f"{what}: expected 3 numbers, got {value!r}") from None
-    if len(v) != 3 or not all(math.isfinite(c) for c in v):
+    """Three finite numbers from a TOML array (a string such as ``"001"`` or booleans are refused)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or any(
+            isinstance(c, bool) or not isinstance(c, (int, float)) for c in value):
+        raise CaseError(f"{what}: expected 3 numbers [x, y, z], got {value!r}")
+    v = tuple(float(c) for c in value)
+    if not all(math.isfinite(c) for c in v):
         raise CaseError(f"{what}: expected 3 finite numbers, got {value!r}")
     return v  # type: ignore[return-value]
 
@@ -64,15 +69,27 @@ def _vec3(value, what: str) -> tuple[float, float, float]:
 def _num(value, what: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise CaseError(f"{what}: expected a number, got {value!r}")
-    v = float(value)
+    try:
+        v = float(value)
+    except OverflowError:       # a TOML integer beyond the float range
+        v = math.inf
     if not math.isfinite(v):
         raise CaseError(f"{what}: expected a finite number, got {value!r}")
     return v
 
 
+def _unit(v, what: str) -> np.ndarray:
+    """``v / |v|`` without overflow or underflow (``[0, 0, 1e200]`` and ``[1e-200, 0, 0]`` included)."""
+    a = np.asarray(v, dtype=np.float64)
+    scale = np.abs(a).max()
+    if not scale > 0.0:
+        raise CaseError(f"{what}: must not be the zero vector")
+    a = a / scale                       # largest entry +-1: the norm is between 1 and sqrt(3)
+    return a / math.sqrt(float(a @ a))
+
+
 def _rotation_matrix(axis, angle_deg: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
+    a = _unit(axis, "axis")
     t = math.radians(angle_deg)
     k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
     return np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
@@ -146,8 +163,7 @@ class Motion:
         for name in ("axis", "about", "translate", "span_axis", "direction"):
             set_(self, name, _vec3(getattr(self, name), f"motion.{name}"))
         for name in ("axis", "span_axis", "direction"):
-            if not any(getattr(self, name)):
-                raise CaseError(f"motion.{name}: must not be the zero vector")
+            _unit(getattr(self, name), f"motion.{name}")
         if self.deformation is not None or self.amplitude is not None:
             if self.deformation is None:
                 raise CaseError("motion.amplitude: give it with motion.deformation "
@@ -163,9 +179,11 @@ class Motion:
             set_(self, "amplitude", None)
         if self.span <= 0.0:
             raise CaseError(f"motion.span: must be > 0, got {self.span}")
+        if self.span < sys.float_info.min or not math.isfinite(self.bend / self.span):
+            raise CaseError(f"motion.span: {self.span!r} is too small (the bend slope bend/span must be finite)")
         if self.bend != 0.0:
-            sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
-            d = np.asarray(self.direction) / np.linalg.norm(self.direction)
+            sa = _unit(self.span_axis, "motion.span_axis")
+            d = _unit(self.direction, "motion.direction")
             if np.linalg.norm(d - (d @ sa) * sa) < 1e-9:
                 raise CaseError("motion.direction: must not be parallel to motion.span_axis")
 
@@ -231,27 +249,33 @@ class Motion:
         if p.shape[-1:] != (3,):
             raise CaseError(f"motion.apply: points must have shape (..., 3), got {p.shape}")
         c = np.asarray(self.about)
-        if not self.is_rigid:
-            sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
-            eta = (p - c) @ sa
-            s = np.maximum(eta, 0.0) / self.span
-            inner = s <= 1.0
-            grow = np.where(inner, s * s, 2.0 * s - 1.0)          # C1 past the span
-            a = c + eta[..., None] * sa                            # section centre on the beam axis
-            r = p - a
-            if self.twist:
-                r = _rodrigues(r, sa, np.radians(self.twist) * grow)
-            if self.bend:
-                d = np.asarray(self.direction) / np.linalg.norm(self.direction)
-                d = d - (d @ sa) * sa
-                d /= np.linalg.norm(d)
-                slope = self.bend / self.span * np.where(inner, 2.0 * s, 2.0)
-                r = _rodrigues(r, np.cross(sa, d), np.arctan(slope))
-                a = a + (self.bend * grow)[..., None] * d
-            p = a + r
-        if self.rotate != 0.0:
-            p = c + (p - c) @ _rotation_matrix(self.axis, self.rotate).T
-        return p + np.asarray(self.translate)
+        with np.errstate(all="ignore"):     # non-finite results are reported below, not warned about
+            if not self.is_rigid:
+                sa = _unit(self.span_axis, "motion.span_axis")
+                eta = (p - c) @ sa
+                s = np.maximum(eta, 0.0) / self.span
+                inner = s <= 1.0
+                grow = np.where(inner, s * s, 2.0 * s - 1.0)          # C1 past the span
+                a = c + eta[..., None] * sa                            # section centre on the beam axis
+                r = p - a
+                if self.twist:
+                    r = _rodrigues(r, sa, np.radians(self.twist) * grow)
+                if self.bend:
+                    d = _unit(self.direction, "motion.direction")
+                    d = d - (d @ sa) * sa
+                    d /= np.linalg.norm(d)
+                    slope = self.bend / self.span * np.where(inner, 2.0 * s, 2.0)
+                    r = _rodrigues(r, np.cross(sa, d), np.arctan(slope))
+                    a = a + (self.bend * grow)[..., None] * d
+                p = a + r
+            if self.rotate != 0.0:
+                p = c + (p - c) @ _rotation_matrix(self.axis, self.rotate).T
+            p = p + np.asarray(self.translate)
+        bad = ~np.isfinite(p).all(axis=-1)
+        if bad.any():
+            raise CaseError(f"motion: moves {int(bad.sum())} point(s) to non-finite positions "
+                            f"({self.describe()}); check the sizes of translate, bend, twist and span")
+        return p
 
 
 def _rodrigues(r: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -353,23 +377,23 @@ def load_case(path, check_grid: bool = True) -> Case:
 
     Raises
     ------
+    FileNotFoundError, IsADirectoryError, PermissionError
+        The case file cannot be opened (the path is in the exception).
     CaseError
-        Missing or unreadable file, TOML syntax, unknown keys, wrong types,
-        bad patch strings, bad motion values, missing grid file; the message
-        names the case file and the key.
+        Not UTF-8, TOML syntax, unknown keys, wrong types, bad patch strings,
+        bad motion values (not finite, a zero or string vector, a span too
+        small), missing grid file; the message names the case file and the
+        key.
     """
     p = Path(os.fspath(path))
     where = str(p)
+    text = read_text(p, CaseError, limit=CASE_LIMIT)
     try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise CaseError(f"{where}: cannot read the case file ({exc.strerror or exc})") from None
-    try:
-        data = _toml.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise CaseError(f"{where}: not UTF-8 text ({exc})") from None
+        data = _toml.loads(text)
     except _toml.TOMLDecodeError as exc:
         raise CaseError(f"{where}: TOML syntax error: {exc}") from None
+    except RecursionError:
+        raise CaseError(f"{where}: TOML syntax error: arrays or tables nested too deeply") from None
     for key in data:
         if key not in _TOP_KEYS:
             raise CaseError(f"{where}: unknown key {key!r} (known: {', '.join(_TOP_KEYS)})")
