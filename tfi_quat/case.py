@@ -43,7 +43,7 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as _toml  # type: ignore[no-redef]
 
-__all__ = ["Case", "Motion", "load_case", "save_case", "DEFORMATIONS"]
+__all__ = ["Case", "Motion", "load_case", "save_case", "unit_vector", "DEFORMATIONS"]
 
 #: named wall deformations of :class:`Motion`
 DEFORMATIONS = ("bend", "twist")
@@ -78,7 +78,7 @@ def _num(value, what: str) -> float:
     return v
 
 
-def _unit(v, what: str) -> np.ndarray:
+def unit_vector(v, what: str) -> np.ndarray:
     """``v / |v|`` without overflow or underflow (``[0, 0, 1e200]`` and ``[1e-200, 0, 0]`` included)."""
     a = np.asarray(v, dtype=np.float64)
     scale = np.abs(a).max()
@@ -89,7 +89,7 @@ def _unit(v, what: str) -> np.ndarray:
 
 
 def _rotation_matrix(axis, angle_deg: float) -> np.ndarray:
-    a = _unit(axis, "axis")
+    a = unit_vector(axis, "axis")
     t = math.radians(angle_deg)
     k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
     return np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
@@ -163,7 +163,7 @@ class Motion:
         for name in ("axis", "about", "translate", "span_axis", "direction"):
             set_(self, name, _vec3(getattr(self, name), f"motion.{name}"))
         for name in ("axis", "span_axis", "direction"):
-            _unit(getattr(self, name), f"motion.{name}")
+            unit_vector(getattr(self, name), f"motion.{name}")
         if self.deformation is not None or self.amplitude is not None:
             if self.deformation is None:
                 raise CaseError("motion.amplitude: give it with motion.deformation "
@@ -182,8 +182,8 @@ class Motion:
         if self.span < sys.float_info.min or not math.isfinite(self.bend / self.span):
             raise CaseError(f"motion.span: {self.span!r} is too small (the bend slope bend/span must be finite)")
         if self.bend != 0.0:
-            sa = _unit(self.span_axis, "motion.span_axis")
-            d = _unit(self.direction, "motion.direction")
+            sa = unit_vector(self.span_axis, "motion.span_axis")
+            d = unit_vector(self.direction, "motion.direction")
             if np.linalg.norm(d - (d @ sa) * sa) < 1e-9:
                 raise CaseError("motion.direction: must not be parallel to motion.span_axis")
 
@@ -251,7 +251,7 @@ class Motion:
         c = np.asarray(self.about)
         with np.errstate(all="ignore"):     # non-finite results are reported below, not warned about
             if not self.is_rigid:
-                sa = _unit(self.span_axis, "motion.span_axis")
+                sa = unit_vector(self.span_axis, "motion.span_axis")
                 eta = (p - c) @ sa
                 s = np.maximum(eta, 0.0) / self.span
                 inner = s <= 1.0
@@ -261,7 +261,7 @@ class Motion:
                 if self.twist:
                     r = _rodrigues(r, sa, np.radians(self.twist) * grow)
                 if self.bend:
-                    d = _unit(self.direction, "motion.direction")
+                    d = unit_vector(self.direction, "motion.direction")
                     d = d - (d @ sa) * sa
                     d /= np.linalg.norm(d)
                     slope = self.bend / self.span * np.where(inner, 2.0 * s, 2.0)
