@@ -59,22 +59,28 @@ def _vec3(value, what: str) -> tuple[float, float, float]:
     """Three finite numbers from a TOML array (a string such as ``"001"`` or booleans are refused)."""
     if not isinstance(value, (list, tuple)) or len(value) != 3 or any(
             isinstance(c, bool) or not isinstance(c, (int, float)) for c in value):
-        raise CaseError(f"{what}: expected 3 numbers [x, y, z], got {value!r}")
+        raise CaseError(f"{what}: expected 3 numbers [x, y, z], got {_show(value)}")
     v = tuple(float(c) for c in value)
     if not all(math.isfinite(c) for c in v):
-        raise CaseError(f"{what}: expected 3 finite numbers, got {value!r}")
+        raise CaseError(f"{what}: expected 3 finite numbers, got {_show(value)}")
     return v  # type: ignore[return-value]
+
+
+def _show(value) -> str:
+    """``repr`` of a value for an error message, shortened."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _num(value, what: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise CaseError(f"{what}: expected a number, got {value!r}")
+        raise CaseError(f"{what}: expected a number, got {_show(value)}")
     try:
         v = float(value)
     except OverflowError:       # a TOML integer beyond the float range
         v = math.inf
     if not math.isfinite(v):
-        raise CaseError(f"{what}: expected a finite number, got {value!r}")
+        raise CaseError(f"{what}: expected a finite number, got {_show(value)}")
     return v
 
 
@@ -180,7 +186,8 @@ class Motion:
         if self.span <= 0.0:
             raise CaseError(f"motion.span: must be > 0, got {self.span}")
         if self.span < sys.float_info.min or not math.isfinite(self.bend / self.span):
-            raise CaseError(f"motion.span: {self.span!r} is too small (the bend slope bend/span must be finite)")
+            raise CaseError(f"motion.span: {self.span!r} is too small (it must be a normal positive number "
+                            "and bend/span finite)")
         if self.bend != 0.0:
             sa = unit_vector(self.span_axis, "motion.span_axis")
             d = unit_vector(self.direction, "motion.direction")
@@ -335,12 +342,12 @@ class Case:
 def _patches(data, key: str, where: str) -> list[PatchSpec]:
     value = data.get(key, [])
     if isinstance(value, str) or not isinstance(value, list):
-        raise CaseError(f"{where}: key {key!r}: expected a list of patch strings, got {value!r}")
+        raise CaseError(f"{where}: key {key!r}: expected a list of patch strings, got {_show(value)}")
     out = []
     for n, text in enumerate(value):
         if not isinstance(text, str):
             raise CaseError(f"{where}: key {key!r}[{n}]: expected a patch string "
-                            f"\"BLOCK:FACE[:A1-A2,B1-B2]\", got {text!r}")
+                            f"\"BLOCK:FACE[:A1-A2,B1-B2]\", got {_show(text)}")
         try:
             out.append(parse_patch_spec(text))
         except CaseError as exc:
@@ -350,7 +357,7 @@ def _patches(data, key: str, where: str) -> list[PatchSpec]:
 
 def _motion(value, where: str) -> Motion:
     if not isinstance(value, dict):
-        raise CaseError(f"{where}: key 'motion': expected a table [motion], got {value!r}")
+        raise CaseError(f"{where}: key 'motion': expected a table [motion], got {_show(value)}")
     known = {f.name for f in fields(Motion)}
     for key in value:
         if key not in known:
@@ -404,7 +411,7 @@ def load_case(path, check_grid: bool = True) -> Case:
     for key in ("grid", "output"):
         if key in data:
             if not isinstance(data[key], str) or not data[key].strip():
-                raise CaseError(f"{where}: key {key!r}: expected a file name, got {data[key]!r}")
+                raise CaseError(f"{where}: key {key!r}: expected a file name, got {_show(data[key])}")
             paths[key] = Path(os.path.normpath(base / data[key]))
     if check_grid and not paths["grid"].is_file():
         raise CaseError(f"{where}: key 'grid': grid file {paths['grid']} does not exist")
