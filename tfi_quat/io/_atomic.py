@@ -120,10 +120,20 @@ def read_text(path, error, *, limit: int = TEXT_LIMIT) -> str:
     p = Path(os.fspath(path))
     if p.is_dir():          # some platforms open folders for reading; none reads them
         raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(p))
+    too_big = error(f"{p}: larger than {limit:,} bytes; not a file this reader expects")
     with open(p, "rb") as fh:
-        raw = fh.read(limit + 1)
-    if len(raw) > limit:
-        raise error(f"{p}: larger than {limit:,} bytes; not a file this reader expects")
+        if os.fstat(fh.fileno()).st_size > limit:
+            raise too_big
+        chunks, total = [], 0
+        while total <= limit:       # in pieces: read(n) would allocate n bytes up front
+            chunk = fh.read(min(1 << 20, limit + 1 - total))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+    if total > limit:
+        raise too_big
+    raw = b"".join(chunks)
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
