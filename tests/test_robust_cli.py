@@ -129,6 +129,7 @@ def test_bad_case_files_are_one_line_naming_the_key(capsys, work, body, fragment
     ('walls = ["1:jmin"]\n', "key 'grid' is missing"),
     ("grid = 5\n", "key 'grid': expected a file name"),
     ('grid = "two_block_65x33.x"\nwalls = "1:jmin"\n', "key 'walls': expected a list"),
+    ('grid = "."\n', "key 'grid': grid file "),
 ])
 def test_case_file_grid_and_walls_keys(capsys, work, text, fragment):
     (work / "c.toml").write_text(text)
@@ -190,6 +191,15 @@ def test_a_folded_grid_is_not_written_without_allow_negative(capsys, work):
 
 
 # ------------------------------------------------------------ plot --cut on 2-D (item 13)
+@pytest.mark.parametrize("argv", [["deform", TWO, "--wall", "1:jmin", "--rotate", "1", "-o", "."],
+                                  ["plot", TWO, "-o", "."], ["convert", TWO, "."]])
+def test_an_output_that_is_a_directory_says_so(capsys, work, argv):
+    rc, out, err = run_cli(capsys, *argv)
+    one_line(rc, out, err, EXIT_INPUT, ".: is a directory")
+    rc, out, err = run_cli(capsys, *argv, "--force")
+    one_line(rc, out, err, EXIT_INPUT, ".: is a directory")
+
+
 def test_plot_cut_on_a_2d_grid_is_an_error(capsys, work):
     rc, out, err = run_cli(capsys, "plot", TWO, "--cut", "5:k=3", "-o", "a.png")
     one_line(rc, out, err, EXIT_INPUT, "--cut 5:k=3", "2-D")

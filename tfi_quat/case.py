@@ -414,7 +414,8 @@ def load_case(path, check_grid: bool = True) -> Case:
                 raise CaseError(f"{where}: key {key!r}: expected a file name, got {_show(data[key])}")
             paths[key] = Path(os.path.normpath(base / data[key]))
     if check_grid and not paths["grid"].is_file():
-        raise CaseError(f"{where}: key 'grid': grid file {paths['grid']} does not exist")
+        what = "is a directory" if paths["grid"].is_dir() else "does not exist"
+        raise CaseError(f"{where}: key 'grid': grid file {paths['grid']} {what}")
     motion = _motion(data["motion"], where) if "motion" in data else None
     return Case(grid=paths["grid"], walls=_patches(data, "walls", where),
                 symmetry=_patches(data, "symmetry", where), fixed=_patches(data, "fixed", where),

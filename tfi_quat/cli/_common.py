@@ -25,6 +25,8 @@ def case_and_grid(args):
 def check_output(path, force: bool, inputs=()) -> Path:
     """Refuse an existing output file unless ``force``; never silently replace an input."""
     out = Path(os.fspath(path))
+    if out.is_dir():
+        raise OverwriteError(f"{out}: is a directory")
     if out.exists() and not force:
         for p in inputs:
             if p is not None and Path(p).exists() and os.path.samefile(out, p):
