@@ -116,8 +116,10 @@ def test_bad_case_files_name_the_file_and_key(folder, text, match):
 
 
 def test_missing_case_file_and_unchecked_grid(folder):
-    with pytest.raises(CaseError, match="nothere.toml"):
+    with pytest.raises(FileNotFoundError, match="nothere.toml"):
         load_case(folder / "nothere.toml")
+    with pytest.raises(IsADirectoryError, match=str(folder)):
+        load_case(folder)
     p = write(folder, 'grid = "later.x"\n')
     assert load_case(p, check_grid=False).grid.name == "later.x"
 

@@ -728,7 +728,7 @@ def test_json_interface_that_does_not_match_the_grid(tmp_path):
     ('"face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 4]]', '"face": "jmin", "PointRange": [[1, 1, 1], [5, 1, 9]]',
      r"hand.json:13: patch 1: PointRange .* exceeds block 1 \(5 x 5 x 4\)"),
     ('"kind": "wall"', '"kind": "moving"', r"hand.json:13: patch 1: .*unknown kind 'moving'"),
-    ('"kind": "wall", ', '', r"hand.json:13: patch 1: missing or bad entry: 'kind'"),
+    ('"kind": "wall", ', '', r"hand.json:13: patch 1: 'kind' is missing"),
     ('"face": "kmin", "PointRange": [[1, 1, 1], [5, 5, 1]]', '"face": "imax", "PointRange": [[5, 1, 1], [5, 3, 3]]',
      r"hand.json:14: patch 2 overlaps interface 1 master side \(line 10\) on block 1 face imax"),
     ('"ndim": 3', '"ndim": 4', r"hand.json: 'ndim' must be 2 or 3"),

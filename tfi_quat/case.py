@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
 
 from .errors import CaseError
-from .io._atomic import atomic_output
+from .io._atomic import atomic_output, read_text
 from .spec import PatchSpec, parse_patch_spec
 
 try:  # Python >= 3.11
@@ -42,37 +43,59 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as _toml  # type: ignore[no-redef]
 
-__all__ = ["Case", "Motion", "load_case", "save_case", "DEFORMATIONS"]
+__all__ = ["Case", "Motion", "load_case", "save_case", "unit_vector", "DEFORMATIONS"]
 
 #: named wall deformations of :class:`Motion`
 DEFORMATIONS = ("bend", "twist")
+
+#: largest case file read (bytes)
+CASE_LIMIT = 1 << 20
 
 _PATCH_KEYS = ("walls", "symmetry", "fixed")
 _TOP_KEYS = ("grid", "output") + _PATCH_KEYS + ("motion",)
 
 
 def _vec3(value, what: str) -> tuple[float, float, float]:
-    try:
-        v = tuple(float(c) for c in value)
-    except (TypeError, ValueError):
-        raise CaseError(f"{what}: expected 3 numbers, got {value!r}") from None
-    if len(v) != 3 or not all(math.isfinite(c) for c in v):
-        raise CaseError(f"{what}: expected 3 finite numbers, got {value!r}")
+    """Three finite numbers from a TOML array (a string such as ``"001"`` or booleans are refused)."""
+    if not isinstance(value, (list, tuple)) or len(value) != 3 or any(
+            isinstance(c, bool) or not isinstance(c, (int, float)) for c in value):
+        raise CaseError(f"{what}: expected 3 numbers [x, y, z], got {_show(value)}")
+    v = tuple(float(c) for c in value)
+    if not all(math.isfinite(c) for c in v):
+        raise CaseError(f"{what}: expected 3 finite numbers, got {_show(value)}")
     return v  # type: ignore[return-value]
+
+
+def _show(value) -> str:
+    """``repr`` of a value for an error message, shortened."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _num(value, what: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise CaseError(f"{what}: expected a number, got {value!r}")
-    v = float(value)
+        raise CaseError(f"{what}: expected a number, got {_show(value)}")
+    try:
+        v = float(value)
+    except OverflowError:       # a TOML integer beyond the float range
+        v = math.inf
     if not math.isfinite(v):
-        raise CaseError(f"{what}: expected a finite number, got {value!r}")
+        raise CaseError(f"{what}: expected a finite number, got {_show(value)}")
     return v
 
 
+def unit_vector(v, what: str) -> np.ndarray:
+    """``v / |v|`` without overflow or underflow (``[0, 0, 1e200]`` and ``[1e-200, 0, 0]`` included)."""
+    a = np.asarray(v, dtype=np.float64)
+    scale = np.abs(a).max()
+    if not scale > 0.0:
+        raise CaseError(f"{what}: must not be the zero vector")
+    a = a / scale                       # largest entry +-1: the norm is between 1 and sqrt(3)
+    return a / math.sqrt(float(a @ a))
+
+
 def _rotation_matrix(axis, angle_deg: float) -> np.ndarray:
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
+    a = unit_vector(axis, "axis")
     t = math.radians(angle_deg)
     k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
     return np.eye(3) + math.sin(t) * k + (1.0 - math.cos(t)) * (k @ k)
@@ -146,8 +169,7 @@ class Motion:
         for name in ("axis", "about", "translate", "span_axis", "direction"):
             set_(self, name, _vec3(getattr(self, name), f"motion.{name}"))
         for name in ("axis", "span_axis", "direction"):
-            if not any(getattr(self, name)):
-                raise CaseError(f"motion.{name}: must not be the zero vector")
+            unit_vector(getattr(self, name), f"motion.{name}")
         if self.deformation is not None or self.amplitude is not None:
             if self.deformation is None:
                 raise CaseError("motion.amplitude: give it with motion.deformation "
@@ -163,9 +185,12 @@ class Motion:
             set_(self, "amplitude", None)
         if self.span <= 0.0:
             raise CaseError(f"motion.span: must be > 0, got {self.span}")
+        if self.span < sys.float_info.min or not math.isfinite(self.bend / self.span):
+            raise CaseError(f"motion.span: {self.span!r} is too small (it must be a normal positive number "
+                            "and bend/span finite)")
         if self.bend != 0.0:
-            sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
-            d = np.asarray(self.direction) / np.linalg.norm(self.direction)
+            sa = unit_vector(self.span_axis, "motion.span_axis")
+            d = unit_vector(self.direction, "motion.direction")
             if np.linalg.norm(d - (d @ sa) * sa) < 1e-9:
                 raise CaseError("motion.direction: must not be parallel to motion.span_axis")
 
@@ -231,27 +256,33 @@ class Motion:
         if p.shape[-1:] != (3,):
             raise CaseError(f"motion.apply: points must have shape (..., 3), got {p.shape}")
         c = np.asarray(self.about)
-        if not self.is_rigid:
-            sa = np.asarray(self.span_axis) / np.linalg.norm(self.span_axis)
-            eta = (p - c) @ sa
-            s = np.maximum(eta, 0.0) / self.span
-            inner = s <= 1.0
-            grow = np.where(inner, s * s, 2.0 * s - 1.0)          # C1 past the span
-            a = c + eta[..., None] * sa                            # section centre on the beam axis
-            r = p - a
-            if self.twist:
-                r = _rodrigues(r, sa, np.radians(self.twist) * grow)
-            if self.bend:
-                d = np.asarray(self.direction) / np.linalg.norm(self.direction)
-                d = d - (d @ sa) * sa
-                d /= np.linalg.norm(d)
-                slope = self.bend / self.span * np.where(inner, 2.0 * s, 2.0)
-                r = _rodrigues(r, np.cross(sa, d), np.arctan(slope))
-                a = a + (self.bend * grow)[..., None] * d
-            p = a + r
-        if self.rotate != 0.0:
-            p = c + (p - c) @ _rotation_matrix(self.axis, self.rotate).T
-        return p + np.asarray(self.translate)
+        with np.errstate(all="ignore"):     # non-finite results are reported below, not warned about
+            if not self.is_rigid:
+                sa = unit_vector(self.span_axis, "motion.span_axis")
+                eta = (p - c) @ sa
+                s = np.maximum(eta, 0.0) / self.span
+                inner = s <= 1.0
+                grow = np.where(inner, s * s, 2.0 * s - 1.0)          # C1 past the span
+                a = c + eta[..., None] * sa                            # section centre on the beam axis
+                r = p - a
+                if self.twist:
+                    r = _rodrigues(r, sa, np.radians(self.twist) * grow)
+                if self.bend:
+                    d = unit_vector(self.direction, "motion.direction")
+                    d = d - (d @ sa) * sa
+                    d /= np.linalg.norm(d)
+                    slope = self.bend / self.span * np.where(inner, 2.0 * s, 2.0)
+                    r = _rodrigues(r, np.cross(sa, d), np.arctan(slope))
+                    a = a + (self.bend * grow)[..., None] * d
+                p = a + r
+            if self.rotate != 0.0:
+                p = c + (p - c) @ _rotation_matrix(self.axis, self.rotate).T
+            p = p + np.asarray(self.translate)
+        bad = ~np.isfinite(p).all(axis=-1)
+        if bad.any():
+            raise CaseError(f"motion: moves {int(bad.sum())} point(s) to non-finite positions "
+                            f"({self.describe()}); check the sizes of translate, bend, twist and span")
+        return p
 
 
 def _rodrigues(r: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
@@ -311,12 +342,12 @@ class Case:
 def _patches(data, key: str, where: str) -> list[PatchSpec]:
     value = data.get(key, [])
     if isinstance(value, str) or not isinstance(value, list):
-        raise CaseError(f"{where}: key {key!r}: expected a list of patch strings, got {value!r}")
+        raise CaseError(f"{where}: key {key!r}: expected a list of patch strings, got {_show(value)}")
     out = []
     for n, text in enumerate(value):
         if not isinstance(text, str):
             raise CaseError(f"{where}: key {key!r}[{n}]: expected a patch string "
-                            f"\"BLOCK:FACE[:A1-A2,B1-B2]\", got {text!r}")
+                            f"\"BLOCK:FACE[:A1-A2,B1-B2]\", got {_show(text)}")
         try:
             out.append(parse_patch_spec(text))
         except CaseError as exc:
@@ -326,7 +357,7 @@ def _patches(data, key: str, where: str) -> list[PatchSpec]:
 
 def _motion(value, where: str) -> Motion:
     if not isinstance(value, dict):
-        raise CaseError(f"{where}: key 'motion': expected a table [motion], got {value!r}")
+        raise CaseError(f"{where}: key 'motion': expected a table [motion], got {_show(value)}")
     known = {f.name for f in fields(Motion)}
     for key in value:
         if key not in known:
@@ -353,23 +384,23 @@ def load_case(path, check_grid: bool = True) -> Case:
 
     Raises
     ------
+    FileNotFoundError, IsADirectoryError, PermissionError
+        The case file cannot be opened (the path is in the exception).
     CaseError
-        Missing or unreadable file, TOML syntax, unknown keys, wrong types,
-        bad patch strings, bad motion values, missing grid file; the message
-        names the case file and the key.
+        Not UTF-8, TOML syntax, unknown keys, wrong types, bad patch strings,
+        bad motion values (not finite, a zero or string vector, a span too
+        small), missing grid file; the message names the case file and the
+        key.
     """
     p = Path(os.fspath(path))
     where = str(p)
+    text = read_text(p, CaseError, limit=CASE_LIMIT)
     try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise CaseError(f"{where}: cannot read the case file ({exc.strerror or exc})") from None
-    try:
-        data = _toml.loads(raw.decode("utf-8"))
-    except UnicodeDecodeError as exc:
-        raise CaseError(f"{where}: not UTF-8 text ({exc})") from None
+        data = _toml.loads(text)
     except _toml.TOMLDecodeError as exc:
         raise CaseError(f"{where}: TOML syntax error: {exc}") from None
+    except RecursionError:
+        raise CaseError(f"{where}: TOML syntax error: arrays or tables nested too deeply") from None
     for key in data:
         if key not in _TOP_KEYS:
             raise CaseError(f"{where}: unknown key {key!r} (known: {', '.join(_TOP_KEYS)})")
@@ -380,10 +411,11 @@ def load_case(path, check_grid: bool = True) -> Case:
     for key in ("grid", "output"):
         if key in data:
             if not isinstance(data[key], str) or not data[key].strip():
-                raise CaseError(f"{where}: key {key!r}: expected a file name, got {data[key]!r}")
+                raise CaseError(f"{where}: key {key!r}: expected a file name, got {_show(data[key])}")
             paths[key] = Path(os.path.normpath(base / data[key]))
     if check_grid and not paths["grid"].is_file():
-        raise CaseError(f"{where}: key 'grid': grid file {paths['grid']} does not exist")
+        what = "is a directory" if paths["grid"].is_dir() else "does not exist"
+        raise CaseError(f"{where}: key 'grid': grid file {paths['grid']} {what}")
     motion = _motion(data["motion"], where) if "motion" in data else None
     return Case(grid=paths["grid"], walls=_patches(data, "walls", where),
                 symmetry=_patches(data, "symmetry", where), fixed=_patches(data, "fixed", where),

@@ -13,15 +13,24 @@ imin/imax -> (j, k), jmin/jmax -> (i, k), kmin/kmax -> (i, j) -- the axes of
 
 from __future__ import annotations
 
+import numbers
 import re
 from dataclasses import dataclass
+
+import numpy as np
 
 from .errors import CaseError
 from .grid import FACES, Grid, face_shape
 
 __all__ = ["PatchSpec", "parse_patch_spec", "as_patch_specs", "resolve_patch_specs"]
 
-_RANGE = re.compile(r"^\s*(\d+)\s*-\s*(\d+)\s*$")
+_RANGE = re.compile(r"^\s*([0-9]+)\s*-\s*([0-9]+)\s*$")
+_BLOCK = re.compile(r"^\s*[0-9]+\s*$")
+
+
+def _is_int(v) -> bool:
+    """An integer (Python or NumPy), not a bool and not a float such as 3.7."""
+    return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
@@ -47,11 +56,18 @@ class PatchSpec:
         if face not in FACES:
             raise CaseError(f"unknown face {self.face!r}: expected one of {', '.join(FACES)}")
         object.__setattr__(self, "face", face)
+        if not _is_int(self.block):
+            raise CaseError(f"block: expected an integer, got {self.block!r}")
         if int(self.block) < 0:
             raise CaseError(f"block number must be >= 1 (1-based), got {int(self.block) + 1}")
         object.__setattr__(self, "block", int(self.block))
         if self.range is not None:
-            (a0, a1), (b0, b1) = self.range
+            try:
+                (a0, a1), (b0, b1) = self.range
+            except (TypeError, ValueError):
+                raise CaseError(f"range: expected ((a0, a1), (b0, b1)), got {self.range!r}") from None
+            if not all(_is_int(v) for v in (a0, a1, b0, b1)):
+                raise CaseError(f"range: expected integers ((a0, a1), (b0, b1)), got {self.range!r}")
             r = ((int(a0), int(a1)), (int(b0), int(b1)))
             if min(a0, b0) < 0 or a1 < a0 or b1 < b0:
                 raise CaseError(f"{self}: a range must be increasing and >= 1 (1-based)")
@@ -88,7 +104,7 @@ def parse_patch_spec(text: str) -> PatchSpec:
     means ``1-129,1-1``.
     """
     parts = str(text).strip().split(":")
-    if len(parts) not in (2, 3) or not parts[0].strip().isdigit():
+    if len(parts) not in (2, 3) or not _BLOCK.match(parts[0]):
         raise CaseError(f"patch {text!r}: expected BLOCK:FACE or BLOCK:FACE:A1-A2,B1-B2 (1-based)")
     block = int(parts[0]) - 1
     if block < 0:

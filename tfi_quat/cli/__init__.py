@@ -1,20 +1,38 @@
 """``tfi-quat`` command line: ``main(argv=None)`` dispatches to one module per subcommand.
 
 Each subcommand module defines ``HELP`` (one line), ``add_args(parser)`` and
-``run(args) -> int``.  A :class:`~tfi_quat.errors.TfiQuatError` (or an
-``OSError``: missing file, permission) becomes one line on stderr and exit
-status 2; ``--debug`` shows the traceback instead.
+``run(args) -> int``.
+
+Exit status: 0 success; 1 the command ran but its result failed a check the
+user asked for or the command makes by default (``deform`` produced negative
+cells, ``quality --fail-on-negative``); 2 bad input or usage: a
+:class:`~tfi_quat.errors.TfiQuatError`, an ``OSError`` (missing file,
+directory, no permission) or a ``MemoryError`` becomes one line on stderr;
+70 an internal error (a bug: one line, please report it); 130 interrupted
+(Ctrl-C), 143 terminated (SIGTERM).  ``--debug`` shows the traceback
+instead of the one line.  An interrupted or terminated write leaves neither
+a partial output nor its temporary file.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 
 from ..errors import TfiQuatError
 
-__all__ = ["main", "SUBCOMMANDS"]
+__all__ = ["main", "SUBCOMMANDS", "EXIT_CHECK", "EXIT_INPUT", "EXIT_INTERNAL", "EXIT_INTERRUPTED",
+           "EXIT_TERMINATED"]
+
+#: exit statuses (docs/cli.md)
+EXIT_CHECK = 1
+EXIT_INPUT = 2
+EXIT_INTERNAL = 70
+EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 128 + signal.SIGTERM
 
 #: subcommand name -> module (relative to this package)
 SUBCOMMANDS = {
@@ -51,23 +69,57 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(BaseException):
+    """Raised in the main thread by SIGTERM while :func:`main` runs (like ``KeyboardInterrupt``
+    for SIGINT), so that ``finally`` clauses (a write's temporary file) run before exiting."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+def _message(exc: BaseException) -> str:
+    """One line for an error: ``PATH: reason`` for an OSError, else the message."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    if isinstance(exc, MemoryError):
+        return f"out of memory{f' ({exc})' if str(exc) else ''}"
+    msg = " ".join(str(exc).split()) or type(exc).__name__   # one line, always
+    if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in msg:
+        msg = f"{exc.filename}: {msg}"
+    return msg
+
+
 def main(argv=None) -> int:
-    """Run the command line; returns the exit status."""
+    """Run the command line; returns the exit status (see the module docstring)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:
         parser.print_help(sys.stderr)
-        return 2
+        return EXIT_INPUT
+    debug = getattr(args, "debug", False)
+    installed = threading.current_thread() is threading.main_thread()
+    if installed:
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args._run(args) or 0)
-    except (TfiQuatError, OSError) as exc:
-        if getattr(args, "debug", False):
+    except (TfiQuatError, OSError, MemoryError) as exc:
+        if debug:
             raise
-        msg = " ".join(str(exc).split()) or type(exc).__name__   # one line, always
-        if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in msg:
-            msg = f"{exc.filename}: {msg}"
-        print(f"tfi-quat {args.command}: error: {msg}", file=sys.stderr)
-        return 2
+        print(f"tfi-quat {args.command}: error: {_message(exc)}", file=sys.stderr)
+        return EXIT_INPUT
     except KeyboardInterrupt:
         print("tfi-quat: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+    except Terminated:
+        print("tfi-quat: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
+    except Exception as exc:    # a bug, not bad input: still one line (--debug shows the traceback)
+        if debug:
+            raise
+        print(f"tfi-quat {args.command}: internal error: {type(exc).__name__}: {_message(exc)} "
+              "(please report it; --debug shows the traceback)", file=sys.stderr)
+        return EXIT_INTERNAL
+    finally:
+        if installed:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+import math
 import os
 from pathlib import Path
 
@@ -23,6 +25,8 @@ def case_and_grid(args):
 def check_output(path, force: bool, inputs=()) -> Path:
     """Refuse an existing output file unless ``force``; never silently replace an input."""
     out = Path(os.fspath(path))
+    if out.is_dir():
+        raise OverwriteError(f"{out}: is a directory")
     if out.exists() and not force:
         for p in inputs:
             if p is not None and Path(p).exists() and os.path.samefile(out, p):
@@ -44,3 +48,36 @@ def walls_arg(args, case) -> list:
     if not walls and case is not None:
         walls = list(case.walls)
     return walls
+
+
+def finite(text: str) -> float:
+    """argparse type: a finite number (``nan``, ``inf`` and ``1e999`` are usage errors)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return v
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return v
+
+
+def vector(text: str) -> tuple[float, float, float]:
+    """argparse type: ``X,Y,Z``, three finite numbers."""
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"expected 3 numbers X,Y,Z, got {text!r}")
+    try:
+        return tuple(finite(x) for x in parts)  # type: ignore[return-value]
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected 3 finite numbers X,Y,Z, got {text!r}") from None

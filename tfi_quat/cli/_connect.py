@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from ..errors import ConnectivityError
+from ._common import finite
 
 HELP = "find block interfaces and boundary patches; print them; save as .json or .nmf"
 DESCRIPTION = """\
@@ -28,9 +29,9 @@ def add_args(parser) -> None:
                         help="a fixed patch (repeatable)")
     parser.add_argument("--default", choices=("fixed", "free", "wall", "symmetry"), default="fixed",
                         help="kind of the unclassified boundary (default: fixed)")
-    parser.add_argument("--tol", type=float, default=None, metavar="T",
+    parser.add_argument("--tol", type=finite, default=None, metavar="T",
                         help="absolute matching distance (default: RTOL x local spacing)")
-    parser.add_argument("--rtol", type=float, default=1e-6, metavar="R",
+    parser.add_argument("--rtol", type=finite, default=1e-6, metavar="R",
                         help="matching tolerance relative to the smallest adjacent edge (default 1e-6)")
     parser.add_argument("--no-auto-symmetry", action="store_true",
                         help="do not make planar patches next to walls symmetry")

@@ -105,6 +105,8 @@ def _output_format(args, in_format: str, plot3d_opts: dict) -> str:
 
 def _check_target(args) -> None:
     out = Path(args.output)
+    if out.is_dir():
+        raise OverwriteError(f"{out}: is a directory")
     if args.force or not out.exists():
         return
     try:

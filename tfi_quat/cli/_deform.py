@@ -7,7 +7,11 @@ import sys
 import time
 
 from ..errors import CaseError
-from ._common import case_and_grid, check_output
+from . import EXIT_CHECK
+from ._common import case_and_grid, check_output, finite, vector
+
+#: negative cells listed in the summary line
+_SHOW = 3
 
 #: tfi_quat.deform.METHODS, spelled out so the CLI starts without numba
 METHODS = ("two-level", "samareh", "tfi")
@@ -21,17 +25,9 @@ The walls, symmetry planes and fixed boundaries come from --case, --nmf or
 (--moved, same dimensions, only its wall points are used) or a rigid motion
 of the walls (--rotate/--axis/--about/--translate), or the case file's
 [motion].  Prints the number of negative cells and the smallest cell-volume
-ratio to the reference at the end."""
-
-
-def _vec(text: str) -> tuple[float, float, float]:
-    try:
-        v = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X,Y,Z, got {text!r}") from None
-    if len(v) != 3:
-        raise argparse.ArgumentTypeError(f"expected 3 numbers X,Y,Z, got {text!r}")
-    return v  # type: ignore[return-value]
+ratio to the reference at the end.  A deformed grid with negative cells is
+not written (exit status 1, the count and the first cells on stderr)
+unless --allow-negative is given."""
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -44,24 +40,27 @@ def add_args(p: argparse.ArgumentParser) -> None:
                    help="symmetry patch")
     p.add_argument("--fixed", action="append", default=[], metavar="B:FACE[:RANGE]", help="fixed patch")
     p.add_argument("--moved", help="grid whose wall points hold the new wall positions")
-    p.add_argument("--rotate", type=float, metavar="DEG", help="rotate the walls by DEG degrees")
-    p.add_argument("--axis", type=_vec, default=None, metavar="X,Y,Z", help="rotation axis (default 0,0,1)")
-    p.add_argument("--about", type=_vec, default=None, metavar="X,Y,Z",
+    p.add_argument("--rotate", type=finite, metavar="DEG", help="rotate the walls by DEG degrees")
+    p.add_argument("--axis", type=vector, default=None, metavar="X,Y,Z", help="rotation axis (default 0,0,1)")
+    p.add_argument("--about", type=vector, default=None, metavar="X,Y,Z",
                    help="point on the rotation axis (default 0,0,0)")
-    p.add_argument("--translate", type=_vec, default=None, metavar="X,Y,Z", help="translate the walls")
+    p.add_argument("--translate", type=vector, default=None, metavar="X,Y,Z", help="translate the walls")
     p.add_argument("--method", choices=METHODS + ("quaternion",), metavar="{" + ",".join(METHODS) + "}",
                    help="quaternion TFI in the two-level formulation (default) or in the memo's "
                         "update (samareh), or plain TFI of displacements (tfi); docs/deformer.md")
     p.add_argument("--formulation", choices=METHODS[:2], help=argparse.SUPPRESS)   # deprecated
-    p.add_argument("--rotation-length", type=float, metavar="L",
+    p.add_argument("--rotation-length", type=finite, metavar="L",
                    help="two-level: thickness of the wall layer where non-rigid wall rotations act "
                         "(default 1%% of the walls' size)")
     p.add_argument("-o", "--output", help="deformed grid file (default: the case file's output)")
     p.add_argument("--force", action="store_true", help="overwrite an existing output file")
+    p.add_argument("--allow-negative", action="store_true",
+                   help="write the deformed grid even when it has negative cells (exit status 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def _motion(args, case):
+    from ..case import unit_vector
     from ..deform import rigid_motion
     given = any(v is not None for v in (args.rotate, args.axis, args.about, args.translate))
     if args.moved and given:
@@ -71,7 +70,7 @@ def _motion(args, case):
         return io.read(args.moved), f"walls from {args.moved}"
     if given:
         rot = args.rotate or 0.0
-        axis = args.axis or (0.0, 0.0, 1.0)
+        axis = tuple(unit_vector(args.axis, "--axis")) if args.axis else (0.0, 0.0, 1.0)
         about = args.about or (0.0, 0.0, 0.0)
         tr = args.translate or (0.0, 0.0, 0.0)
     elif case is not None and case.motion is not None:
@@ -152,7 +151,6 @@ def run(args) -> int:
     t1 = time.perf_counter()
     result = deformer.deform(moved, callback=_Progress(not args.quiet and grid.npoints > 2_000_000))
     t2 = time.perf_counter()
-    io.write(out, result, like=grid, overwrite=args.force)
     q = volume_ratio_summary(result, grid)
     print(f"{desc}; method {method}")
     print(f"set-up {t1 - t0:.3f} s, step {t2 - t1:.3f} s ({grid.npoints / max(t2 - t1, 1e-12) / 1e6:.1f} M points/s)")
@@ -160,5 +158,19 @@ def run(args) -> int:
     if q["where"] is not None:
         b, i, j, k = q["where"]
         where = f" at block {b + 1} cell ({i + 1}, {j + 1}, {k + 1})"
-    print(f"wrote {out}: {q['negative']} negative cells, smallest volume ratio {q['min_ratio']:.4g}{where}")
+    negative = f"{q['negative']} negative cells{_first_cells(result, grid) if q['negative'] else ''}"
+    if q["negative"] and not args.allow_negative:
+        print(f"tfi-quat deform: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}; "
+              f"{out} not written (--allow-negative writes it)", file=sys.stderr)
+        return EXIT_CHECK
+    io.write(out, result, like=grid, overwrite=args.force)
+    print(f"wrote {out}: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}")
     return 0
+
+
+def _first_cells(result, grid) -> str:
+    """`` (first at block B cell (i, j, k), ...)``: the first negative cells, 1-based."""
+    from ..quality import negative_cells
+    cells = [(b, ijk) for b, found in negative_cells(result, grid) for ijk in found[:_SHOW]][:_SHOW]
+    text = ", ".join(f"block {b + 1} cell ({', '.join(str(int(v) + 1) for v in ijk)})" for b, ijk in cells)
+    return f" (first: {text})" if text else ""

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import time
 
+from ._common import finite
+
 HELP = "deform the shipped NACA 0012 C-grid by plain and quaternion TFI; grids, figure, table"
 DESCRIPTION = """Run the memo's figure 4 experiment (Samareh, NASA/TM-2002-211646) on
 grids/naca0012_c_257x65.x: the wall bent (camber), pitched nose-up about the
@@ -20,8 +22,8 @@ def add_args(p: argparse.ArgumentParser) -> None:
                    help="output folder (default: demo_out)")
     p.add_argument("--grid", help="reference C-grid (default: grids/naca0012_c_257x65.x); "
                                   "its case file NAME.toml gives the boundaries")
-    p.add_argument("--pitch", type=float, default=30.0, metavar="DEG", help="nose-up pitch (default 30)")
-    p.add_argument("--camber", type=float, default=0.08, metavar="C",
+    p.add_argument("--pitch", type=finite, default=30.0, metavar="DEG", help="nose-up pitch (default 30)")
+    p.add_argument("--camber", type=finite, default=0.08, metavar="C",
                    help="trailing-edge bend in chords (default 0.08)")
     p.add_argument("--no-figure", action="store_true", help="skip demo.png")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")

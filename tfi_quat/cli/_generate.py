@@ -11,6 +11,8 @@ import os
 import re
 from pathlib import Path
 
+from ._common import finite
+
 HELP = "generate a sample grid (airfoil, cylinder, channel, two-block, wing)"
 DESCRIPTION = ("Generate a grid and write it; --case also writes a TOML case file describing "
                "its walls, symmetry planes and fixed boundaries (1-based ranges).")
@@ -24,10 +26,10 @@ def _stretching(p):
 def _common(p, ni, nj, first_spacing, farfield=None):
     p.add_argument("--ni", type=int, default=ni, help=f"points in i (default {ni})")
     p.add_argument("--nj", type=int, default=nj, help=f"points in j (default {nj})")
-    p.add_argument("--first-spacing", type=float, default=first_spacing,
+    p.add_argument("--first-spacing", type=finite, default=first_spacing,
                    help=f"first cell size off the wall (default {first_spacing:g})")
     if farfield is not None:
-        p.add_argument("--farfield", type=float, default=farfield,
+        p.add_argument("--farfield", type=finite, default=farfield,
                        help=f"distance to the outer boundary (default {farfield:g})")
 
 
@@ -42,7 +44,7 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     a.add_argument("--naca", default="0012", help="4-digit NACA code (default 0012)")
     a.add_argument("--topology", choices=("C", "O"), default="C", type=str.upper)
     _common(a, 257, 65, 1e-5, 20.0)
-    a.add_argument("--wake-length", type=float, default=None,
+    a.add_argument("--wake-length", type=finite, default=None,
                    help="C-grid wake length behind the trailing edge (default: farfield)")
     a.add_argument("--n-wake", type=int, default=None, help="C-grid intervals per wake side")
     a.add_argument("--blunt-te", action="store_true", help="blunt trailing edge (O-grid only)")
@@ -52,15 +54,15 @@ def add_args(parser: argparse.ArgumentParser) -> None:
 
     c = kind("cylinder", "analytic O-grid round a circular cylinder (2-D)")
     _common(c, 129, 65, 1e-4, 20.0)
-    c.add_argument("--radius", type=float, default=0.5)
+    c.add_argument("--radius", type=finite, default=0.5)
 
     for name, help_, ni, nj, fs in (("channel", "H-grid of a channel with a bump (2-D)", 129, 49, 1e-3),
                                     ("two-block", "two-block channel with a bump (2-D)", 65, 33, 2e-3)):
         h = kind(name, help_)
         _common(h, ni, nj, fs)
-        h.add_argument("--length", type=float, default=3.0)
-        h.add_argument("--height", type=float, default=1.0)
-        h.add_argument("--bump-height", type=float, default=0.1)
+        h.add_argument("--length", type=finite, default=3.0)
+        h.add_argument("--height", type=finite, default=1.0)
+        h.add_argument("--bump-height", type=finite, default=0.1)
 
     w = kind("wing", "C-H multiblock grid round a swept, tapered half wing (3-D)")
     w.add_argument("--naca", default="0012")
@@ -68,12 +70,12 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     w.add_argument("--nk-wing", type=int, default=45)
     w.add_argument("--nk-cap", type=int, default=9)
     w.add_argument("--nk-out", type=int, default=25)
-    w.add_argument("--aspect-ratio", type=float, default=4.0)
-    w.add_argument("--taper", type=float, default=0.5)
-    w.add_argument("--sweep", type=float, default=30.0, help="leading-edge sweep, degrees")
-    w.add_argument("--span-farfield", type=float, default=10.0,
+    w.add_argument("--aspect-ratio", type=finite, default=4.0)
+    w.add_argument("--taper", type=finite, default=0.5)
+    w.add_argument("--sweep", type=finite, default=30.0, help="leading-edge sweep, degrees")
+    w.add_argument("--span-farfield", type=finite, default=10.0,
                    help="spanwise far field beyond the tip (default 10)")
-    w.add_argument("--wake-length", type=float, default=15.0,
+    w.add_argument("--wake-length", type=finite, default=15.0,
                    help="outflow plane behind the last trailing edge (default 15)")
     w.add_argument("--n-wake", type=int, default=None, help="intervals per wake side (default (ni-1)/4)")
     _stretching(w)

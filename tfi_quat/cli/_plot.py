@@ -80,6 +80,8 @@ def run(args) -> int:
     check_output(args.output, args.force, inputs=[path, args.ref, args.case])
     walls = walls_arg(args, case)
     grid = io.read(path)
+    if args.cut and grid.ndim == 2:
+        raise CaseError(f"{path}: --cut {args.cut[0]}: cuts are planes through a 3-D grid; this grid is 2-D")
     ref = io.read(args.ref) if args.ref else None
     title = args.title
     if title is None:

@@ -7,7 +7,7 @@ import argparse
 import json
 
 from ..errors import CaseError, GridValueError
-from ._common import case_and_grid, walls_arg
+from ._common import case_and_grid, finite, non_negative_int, walls_arg
 
 HELP = "grid quality: volumes, Jacobians, skewness, aspect ratio, negative cells, near-wall orthogonality"
 DESCRIPTION = """Measure the quality of GRID: per block and over the grid, the min, mean and
@@ -31,9 +31,9 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--case", metavar="CASE.toml", help="case file: its grid and walls")
     p.add_argument("--layers", type=int, default=5, metavar="K",
                    help="grid lines off the wall measured per wall point (default 5)")
-    p.add_argument("--rtol", type=float, default=1e-12,
+    p.add_argument("--rtol", type=finite, default=1e-12,
                    help="degenerate cell: |volume| <= RTOL * (longest edge)^3 (default 1e-12)")
-    p.add_argument("--locations", type=int, default=10, metavar="N",
+    p.add_argument("--locations", type=non_negative_int, default=10, metavar="N",
                    help="list the first N bad cells of each kind (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON object (indices 1-based)")
     p.add_argument("--fail-on-negative", action="store_true",
@@ -47,6 +47,8 @@ def run(args) -> int:
     case, path = case_and_grid(args)
     if args.layers < 1:
         raise CaseError(f"--layers must be >= 1, got {args.layers}")
+    if args.rtol < 0:
+        raise CaseError(f"--rtol must be >= 0, got {args.rtol:g}")
     walls = walls_arg(args, case)
     grid = io.read(path)
     ref = io.read(args.ref) if args.ref else None

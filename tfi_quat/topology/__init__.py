@@ -10,7 +10,8 @@ read as JSON (:meth:`Connectivity.to_json`) or as a Neutral Map File
 
 from __future__ import annotations
 
-from .model import KINDS, Connectivity, FaceMap, Interface, Patch, face_axes
+from ..grid import face_axes
+from .model import KINDS, Connectivity, FaceMap, Interface, Patch
 from .search import (DEFAULT_RTOL, PLANE_RTOL, check_interfaces, classify, connect, interface_mismatches,
                      node_labels)
 

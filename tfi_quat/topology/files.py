@@ -21,32 +21,24 @@ Layout (all indices 1-based, inclusive; see ``docs/formats.md``)::
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 from pathlib import Path
 
-from ..errors import ConnectivityError, OverwriteError
-from ..grid import FACES
-from ..io._atomic import atomic_output
+from ..errors import ConnectivityError
+from ..grid import FACES, face_axes, face_layer
+from ..io._atomic import atomic_output, check_target, read_text
 from ..spec import PatchSpec
-from .model import Connectivity, Interface, Patch, face_axes
+from .model import MAX_DIM, Connectivity, Interface, Patch, check_dims
 
 FORMAT = "tfi_quat.connectivity"
 VERSION = 1
 
 
-def _check_target(path, overwrite: bool) -> Path:
-    target = Path(os.fspath(path))
-    if target.is_dir():
-        raise OverwriteError(f"{target}: is a directory")
-    if target.exists() and not overwrite:
-        raise OverwriteError(f"{target}: exists (pass overwrite=True, or --force on the command line)")
-    return target
-
-
 def _range_ijk(spec: PatchSpec, dims) -> list[list[int]]:
     d, a, b = face_axes(spec.face)
-    fix = dims[d] if FACES.index(spec.face) % 2 else 1
+    fix = face_layer(dims, spec.face) + 1
     (a0, a1), (b0, b1) = spec.range
     lo, hi = [0, 0, 0], [0, 0, 0]
     lo[d] = hi[d] = fix
@@ -77,7 +69,7 @@ def to_dict(conn: Connectivity) -> dict:
 
 
 def write_json(conn: Connectivity, path, *, overwrite: bool = False) -> None:
-    target = _check_target(path, overwrite)
+    target = check_target(path, overwrite=overwrite, replace_existing=False)
     doc = to_dict(conn)
     # one interface / patch / note per line: easy to read, diff and edit
     parts = []
@@ -91,31 +83,78 @@ def write_json(conn: Connectivity, path, *, overwrite: bool = False) -> None:
         fh.write("{\n" + ",\n".join(parts) + "\n}\n")
 
 
-def _spec_from_range(where: str, block: int, face: str, pr, dims) -> PatchSpec:
-    """PatchSpec (0-based) from a 1-based PointRange on a face; checks the fixed index."""
-    try:
-        lo = [int(v) - 1 for v in pr[0]]
-        hi = [int(v) - 1 for v in pr[1]]
-    except (TypeError, ValueError, IndexError):
-        raise ConnectivityError(f"{where}: PointRange must be [[i1, j1, k1], [i2, j2, k2]], got {pr!r}") from None
-    if len(lo) != 3 or len(hi) != 3:
-        raise ConnectivityError(f"{where}: PointRange must be [[i1, j1, k1], [i2, j2, k2]], got {pr!r}")
+def _show(value) -> str:
+    """``repr`` of a value for an error message, shortened."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _int(value, where: str, name: str) -> int:
+    """A JSON integer (not a float such as 3.7 or 1e999, not a bool)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConnectivityError(f"{where}: {name} must be an integer, got {_show(value)}")
+    return value
+
+
+def _str(value, where: str, name: str) -> str:
+    if not isinstance(value, str):
+        raise ConnectivityError(f"{where}: {name} must be a string, got {_show(value)}")
+    return value
+
+
+def _field(entry: dict, key: str, where: str):
+    if key not in entry:
+        raise ConnectivityError(f"{where}: '{key}' is missing")
+    return entry[key]
+
+
+def _corners(pr, where: str, name: str) -> tuple[list[int], list[int]]:
+    """The two 0-based corners of a 1-based ``[[i1, j1, k1], [i2, j2, k2]]``."""
+    if not (isinstance(pr, list) and len(pr) == 2 and all(isinstance(c, list) and len(c) == 3 for c in pr)):
+        raise ConnectivityError(f"{where}: '{name}' must be [[i1, j1, k1], [i2, j2, k2]], got {_show(pr)}")
+    lo, hi = ([_int(v, where, f"'{name}'[{c}][{m}]") - 1 for m, v in enumerate(pr[c])] for c in (0, 1))
+    return lo, hi
+
+
+def _spec_from_range(where: str, block: int, face: str, pr, dims, name: str = "PointRange") -> tuple:
+    """PatchSpec (0-based) from a 1-based range on a face, and the range's first corner.
+
+    Checks the block, the face, the fixed index and the bounds.
+    """
     if face not in FACES:
-        raise ConnectivityError(f"{where}: unknown face {face!r}")
+        raise ConnectivityError(f"{where}: unknown face {_show(face)} (expected one of {', '.join(FACES)})")
     if not 0 <= block < len(dims):
         raise ConnectivityError(f"{where}: block {block + 1} does not exist ({len(dims)} block(s))")
+    lo, hi = _corners(pr, where, name)
     d, a, b = face_axes(face)
-    fix = dims[block][d] - 1 if FACES.index(face) % 2 else 0
+    fix = face_layer(dims[block], face)
     if lo[d] != fix or hi[d] != fix:
-        raise ConnectivityError(f"{where}: PointRange {pr} is not on face {face} of block {block + 1} "
+        raise ConnectivityError(f"{where}: {name} {pr} is not on face {face} of block {block + 1} "
                                 f"(index {'ijk'[d]} should be {fix + 1})")
     rng = ((min(lo[a], hi[a]), max(lo[a], hi[a])), (min(lo[b], hi[b]), max(lo[b], hi[b])))
     if min(rng[0][0], rng[1][0]) < 0:
-        raise ConnectivityError(f"{where}: PointRange {pr} has indices below 1")
+        raise ConnectivityError(f"{where}: {name} {pr} has indices below 1")
     if rng[0][1] >= dims[block][a] or rng[1][1] >= dims[block][b]:
         ni, nj, nk = dims[block]
-        raise ConnectivityError(f"{where}: PointRange {pr} exceeds block {block + 1} ({ni} x {nj} x {nk})")
-    return PatchSpec(block, face, rng)
+        raise ConnectivityError(f"{where}: {name} {pr} exceeds block {block + 1} ({ni} x {nj} x {nk})")
+    return PatchSpec(block, face, rng), tuple(lo)
+
+
+def _plane(value, where: str) -> tuple:
+    """``(origin, normal)`` of a patch's ``plane``: finite numbers, a non-zero normal."""
+    if not isinstance(value, dict) or set(value) != {"origin", "normal"}:
+        raise ConnectivityError(f"{where}: 'plane' must be {{\"origin\": [x, y, z], \"normal\": [nx, ny, nz]}}, "
+                                f"got {_show(value)}")
+    out = []
+    for key in ("origin", "normal"):
+        v = value[key]
+        if not (isinstance(v, list) and len(v) == 3 and all(
+                isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in v)):
+            raise ConnectivityError(f"{where}: 'plane.{key}' must be 3 finite numbers, got {_show(v)}")
+        out.append(tuple(float(c) for c in v))
+    if not any(out[1]):
+        raise ConnectivityError(f"{where}: 'plane.normal' must not be the zero vector")
+    return tuple(out)
 
 
 def _entry_lines(text: str, key: str) -> list[int]:
@@ -146,12 +185,18 @@ def _entry_lines(text: str, key: str) -> list[int]:
 _WS = re.compile(r"\s*")
 
 
-def from_dict(doc: dict, where: str = "connectivity", lines: dict | None = None) -> Connectivity:
+def from_dict(doc: dict, where: str = "connectivity", lines: dict | None = None, grid=None) -> Connectivity:
     """Build a connectivity from its JSON document (see :func:`to_dict`).
 
     ``where`` names the source in error messages; ``lines`` maps
     ``"interfaces"`` and ``"patches"`` to the line number of each entry
-    (errors then read ``FILE:LINE: interface N: ...``).
+    (errors then read ``FILE:LINE: interface N: ...``).  With ``grid``, the
+    declared block sizes are checked against it first.
+
+    Every value is checked for its JSON type: integers must be integers
+    (``3.7``, ``true`` and ``1e999`` are refused, never truncated), ``plane``
+    numbers finite, ``collapsed`` a boolean; the error names the entry and
+    the field.
     """
     lines = lines or {}
 
@@ -162,38 +207,49 @@ def from_dict(doc: dict, where: str = "connectivity", lines: dict | None = None)
 
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ConnectivityError(f"{where}: not a tfi_quat connectivity file (format {FORMAT!r} expected)")
-    try:
-        version = int(doc.get("version", 0))
-    except (TypeError, ValueError):
-        raise ConnectivityError(f"{where}: bad 'version' {doc.get('version')!r}") from None
+    version = _int(doc.get("version", 0), where, "'version'")
     if version > VERSION:
         raise ConnectivityError(f"{where}: file version {version} is newer than this reader ({VERSION})")
-    try:
-        ndim = int(doc["ndim"])
-        dims = [tuple(int(n) for n in d) for d in doc["blocks"]]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ConnectivityError(f"{where}: missing or bad 'ndim'/'blocks': {exc}") from None
+    ndim = _int(_field(doc, "ndim", where), where, "'ndim'")
     if ndim not in (2, 3):
         raise ConnectivityError(f"{where}: 'ndim' must be 2 or 3, got {ndim}")
-    if any(len(d) != 3 or min(d) < 1 for d in dims):
-        raise ConnectivityError(f"{where}: 'blocks' must list [ni, nj, nk] >= 1 per block")
-    for key in ("interfaces", "patches"):
+    blocks = _field(doc, "blocks", where)
+    if not isinstance(blocks, list) or not blocks:
+        raise ConnectivityError(f"{where}: 'blocks' must be a non-empty list of [ni, nj, nk], got {_show(blocks)}")
+    dims = []
+    for n, d in enumerate(blocks):
+        if not (isinstance(d, list) and len(d) == 3):
+            raise ConnectivityError(f"{where}: 'blocks'[{n}] must be [ni, nj, nk], got {_show(d)}")
+        d = tuple(_int(v, where, f"'blocks'[{n}][{m}]") for m, v in enumerate(d))
+        if not all(1 <= v <= MAX_DIM for v in d):
+            raise ConnectivityError(f"{where}: 'blocks'[{n}]: sizes must be from 1 to {MAX_DIM}, got {list(d)}")
+        dims.append(d)
+    if grid is not None:    # the declared sizes against the grid, before anything is built from them
+        try:
+            check_dims(ndim, dims, grid)
+        except ConnectivityError as exc:
+            raise ConnectivityError(f"{where}: {exc}") from None
+    for key in ("interfaces", "patches", "notes"):
         if not isinstance(doc.get(key, []), list):
             raise ConnectivityError(f"{where}: '{key}' must be a list")
+    notes = doc.get("notes", [])
+    for n, text in enumerate(notes):
+        _str(text, where, f"'notes'[{n}]")
     itfs = []
     for n, it in enumerate(doc.get("interfaces", [])):
         w = at("interfaces", n)
-        try:
-            mb, sb = int(it["block"]) - 1, int(it["donor"]) - 1
-            master = _spec_from_range(w, mb, str(it["face"]), it["PointRange"], dims)
-            slave = _spec_from_range(w + " (donor)", sb, str(it["donor_face"]), it["PointRangeDonor"], dims)
-            begin = tuple(int(v) - 1 for v in it["PointRange"][0])
-            sbeg = tuple(int(v) - 1 for v in it["PointRangeDonor"][0])
-            t = tuple(int(v) for v in it["Transform"])
-        except ConnectivityError:
-            raise
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConnectivityError(f"{w}: missing or bad entry: {exc}") from None
+        if not isinstance(it, dict):
+            raise ConnectivityError(f"{w}: expected an object, got {_show(it)}")
+        mb = _int(_field(it, "block", w), w, "'block'") - 1
+        sb = _int(_field(it, "donor", w), w, "'donor'") - 1
+        master, begin = _spec_from_range(w, mb, _str(_field(it, "face", w), w, "'face'"),
+                                         _field(it, "PointRange", w), dims)
+        slave, sbeg = _spec_from_range(w + " (donor)", sb, _str(_field(it, "donor_face", w), w, "'donor_face'"),
+                                       _field(it, "PointRangeDonor", w), dims, "PointRangeDonor")
+        t = _field(it, "Transform", w)
+        if not isinstance(t, list) or len(t) not in (2, 3):
+            raise ConnectivityError(f"{w}: 'Transform' must be [t1, t2, t3], got {_show(t)}")
+        t = tuple(_int(v, w, f"'Transform'[{m}]") for m, v in enumerate(t))
         if len(t) == 2:
             t = t + (3,)
         try:
@@ -204,20 +260,27 @@ def from_dict(doc: dict, where: str = "connectivity", lines: dict | None = None)
     pats = []
     for n, p in enumerate(doc.get("patches", [])):
         w = at("patches", n)
+        if not isinstance(p, dict):
+            raise ConnectivityError(f"{w}: expected an object, got {_show(p)}")
+        spec, _ = _spec_from_range(w, _int(_field(p, "block", w), w, "'block'") - 1,
+                                   _str(_field(p, "face", w), w, "'face'"), _field(p, "PointRange", w), dims)
+        kind = _str(_field(p, "kind", w), w, "'kind'")
+        name = p.get("name")
+        if name is not None:
+            _str(name, w, "'name'")
+        collapsed = p.get("collapsed", False)
+        if not isinstance(collapsed, bool):
+            raise ConnectivityError(f"{w}: 'collapsed' must be true or false, got {_show(collapsed)}")
+        origin = _str(p.get("origin", "file"), w, "'origin'")
+        plane = p.get("plane")
+        if plane is not None:
+            plane = _plane(plane, w)
         try:
-            spec = _spec_from_range(w, int(p["block"]) - 1, str(p["face"]), p["PointRange"], dims)
-            plane = p.get("plane")
-            if plane is not None:
-                plane = (tuple(float(v) for v in plane["origin"]), tuple(float(v) for v in plane["normal"]))
-            pats.append(Patch(spec, str(p["kind"]), p.get("name"), bool(p.get("collapsed", False)),
-                              str(p.get("origin", "file")), plane))
+            pats.append(Patch(spec, kind, name, collapsed, origin, plane))
         except ConnectivityError as exc:
-            msg = str(exc)
-            raise ConnectivityError(msg if msg.startswith(w) else f"{w}: {msg}") from None
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ConnectivityError(f"{w}: missing or bad entry: {exc}") from None
+            raise ConnectivityError(f"{w}: {exc}") from None
     try:
-        conn = Connectivity(itfs, pats, ndim, dims, doc.get("notes", []))
+        conn = Connectivity(itfs, pats, ndim, dims, notes)
     except ConnectivityError as exc:
         raise ConnectivityError(f"{where}: {exc}") from None
     overlaps = conn.overlaps()
@@ -241,21 +304,27 @@ def _item(item, lines) -> tuple[str, int | None]:
 
 def read_json(path, grid=None) -> Connectivity:
     """Read a JSON connectivity file; with ``grid``, check its dimensions and that every
-    interface's points coincide (errors name the file and line)."""
+    interface's points coincide (errors name the file and line).
+
+    Raises
+    ------
+    FileNotFoundError, IsADirectoryError, PermissionError
+        The file cannot be opened (the path is in the exception).
+    ConnectivityError
+        Anything wrong with the contents, naming the file, the entry and the field.
+    """
     p = Path(os.fspath(path))
-    text = p.read_text(encoding="utf-8")
+    text = read_text(p, ConnectivityError)
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
         raise ConnectivityError(f"{p}:{exc.lineno}: not valid JSON (column {exc.colno}): {exc.msg}") from None
+    except (ValueError, RecursionError) as exc:     # a number with thousands of digits, absurd nesting
+        raise ConnectivityError(f"{p}: not a JSON file this reader accepts: {exc}") from None
     lines = {key: _entry_lines(text, key) for key in ("interfaces", "patches")}
-    conn = from_dict(doc, str(p), lines)
+    conn = from_dict(doc, str(p), lines, grid)
     if grid is not None:
         from .search import check_interfaces
-        try:
-            conn.check(grid)
-        except ConnectivityError as exc:
-            raise ConnectivityError(f"{p}: {exc}") from None
         ln = lines["interfaces"]
         check_interfaces(conn, grid, lambda n: f"{p}:{ln[n]}: interface {n + 1}" if n < len(ln)
                          else f"{p}: interface {n + 1}")

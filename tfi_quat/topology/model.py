@@ -32,11 +32,13 @@ from ..errors import ConnectivityError
 from ..grid import face_axes, face_axis, face_cells, face_ijk, face_index, face_shape, faces_of
 from ..spec import PatchSpec
 
-__all__ = ["Interface", "Patch", "Connectivity", "FaceMap", "KINDS"]
+__all__ = ["Interface", "Patch", "Connectivity", "FaceMap", "KINDS", "MAX_DIM", "check_dims"]
 
 #: patch kinds: prescribed (wall, fixed), derived (symmetry, free)
 KINDS = ("wall", "fixed", "symmetry", "free")
-#: priority where patches meet at a point (DESIGN 3.3: wall beats fixed beats derived)
+#: largest block dimension a connectivity may declare (a Plot3D int32 header's limit)
+MAX_DIM = 2**31 - 1
+#: priority where patches meet at a point (docs/method.md §3.3: wall beats fixed beats derived)
 _PRIORITY = {"wall": 0, "fixed": 1, "symmetry": 2, "free": 3}
 
 
@@ -48,6 +50,22 @@ def _signed_perm(transform) -> np.ndarray:
     for m, v in enumerate(t):
         T[abs(v) - 1, m] = 1 if v > 0 else -1
     return T
+
+
+def check_dims(ndim: int, dims, grid) -> None:
+    """Raise :class:`ConnectivityError` unless ``grid`` is ``ndim``-D with block dimensions ``dims``.
+
+    The file readers call it as soon as they have read the declared sizes,
+    before they build (or allocate) anything from them.
+    """
+    if grid.ndim != ndim:
+        raise ConnectivityError(f"connectivity is for a {ndim}-D grid, the grid is {grid.ndim}-D")
+    if len(grid) != len(dims):
+        raise ConnectivityError(f"connectivity is for {len(dims)} block(s), the grid has {len(grid)}")
+    for n, (b, d) in enumerate(zip(grid, dims)):
+        if tuple(b.dims) != tuple(d):
+            raise ConnectivityError(f"block {n + 1}: connectivity is for {d[0]} x {d[1]} x {d[2]}, "
+                                    f"the grid block is {b.dims[0]} x {b.dims[1]} x {b.dims[2]}")
 
 
 @dataclass(frozen=True)
@@ -70,7 +88,7 @@ class Interface:
 
     The master is the lower ``(block, face)``; for a self-matching face (a
     C-grid wake cut) the master is the part that starts first.  Derived data
-    is computed on the master and copied to the slave (DESIGN 3.7).
+    is computed on the master and copied to the slave (docs/method.md §3.7).
     """
 
     master: PatchSpec
@@ -311,6 +329,10 @@ class Connectivity:
         self.ndim = int(ndim)
         self.dims = [tuple(int(n) for n in d) for d in dims]
         self.notes: list[str] = list(notes)
+        for n, d in enumerate(self.dims):
+            if len(d) != 3 or min(d) < 1 or max(d) > MAX_DIM:
+                raise ConnectivityError(f"block {n + 1}: dimensions {list(d)} are not three sizes "
+                                        f"from 1 to {MAX_DIM}")
         for s in [i.master for i in self.interfaces] + [i.slave for i in self.interfaces] + \
                 [p.spec for p in self.patches]:
             self._check_spec(s)
@@ -330,14 +352,7 @@ class Connectivity:
     # ----------------------------------------------------------- queries
     def check(self, grid) -> None:
         """Raise :class:`ConnectivityError` unless ``grid`` has the block dimensions of this map."""
-        if grid.ndim != self.ndim:
-            raise ConnectivityError(f"connectivity is for a {self.ndim}-D grid, the grid is {grid.ndim}-D")
-        if len(grid) != len(self.dims):
-            raise ConnectivityError(f"connectivity is for {len(self.dims)} block(s), the grid has {len(grid)}")
-        for n, (b, d) in enumerate(zip(grid, self.dims)):
-            if b.dims != d:
-                raise ConnectivityError(f"block {n + 1}: connectivity is for {d[0]} x {d[1]} x {d[2]}, "
-                                        f"the grid block is {b.dims[0]} x {b.dims[1]} x {b.dims[2]}")
+        check_dims(self.ndim, self.dims, grid)
 
     def faces(self):
         """The boundary faces ``(block, face)`` of the grid (4 per block in 2-D, 6 in 3-D)."""
@@ -389,28 +404,35 @@ class Connectivity:
         Items are ``("patch", n)`` for ``patches[n]`` and ``("master", n)`` /
         ``("slave", n)`` for the sides of ``interfaces[n]``; in each pair the
         first item comes earlier in the order interfaces (master, slave), then
-        patches.  A connectivity made by :func:`~tfi_quat.topology.connect`
-        has none; the file readers refuse files that have some.
+        patches, and is the earliest item the second one overlaps.  A
+        connectivity made by :func:`~tfi_quat.topology.connect` has none; the
+        file readers refuse files that have some.
+
+        Works on the ranges alone (interval arithmetic), so it allocates
+        nothing proportional to the declared block sizes.
         """
         items = [(("master", n), it.master) for n, it in enumerate(self.interfaces)]
         items += [(("slave", n), it.slave) for n, it in enumerate(self.interfaces)]
         items.sort(key=lambda x: (x[0][1], x[0][0] != "master"))
         items += [(("patch", n), p.spec) for n, p in enumerate(self.patches)]
-        owner: dict = {}
-        out = []
+        # half-open cell rectangles [a0, a1) x [b0, b1) per face, in item order
+        by_face: dict = {}
         for k, (item, s) in enumerate(items):
-            key = (s.block, s.face)
-            if key not in owner:
-                na, nb = face_shape(self.dims[s.block], s.face)
-                owner[key] = np.full((max(na - 1, 1), max(nb - 1, 1)), -1, dtype=np.int64)
             _, a, b = face_axes(s.face)
             idx = face_cells(self.dims[s.block], s.face, s.range)
-            cells = owner[key][idx[a], idx[b]]
-            taken = cells[cells >= 0]
-            if taken.size:
-                out.append((items[int(taken[0])][0], item))
-            cells[cells < 0] = k
-        return out
+            sa, sb = idx[a], idx[b]
+            if sa.stop > sa.start and sb.stop > sb.start:
+                by_face.setdefault((s.block, s.face), []).append((k, sa.start, sa.stop, sb.start, sb.stop))
+        found = []
+        for rects in by_face.values():
+            r = np.array(rects, dtype=np.int64).reshape(-1, 5)
+            k, a0, a1, b0, b1 = r.T
+            for m in range(1, len(r)):
+                hit = (a0[:m] < a1[m]) & (a0[m] < a1[:m]) & (b0[:m] < b1[m]) & (b0[m] < b1[:m])
+                if hit.any():
+                    found.append((int(k[int(np.argmax(hit))]), int(k[m])))
+        found.sort(key=lambda pair: pair[1])
+        return [(items[j][0], items[m][0]) for j, m in found]
 
     def item_spec(self, item: tuple[str, int]) -> PatchSpec:
         """The range of an item ``("patch", n)``, ``("master", n)`` or ``("slave", n)``."""

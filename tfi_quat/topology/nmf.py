@@ -38,17 +38,17 @@ KDIM = 1 and no face number exceeds 4.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
 from ..errors import ConnectivityError
-from ..grid import FACES
-from ..io._atomic import atomic_output
+from ..grid import face_axes, face_axis, face_index, face_layer
+from ..io._atomic import atomic_output, check_target, read_text
 from ..spec import PatchSpec
-from .files import _check_target
-from .model import KINDS, Connectivity, Interface, Patch, face_axes
+from .model import KINDS, MAX_DIM, Connectivity, Interface, Patch, check_dims
 
 __all__ = ["read_nmf", "write_nmf", "nmf_kind", "NMF_FACES_3D", "NMF_FACES_2D"]
 
@@ -126,7 +126,7 @@ def _nmf_corners(spec: PatchSpec, dims, convention: str) -> tuple[list[int], lis
     """Block ijk (0-based) of the (start, end) corners, and the primary/secondary 1-based ranges."""
     d, a, b = face_axes(spec.face)
     pa, sa = (a, b) if convention == "2d" else _PRIMARY[spec.face]
-    fix = dims[d] - 1 if FACES.index(spec.face) % 2 else 0
+    fix = face_layer(dims, spec.face)
     (a0, a1), (b0, b1) = spec.range
     lo = [0, 0, 0]
     hi = [0, 0, 0]
@@ -141,7 +141,7 @@ def write_nmf(conn: Connectivity, path, *, overwrite: bool = False, convention: 
         raise ConnectivityError(f"convention must be '3d' or '2d', got {convention!r}")
     if convention == "2d" and conn.ndim != 2:
         raise ConnectivityError("the 2-D face numbering needs a 2-D grid")
-    target = _check_target(path, overwrite)
+    target = check_target(path, overwrite=overwrite, replace_existing=False)
     number = {v: k for k, v in (NMF_FACES_2D if convention == "2d" else NMF_FACES_3D).items()}
     bar = "# " + "=" * 92
     rows = [f"# ===== Neutral Map File written by tfi_quat {__version__} "
@@ -172,8 +172,18 @@ def write_nmf(conn: Connectivity, path, *, overwrite: bool = False, convention: 
 
 
 # ------------------------------------------------------------------- read
+_INT = re.compile(r"[+-]?[0-9]+")
+
+
+def _ints(tokens) -> list[int]:
+    """Plain decimal integers (``int()`` alone would take ``1_000`` or non-ASCII digits)."""
+    if not all(_INT.fullmatch(t) for t in tokens):
+        raise ValueError("not an integer")
+    return [int(t) for t in tokens]
+
+
 def _lines(path: Path):
-    text = path.read_text(encoding="utf-8", errors="replace")
+    text = read_text(path, ConnectivityError)
     for n, raw in enumerate(text.splitlines(), 1):
         line = raw.split("#", 1)[0].replace("\\", " ").strip()
         if line:
@@ -222,7 +232,7 @@ def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connec
         raise ConnectivityError(f"{p}: empty Neutral Map File")
     ln, first = lines[0]
     try:
-        (nblk,) = [int(v) for v in first.split()]
+        (nblk,) = _ints(first.split())
         if nblk < 1:
             raise ValueError
     except ValueError:
@@ -232,15 +242,23 @@ def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connec
     dims: list = [None] * nblk
     for ln, line in lines[1:1 + nblk]:
         try:
-            v = [int(x) for x in line.split()]
+            v = _ints(line.split())
             if len(v) == 3:
                 v.append(1)
-            if len(v) != 4 or min(v[1:]) < 1 or not 1 <= v[0] <= nblk or dims[v[0] - 1] is not None:
+            if len(v) != 4 or not 1 <= v[0] <= nblk or dims[v[0] - 1] is not None:
                 raise ValueError
         except ValueError:
             raise ConnectivityError(f"{p}:{ln}: expected 'BLOCK IDIM JDIM [KDIM]' for a new block "
                                     f"1..{nblk}, got {line!r}") from None
+        if not all(1 <= n <= MAX_DIM for n in v[1:]):
+            raise ConnectivityError(f"{p}:{ln}: block {v[0]}: sizes must be from 1 to {MAX_DIM}, "
+                                    f"got {' x '.join(map(str, v[1:]))}")
         dims[v[0] - 1] = tuple(v[1:])
+    if grid is not None:    # the declared sizes against the grid, before anything is built from them
+        try:
+            check_dims(2 if all(d[2] == 1 for d in dims) else 3, dims, grid)
+        except ConnectivityError as exc:
+            raise ConnectivityError(f"{p}: {exc}") from None
     entries = []
     for ln, line in lines[1 + nblk:]:
         tok = line.split()
@@ -251,7 +269,7 @@ def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connec
                 "supported; map other names with types={'NAME': 'wall'|'fixed'|'symmetry'|'free'})")
         need = 13 if kind == "interface" else 7
         try:
-            nums = [int(x) for x in tok[1:need]]
+            nums = _ints(tok[1:need])
             if len(nums) != need - 1:
                 raise ValueError
         except ValueError:
@@ -283,7 +301,7 @@ def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connec
         dm = dims[b - 1]
         d, a, bb = face_axes(face)
         pa, sa = (a, bb) if convention == "2d" else _PRIMARY[face]
-        fix = dm[d] - 1 if FACES.index(face) % 2 else 0
+        fix = face_layer(dm, face)
         start = [0, 0, 0]
         end = [0, 0, 0]
         start[d] = end[d] = fix
@@ -318,8 +336,8 @@ def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connec
                                         f"{'IJK'[ax1]} of block {nums[0]} ({abs(n1) + 1} points) and "
                                         f"{'IJK'[ax2]} of block {nums[6]} ({abs(n2) + 1} points)")
             t[ax1] = (ax2 + 1) * (1 if (n1 >= 0) == (n2 >= 0) or n1 == 0 else -1)
-        side1 = 1 if FACES.index(face1) % 2 else -1
-        side2 = 1 if FACES.index(face2) % 2 else -1
+        side1 = 1 if face_axis(face1)[1] else -1
+        side2 = 1 if face_axis(face2)[1] else -1
         t[d1] = -side1 * side2 * (d2 + 1)
         T = np.zeros((3, 3), dtype=np.int64)
         for m, v in enumerate(t):
@@ -332,8 +350,8 @@ def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connec
             it = Interface(s_1, s_2, tuple(t), tuple(mb), tuple(int(v) for v in sb))
         except ConnectivityError as exc:
             raise ConnectivityError(f"{p}:{ln}: {exc}") from None
-        key1 = (it.master.block, FACES.index(it.master.face))
-        key2 = (it.slave.block, FACES.index(it.slave.face))
+        key1 = (it.master.block, face_index(it.master.face))
+        key2 = (it.slave.block, face_index(it.slave.face))
         if key2 < key1 or (key1 == key2 and (it.slave.range[0][0], it.slave.range[1][0]) <
                            (it.master.range[0][0], it.master.range[1][0])):
             it = it.reversed()
@@ -357,9 +375,5 @@ def read_nmf(path, *, types=None, convention: str = "auto", grid=None) -> Connec
                                 f"(block {spec.block + 1} face {spec.face}, {table_inv[spec.face]} in the file)")
     if grid is not None:
         from .search import check_interfaces
-        try:
-            conn.check(grid)
-        except ConnectivityError as exc:
-            raise ConnectivityError(f"{p}: {exc}") from None
         check_interfaces(conn, grid, lambda n: f"{p}:{lines_of['interface'][n]}: ONE_TO_ONE")
     return conn.sorted()
