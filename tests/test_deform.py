@@ -42,8 +42,8 @@ def _wall_mask(deformer, grid):
         for p in deformer.connectivity.patches:
             if p.kind != "wall" or p.spec.block != b:
                 continue
-            from tfi_quat.deform.skeleton import _face_ijk
-            ijk = _face_ijk(blk.dims, p.spec.face, p.spec.range).reshape(-1, 3)
+            from tfi_quat.grid import face_ijk
+            ijk = face_ijk(blk.dims, p.spec.face, p.spec.range).reshape(-1, 3)
             m[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
         out.append(m)
     return out
@@ -114,9 +114,9 @@ def test_interface_points_stay_bit_identical(method):
         out = d.deform(rigid_motion(15.0, (0, 0, 1), (0.4, 0.1, 0.0), (0.1, 0.2, 0.0)))
         assert d.connectivity.interfaces, builder.__name__
         for itf in d.connectivity.interfaces:
-            from tfi_quat.deform.skeleton import _face_ijk
+            from tfi_quat.grid import face_ijk
             m = itf.master
-            mi = _face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
+            mi = face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
             si = np.asarray(itf.slave_index(mi)).reshape(-1, 3)
             a = out[m.block].xyz[mi[:, 0], mi[:, 1], mi[:, 2]]
             b = out[itf.slave.block].xyz[si[:, 0], si[:, 1], si[:, 2]]
@@ -207,8 +207,8 @@ def test_moved_as_grid_and_as_mapping_agree_with_callable():
     mapping = {}
     for p in d.connectivity.patches:
         if p.kind == "wall":
-            from tfi_quat.deform.skeleton import _face_ijk
-            ijk = _face_ijk(grid[p.spec.block].dims, p.spec.face, p.spec.range)
+            from tfi_quat.grid import face_ijk
+            ijk = face_ijk(grid[p.spec.block].dims, p.spec.face, p.spec.range)
             pts = grid[p.spec.block].xyz[ijk[..., 0], ijk[..., 1], ijk[..., 2]]
             mapping[p.spec] = move(pts.reshape(-1, 3)).reshape(pts.shape)
     c = d.deform(mapping)

@@ -17,7 +17,7 @@ import tfi_quat as tq
 from tfi_quat import quaternion as qa
 from tfi_quat.case import Motion, load_case
 from tfi_quat.deform import Deformer, rigid_motion
-from tfi_quat.deform.skeleton import _face_ijk
+from tfi_quat.grid import face_ijk
 from tfi_quat.quality import orthogonality_change, volume_ratio_summary
 from tfi_quat.spec import parse_patch_spec
 
@@ -121,14 +121,14 @@ def test_walls_fixed_symmetry_interfaces(name, method):
     assert len(seen) == d.n_global
     for itf in d.connectivity.interfaces:       # through the connectivity's own index maps
         m = itf.master
-        mi = _face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
+        mi = face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
         si = np.asarray(itf.slave_index(mi)).reshape(-1, 3)
         a = out[m.block].xyz[mi[:, 0], mi[:, 1], mi[:, 2]]
         bb = out[itf.slave.block].xyz[si[:, 0], si[:, 1], si[:, 2]]
         assert np.array_equal(a, bb), f"interface {itf} not bit-identical"
     for spec in sym:
         p = parse_patch_spec(spec).resolve(grid)
-        ijk = _face_ijk(grid[p.block].dims, p.face, p.range).reshape(-1, 3)
+        ijk = face_ijk(grid[p.block].dims, p.face, p.range).reshape(-1, 3)
         before = grid[p.block].xyz[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         after = out[p.block].xyz[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         c = before.mean(0)

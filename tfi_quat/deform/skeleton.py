@@ -38,13 +38,13 @@ import numpy as np
 from .. import tfi
 from .._jit import serial_below
 from ..errors import CaseError
-from ..grid import FACES, Grid
+from ..grid import Grid, face_ijk, faces_of
 from ..spec import PatchSpec
 from . import stages
 
 __all__ = ["WALL", "FIXED", "SYMMETRY", "DERIVED", "BLENDINGS", "ArclengthParams", "BoundaryPoints",
            "WallPatch", "Walls", "Rect", "Vertices", "Segments", "Patch", "Patches", "Symmetry",
-           "BlockPlan", "Skeleton", "boundary_points", "build_skeleton", "faces_of"]
+           "BlockPlan", "Skeleton", "boundary_points", "build_skeleton"]
 
 #: point kinds, in the order they win where patches meet
 WALL, FIXED, SYMMETRY, DERIVED = 3, 2, 1, 0
@@ -55,85 +55,9 @@ BLENDINGS: dict[str, Callable[[np.ndarray], np.ndarray]] = {"hermite": stages.he
                                                              "linear": lambda s: s}
 
 
-def _face_ijk(dims, face: str, rng) -> np.ndarray:
-    """Block indices (na, nb, 3) int64 of a face range ((a0, a1), (b0, b1))."""
-    d, side = divmod(FACES.index(face), 2)
-    (a0, a1), (b0, b1) = rng
-    others = [m for m in range(3) if m != d]
-    a = np.arange(a0, a1 + 1)
-    b = np.arange(b0, b1 + 1)
-    out = np.empty((a.size, b.size, 3), dtype=np.int64)
-    out[..., d] = dims[d] - 1 if side else 0
-    out[..., others[0]] = a[:, None]
-    out[..., others[1]] = b[None, :]
-    return out
-
-
 def _flat(dims, ijk: np.ndarray) -> np.ndarray:
     ni, nj, _ = dims
     return ijk[..., 0] + ni * (ijk[..., 1] + nj * ijk[..., 2])
-
-
-def faces_of(ndim: int) -> tuple[str, ...]:
-    """The faces of a block of a ``ndim``-D grid (a 2-D block has no k faces)."""
-    return FACES if ndim == 3 else FACES[:4]
-
-
-# ------------------------------------------------------------------ blending parameters
-@dataclass(frozen=True)
-class ArclengthParams:
-    """Blending parameters ``psi(s)`` of the normalised arclength ``s`` (``"samareh"``, ``"tfi"``)."""
-
-    psi: Callable[[np.ndarray], np.ndarray]
-
-    def line(self, s: np.ndarray, length: float, g0: int, g1: int) -> np.ndarray:
-        """A chain of points between known ends (``s``: normalised arclength, both ends included)."""
-        return self.psi(np.array(s, dtype=np.float64))
-
-    def patch(self, g: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """A derived patch ``(na, nb, 2)`` of global ids ``g`` at points ``x`` (na, nb, 3)."""
-        return self.psi(tfi.arclength_surface(x))
-
-    def block(self, xyz: np.ndarray, face_gid: list) -> np.ndarray:
-        """A block ``(ni, nj, nk, 3)``."""
-        return self.psi(tfi.arclength(xyz))
-
-
-# ------------------------------------------------------------------ global boundary points
-@dataclass(frozen=True)
-class BoundaryPoints:
-    """The distinct boundary points of a grid and their kinds.
-
-    ``P`` (G, 3): undeformed positions; ``rep_key`` (G,): the flat key (block
-    offset + point index) of a representative copy; ``offsets`` (nblk + 1,):
-    each block's first key; ``face_gid``: ``(block, face) -> (na, nb)`` global
-    ids of the whole face; ``copies_key``, ``copies_gid``: every copy of every
-    global point; ``kind`` (G,) int8: WALL, FIXED, SYMMETRY or DERIVED;
-    ``sym_of`` (G,): the symmetry plane of each point, or -1; ``plane_o``,
-    ``plane_n`` (npl, 3): the planes' centroids and unit normals; ``wall``:
-    the wall points' global ids, ascending.
-    """
-
-    P: np.ndarray
-    rep_key: np.ndarray
-    offsets: np.ndarray
-    face_gid: dict
-    copies_key: np.ndarray
-    copies_gid: np.ndarray
-    kind: np.ndarray
-    sym_of: np.ndarray
-    plane_o: np.ndarray
-    plane_n: np.ndarray
-    wall: np.ndarray
-
-    @property
-    def n_global(self) -> int:
-        return self.P.shape[0]
-
-    def rect_gid(self, spec: PatchSpec) -> np.ndarray:
-        """Global ids ``(na, nb)`` of a face range."""
-        (a0, a1), (b0, b1) = spec.range
-        return self.face_gid[(spec.block, spec.face)][a0:a1 + 1, b0:b1 + 1]
 
 
 def _number(grid: Grid, connectivity, tol: float):
@@ -145,11 +69,8 @@ def _number(grid: Grid, connectivity, tol: float):
     full = {}
     for b, blk in enumerate(grid):
         for f in faces_of(grid.ndim):
-            d = FACES.index(f) // 2
             dims = blk.dims
-            others = [m for m in range(3) if m != d]
-            rng = ((0, dims[others[0]] - 1), (0, dims[others[1]] - 1))
-            ijk = _face_ijk(dims, f, rng)
+            ijk = face_ijk(dims, f)
             key = offsets[b] + _flat(dims, ijk)
             full[(b, f)] = key
             keys.append(key.ravel())
@@ -182,7 +103,7 @@ def _number(grid: Grid, connectivity, tol: float):
     # ... and the connectivity's interfaces, which are authoritative
     for itf in connectivity.interfaces:
         m = itf.master
-        mi = _face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
+        mi = face_ijk(grid[m.block].dims, m.face, m.range).reshape(-1, 3)
         si = np.asarray(itf.slave_index(mi), dtype=np.int64).reshape(-1, 3)
         km = offsets[m.block] + _flat(grid[m.block].dims, mi)
         ks = offsets[itf.slave.block] + _flat(grid[itf.slave.block].dims, si)

@@ -26,6 +26,7 @@ import numpy as np
 from .. import quaternion as qa
 from ..blending import wall_layer_arclength, wall_layer_line
 from ..fit import constrain_to_planes, fit_rigid
+from ..grid import face_axes, face_layer
 from . import stages
 from .skeleton import FIXED, WALL, BoundaryPoints, Skeleton
 
@@ -208,7 +209,7 @@ def _centres(sk: Skeleton, layer: WallLayer):
         L = plan.order[0]
         dims = plan.s.shape[:3]
         for d in plan.order[1:]:
-            others = [m for m in range(3) if m != d]
+            others = face_axes(2 * d)[1:]
             if L not in others:
                 continue
             ax = others.index(L)
@@ -218,7 +219,7 @@ def _centres(sk: Skeleton, layer: WallLayer):
                 if not fx.any():
                     continue
                 sl = [slice(None)] * 3
-                sl[d] = dims[d] - 1 if side else 0
+                sl[d] = face_layer(dims, 2 * d + side)
                 sL = plan.s[tuple(sl)][..., L]
                 e0 = np.take(P[g], [0], axis=ax)
                 e1 = np.take(P[g], [-1], axis=ax)
