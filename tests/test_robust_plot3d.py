@@ -47,6 +47,15 @@ def test_truncated_two_block_file_is_not_read_as_one_float64_block():
     assert "is no coordinate" in msg
 
 
+@pytest.mark.parametrize("token", ["inf", "-inf", "nan", "1e999", "9" * 400, "2.5", "0"])
+def test_ascii_header_value_that_is_no_count_is_named(tmp_path, token):
+    # found by the fuzzer: inf/nan/huge header values once escaped as OverflowError/ValueError
+    path = tmp_path / "h.x"
+    path.write_text(f"1\n2 2 {token}\n" + "0 1 0 1 0 0 1 1 0 0 0 0\n")
+    with pytest.raises(GridFormatError, match=r"line 2: block 1 dimension k = .* must be an integer >= 1"):
+        tq.read(path)
+
+
 def _grid_for(fmt: Plot3DFormat, rng) -> Grid:
     blocks = []
     for _ in range(int(rng.integers(1, 4)) if fmt.multiblock else 1):

@@ -1076,12 +1076,17 @@ def _last_line(data: bytes) -> int:
     return data.rstrip().count(b"\n") + 1
 
 
+def _is_count(v) -> bool:
+    """Whether a header value read as a float is a block count or dimension: 1 <= v < 2**31, whole."""
+    return bool(math.isfinite(v) and 1 <= v < 2 ** 31 and v == math.floor(v))
+
+
 def _ascii_header_error(data, vals, fmt) -> str:
     """Explain why the text does not fit ``fmt`` (error path only)."""
     total = len(vals)
     h = 1 if fmt.multiblock else 0
     if fmt.multiblock:
-        if total < 1 or vals[0] != int(vals[0]) or vals[0] < 1:
+        if total < 1 or not _is_count(vals[0]):
             pos = _token_position(data, 0)
             return (f"line {pos[0] if pos else 1}: block count {vals[0] if total else None} "
                     "must be an integer >= 1")
@@ -1096,7 +1101,7 @@ def _ascii_header_error(data, vals, fmt) -> str:
                 "the header needs")
     for n in range(nb * fmt.ndim):
         v = vals[h + n]
-        if v != round(v) or v < 1 or v >= 2 ** 31:
+        if not _is_count(v):
             line, col, tok = _token_position(data, h + n)
             return (f"line {line}: block {n // fmt.ndim + 1} dimension {'ijk'[n % fmt.ndim]} = {tok} "
                     "must be an integer >= 1")
