@@ -60,6 +60,63 @@ def _flat(dims, ijk: np.ndarray) -> np.ndarray:
     return ijk[..., 0] + ni * (ijk[..., 1] + nj * ijk[..., 2])
 
 
+# ------------------------------------------------------------------ blending parameters
+@dataclass(frozen=True)
+class ArclengthParams:
+    """Blending parameters ``psi(s)`` of the normalised arclength ``s`` (``"samareh"``, ``"tfi"``)."""
+
+    psi: Callable[[np.ndarray], np.ndarray]
+
+    def line(self, s: np.ndarray, length: float, g0: int, g1: int) -> np.ndarray:
+        """A chain of points between known ends (``s``: normalised arclength, both ends included)."""
+        return self.psi(np.array(s, dtype=np.float64))
+
+    def patch(self, g: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """A derived patch ``(na, nb, 2)`` of global ids ``g`` at points ``x`` (na, nb, 3)."""
+        return self.psi(tfi.arclength_surface(x))
+
+    def block(self, xyz: np.ndarray, face_gid: list) -> np.ndarray:
+        """A block ``(ni, nj, nk, 3)``."""
+        return self.psi(tfi.arclength(xyz))
+
+
+# ------------------------------------------------------------------ global boundary points
+@dataclass(frozen=True)
+class BoundaryPoints:
+    """The distinct boundary points of a grid and their kinds.
+
+    ``P`` (G, 3): undeformed positions; ``rep_key`` (G,): the flat key (block
+    offset + point index) of a representative copy; ``offsets`` (nblk + 1,):
+    each block's first key; ``face_gid``: ``(block, face) -> (na, nb)`` global
+    ids of the whole face; ``copies_key``, ``copies_gid``: every copy of every
+    global point; ``kind`` (G,) int8: WALL, FIXED, SYMMETRY or DERIVED;
+    ``sym_of`` (G,): the symmetry plane of each point, or -1; ``plane_o``,
+    ``plane_n`` (npl, 3): the planes' centroids and unit normals; ``wall``:
+    the wall points' global ids, ascending.
+    """
+
+    P: np.ndarray
+    rep_key: np.ndarray
+    offsets: np.ndarray
+    face_gid: dict
+    copies_key: np.ndarray
+    copies_gid: np.ndarray
+    kind: np.ndarray
+    sym_of: np.ndarray
+    plane_o: np.ndarray
+    plane_n: np.ndarray
+    wall: np.ndarray
+
+    @property
+    def n_global(self) -> int:
+        return self.P.shape[0]
+
+    def rect_gid(self, spec: PatchSpec) -> np.ndarray:
+        """Global ids ``(na, nb)`` of a face range."""
+        (a0, a1), (b0, b1) = spec.range
+        return self.face_gid[(spec.block, spec.face)][a0:a1 + 1, b0:b1 + 1]
+
+
 def _number(grid: Grid, connectivity, tol: float):
     """Global ids of every boundary point: ``(offsets, P, rep_key, face_gid, copies_key, copies_gid)``."""
     keys, offsets = [], [0]
