@@ -163,11 +163,11 @@ def test_bad_motion_options(capsys, work, argv, fragment):
 
 def test_a_huge_but_finite_axis_option_means_its_direction(capsys, work):
     rc, out, err = run_cli(capsys, "deform", TWO, "--wall", "1:jmin", *FIXED_TWO, "--rotate", "3",
-                           "--axis", "0,0,1e300", "-o", "a.x", "--allow-negative")
+                           "--axis", "0,0,1e300", "-o", "huge_axis.x", "--allow-negative")
     assert rc == 0, err
-    rc, out, err = run_cli(capsys, "deform", TWO, "--wall", "1:jmin", *FIXED_TWO, "--rotate", "3", "-o", "b.x", "--allow-negative")
+    rc, out, err = run_cli(capsys, "deform", TWO, "--wall", "1:jmin", *FIXED_TWO, "--rotate", "3", "-o", "unit_axis.x", "--allow-negative")
     assert rc == 0, err
-    assert tq.read("a.x") == tq.read("b.x")
+    assert tq.read("huge_axis.x") == tq.read("unit_axis.x")
 
 
 # ------------------------------------------------------------ folded grids (item 12)
@@ -238,10 +238,10 @@ def test_sigterm_in_process_removes_the_temporary_file(capsys, work, monkeypatch
             fh.write(b"never")          # pragma: no cover - the signal handler raised
     monkeypatch.setattr(_convert, "write", write)
     before = signal.getsignal(signal.SIGTERM)
-    rc, out, err = run_cli(capsys, "convert", TWO, "t.x")
+    rc, out, err = run_cli(capsys, "convert", TWO, "sigterm_out.x")
     assert rc == EXIT_TERMINATED and err.strip() == "tfi-quat: terminated"
     assert sorted(p.name for p in work.iterdir() if p.name.startswith(".")) == []
-    assert not (work / "t.x").exists()
+    assert not (work / "sigterm_out.x").exists()
     assert signal.getsignal(signal.SIGTERM) is before      # main restored the handler
 
 
