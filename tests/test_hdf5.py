@@ -476,15 +476,16 @@ def test_bad_layout_is_named(tmp_path, edit, message):
         hdf5.read(p)
 
 
-def test_damaged_file_errors_are_grid_format_errors(tmp_path):
-    """h5py raises KeyError/RuntimeError on damaged metadata; the reader names the file."""
+def test_links_are_not_followed(tmp_path):
+    """A block group that is an external link: refused by name, the other blocks still read."""
     p = tmp_path / "bad.h5"
     hdf5.write(p, two_block_grid())
     with h5py.File(p, "r+") as f:
         del f["blocks/000002"]
         f["blocks/000002"] = h5py.ExternalLink("nowhere.h5", "/blocks/000002")
     for fn in (hdf5.read, hdf5.info, lambda q: hdf5.read_block(q, 1), lambda q: hdf5.read_face(q, 1, "imin")):
-        with pytest.raises(GridFormatError, match=r"bad\.h5: damaged or unreadable HDF5 grid file \(KeyError"):
+        with pytest.raises(GridFormatError, match=r"bad\.h5: block 2: /blocks/000002 is an external link, "
+                                                  r"not a group \(links are not followed\)"):
             fn(p)
     assert hdf5.read_block(p, 0) == two_block_grid()[0]
 
