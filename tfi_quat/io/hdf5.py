@@ -78,6 +78,9 @@ LAYOUT_VERSION = 1
 _CHUNK_VALUES = 1 << 16
 _COMPRESSIONS = ("gzip",)
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+#: HDF5 file-format objects written: those of HDF5 1.10 (superblock 3, object header 2,
+#: fixed-array chunk index), all checksummed; readable by HDF5 >= 1.10
+_LIBVER = ("v110", "v110")
 
 
 @dataclass(frozen=True)
@@ -155,9 +158,10 @@ class HDF5Info:
 
 # ----------------------------------------------------------------------------- guard
 
-#: CPU seconds that the metadata walk of one file may use (a damaged file can make libhdf5 loop)
+#: CPU seconds that one step of the metadata walk (one attribute, one chunk index, ...) may
+#: use: a damaged file can make libhdf5 loop
 GUARD_CPU_SECONDS = 10
-#: wall-clock seconds that the metadata walk may take (a stalled file system, a loaded machine)
+#: wall-clock seconds that one step of the metadata walk may take (a stalled file system)
 GUARD_WALL_SECONDS = 120
 #: bytes that the metadata walk may map beyond what the process maps already
 GUARD_MEMORY = 1 << 30
@@ -256,7 +260,7 @@ def _walk_metadata(source, report) -> None:
 
 
 def _limit_child() -> None:
-    """Limits of the guard's child: CPU time, address space, no core file."""
+    """Limits of the guard's child: address space, no core file, SIGXCPU ends it."""
     import faulthandler
     import resource
     import signal
@@ -265,10 +269,6 @@ def _limit_child() -> None:
         faulthandler.disable()  # a crash is the expected way for the child to fail
     signal.signal(signal.SIGXCPU, signal.SIG_DFL)
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
-    cpu = max(1, int(np.ceil(GUARD_CPU_SECONDS)))
-    soft, hard = resource.getrlimit(resource.RLIMIT_CPU)
-    if hard == resource.RLIM_INFINITY or hard > cpu + 1:
-        resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu + 1))
     mapped = None
     with open("/proc/self/status", "rb") as fh:
         for line in fh:
@@ -281,11 +281,28 @@ def _limit_child() -> None:
             resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
 
 
-def _guard_child(source, wfd) -> None:
+def _guard_child(source, size: int, wfd) -> None:
     """Body of the guard's child: walk, write the outcome to ``wfd``, ``os._exit``."""
+    import resource
+
     status = 3
     try:
+        steps = 0
+        # every step of the walk reads at least a few bytes of metadata
+        max_steps = 100 + size // 4
+        cpu_hard = resource.getrlimit(resource.RLIMIT_CPU)[1]
+
         def report(where):
+            # each step gets its own CPU allowance: the limit follows the progress
+            nonlocal steps
+            steps += 1
+            if steps > max_steps:
+                raise ValueError(f"more than {max_steps} metadata items, more than the file can hold")
+            use = resource.getrusage(resource.RUSAGE_SELF)
+            soft = int(use.ru_utime + use.ru_stime + GUARD_CPU_SECONDS) + 1
+            if cpu_hard != resource.RLIM_INFINITY:
+                soft = min(soft, cpu_hard)
+            resource.setrlimit(resource.RLIMIT_CPU, (soft, cpu_hard))
             os.write(wfd, b"@" + where.encode("utf-8", "replace") + b"\n")
 
         try:
@@ -309,9 +326,10 @@ def _guard(source, name: str) -> None:
     (a few flipped bytes suffice), and a crash would take the caller's process
     down.  The child (``os.fork``; it calls only h5py, whose lock is released
     at fork, and ends with ``os._exit``) reads everything the reader will read
-    (:func:`_walk_metadata`) under a CPU limit (:data:`GUARD_CPU_SECONDS`), a
-    wall-clock limit (:data:`GUARD_WALL_SECONDS`) and an address-space limit
-    (:data:`GUARD_MEMORY` beyond the current mappings).  If it reports an
+    (:func:`_walk_metadata`) under a CPU limit (:data:`GUARD_CPU_SECONDS` per
+    step of the walk), a wall-clock limit (:data:`GUARD_WALL_SECONDS` without
+    progress), an address-space limit (:data:`GUARD_MEMORY` beyond the
+    current mappings) and at most one step per 4 bytes of file.  If it reports an
     error, dies, or overruns, the file is refused with a GridFormatError that
     names what the child was reading.  Without ``os.fork`` (Windows) there is
     no guard.
@@ -323,6 +341,12 @@ def _guard(source, name: str) -> None:
     import time
     import warnings
 
+    if hasattr(source, "seek"):
+        pos = source.tell()
+        size = source.seek(0, os.SEEK_END)
+        source.seek(pos)
+    else:
+        size = os.path.getsize(source)
     rfd, wfd = os.pipe()
     try:
         with warnings.catch_warnings():
@@ -336,7 +360,7 @@ def _guard(source, name: str) -> None:
         raise
     if pid == 0:  # pragma: no cover  (the child; coverage cannot follow it)
         os.close(rfd)
-        _guard_child(source, wfd)
+        _guard_child(source, size, wfd)
     os.close(wfd)
     where, outcome, overrun, pending = b"opening the file", None, False, b""
     deadline = time.monotonic() + GUARD_WALL_SECONDS
@@ -350,6 +374,8 @@ def _guard(source, name: str) -> None:
             if not chunk:
                 break
             *lines, pending = (pending + chunk).split(b"\n")
+            if lines:
+                deadline = time.monotonic() + GUARD_WALL_SECONDS  # the child made progress
             for line in lines:
                 if line[:1] == b"@":
                     where = line[1:]
@@ -423,10 +449,10 @@ def _as_int(value, what: str, path) -> int:
     return int(arr.reshape(()))
 
 
-def _alloc(shape, dtype, path, where) -> np.ndarray:
-    """``np.empty(shape, dtype, order="F")``; a refused allocation is a GridFormatError."""
+def _alloc(shape, dtype, path, where, order="F") -> np.ndarray:
+    """``np.empty(shape, dtype, order)``; a refused allocation is a GridFormatError."""
     try:
-        return np.empty(shape, dtype=dtype, order="F")
+        return np.empty(shape, dtype=dtype, order=order)
     except MemoryError:
         nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
         raise GridFormatError(f"{path}: {where}: cannot allocate {nbytes:,} bytes for the "
@@ -708,7 +734,7 @@ class _Reader:
                 self.read_into(ib_ds, ib.T, where)
             else:
                 # read as stored: HDF5 would clamp values beyond int32 without a word
-                wide = _alloc(ib_ds.shape, ib_ds.dtype.newbyteorder("="), self.path, where)
+                wide = _alloc(ib_ds.shape, ib_ds.dtype.newbyteorder("="), self.path, where, "C")
                 self.read_into(ib_ds, wide, where)
                 _check_int32(wide, self.path, where, ib_ds.name)
                 ib.T[...] = wide
@@ -1041,27 +1067,39 @@ def _write_file(path, grid: Grid, comp, level, extra_text) -> None:
     """Create the HDF5 file ``path`` (it must not exist) holding ``grid``: the bytes of a write."""
     from .. import __version__
     src_fmt = "" if grid.source_format is None else repr(grid.source_format)
-    with h5py.File(path, "x") as f:
-        f.attrs["format"] = FORMAT_NAME
+    # file-format objects of HDF5 1.10: every piece of metadata carries a checksum
+    with h5py.File(path, "x", libver=_LIBVER) as f:
+        _set_text(f, "format", FORMAT_NAME)
         f.attrs["version"] = np.int64(LAYOUT_VERSION)
         f.attrs["ndim"] = np.int64(grid.ndim)
         f.attrs["nblocks"] = np.int64(grid.nblocks)
-        f.attrs["creator"] = f"tfi_quat {__version__}"
-        f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-        f.attrs["source"] = "" if grid.source_path is None else str(grid.source_path)
-        f.attrs["source_format"] = src_fmt
+        _set_text(f, "creator", f"tfi_quat {__version__}")
+        _set_text(f, "created", _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
+        _set_text(f, "source", "" if grid.source_path is None else str(grid.source_path))
+        _set_text(f, "source_format", src_fmt)
         blocks = f.create_group("blocks")
         for n, b in enumerate(grid.blocks):
             g = blocks.create_group(_block_group_name(n))
-            g.attrs["name"] = b.name or ""
+            _set_text(g, "name", b.name or "")
             g.attrs["dims"] = np.asarray(b.dims, dtype=np.int64)
             _write_array(g, "xyz", b.xyz.T, comp, level)
             if b.iblank is not None:
                 _write_array(g, "iblank", np.asarray(b.iblank, dtype=np.int32, order="F").T,
                              comp, level)
         if extra_text is not None:
-            f.create_dataset("extra", data=extra_text, dtype=h5py.string_dtype("utf-8"),
-                             track_times=False)
+            data = extra_text.encode("utf-8")
+            f.create_dataset("extra", data=np.bytes_(data),
+                             dtype=h5py.string_dtype("utf-8", max(1, len(data))), track_times=False)
+
+
+def _set_text(obj, name: str, text: str) -> None:
+    """A fixed-length UTF-8 string attribute: kept in the (checksummed) object header.
+
+    h5py's default, a variable-length string, lives in the global heap, which
+    has no checksum.
+    """
+    data = text.encode("utf-8")
+    obj.attrs.create(name, np.bytes_(data), dtype=h5py.string_dtype("utf-8", max(1, len(data))))
 
 
 def _write_array(g: h5py.Group, key: str, data: np.ndarray, comp, level) -> None:
