@@ -66,12 +66,12 @@ READ_ALL = """
 @pytest.mark.parametrize("name, message", [
     ("segv_plain.h5", r"libhdf5 crashed \(SIGSEGV\) reading attribute 'name' of /blocks/000001"),
     ("segv_gzip.h5", r"libhdf5 crashed \(SIGSEGV\) reading attribute 'format' of the root group"),
-    ("hang.h5", r"libhdf5 used more than 2 s of CPU reading attribute 'created' of the root group"),
+    ("hang.h5", r"libhdf5 used more than 1 s of CPU reading attribute 'created' of the root group"),
     ("heap_3GB.h5", r"reading attribute 'name' of /blocks/000002: .*memory allocation failed"),
 ])
 def test_damaged_metadata_is_refused_by_every_reader(name, message):
     """libhdf5 crashes, loops or allocates GBs on these files; each reader refuses them, named."""
-    out = run_python(READ_ALL.format(cpu=2, path=str(DATA / name)), timeout=300)
+    out = run_python(READ_ALL.format(cpu=1, path=str(DATA / name)), timeout=300)
     assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
     lines = out.stdout.splitlines()
     assert [ln.split()[0] for ln in lines] == ["read", "info", "read_block", "read_face", "read_extra"]
