@@ -36,6 +36,16 @@ Compressed datasets (gzip with the shuffle filter) are chunked in near-cubic
 chunks of at most 64 Ki values (one coordinate component per chunk, e.g.
 ``(1, 40, 40, 40)``), so a face read touches only the chunks along that face.
 
+**Strings and checksums.**  Strings are written as fixed-length UTF-8 and
+the file with HDF5 1.10 file-format objects (:data:`_LIBVER`), so every
+piece of metadata is checksummed; readers accept any string form.
+
+**Damaged and hostile files.**  Before this process opens a file, a forked
+child walks all its metadata under CPU, time and memory limits
+(:func:`_guard`); gzip chunks are inflated here, never beyond their
+declared size; the declared grid is checked against ``max_points`` or the
+memory available before anything is allocated.  See docs/formats.md.
+
 **Extra data.**  ``/extra`` holds arbitrary JSON text attached by the writer
 (``write(..., extra_json=...)``, read back with :func:`read_extra`).  Its
 top-level keys ``"connectivity"`` and ``"patches"`` are reserved for the
@@ -55,6 +65,10 @@ import datetime as _dt
 import functools
 import json
 import os
+import select
+import signal
+import time
+import warnings
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -166,6 +180,10 @@ GUARD_WALL_SECONDS = 120
 #: bytes that the metadata walk may map beyond what the process maps already
 GUARD_MEMORY = 1 << 30
 
+#: files that passed the walk, by (device, inode, size, mtime, ctime): unchanged, they pass again
+_PASSED: dict = {}
+_PASSED_MAX = 256
+
 _DEFLATE, _SHUFFLE, _FLETCHER32 = 1, 2, 3
 _FILTER_NAMES = {_DEFLATE: "deflate (gzip)", _SHUFFLE: "shuffle", _FLETCHER32: "fletcher32",
                  4: "szip", 5: "nbit", 6: "scaleoffset", 32000: "lzf"}
@@ -263,7 +281,6 @@ def _limit_child() -> None:
     """Limits of the guard's child: address space, no core file, SIGXCPU ends it."""
     import faulthandler
     import resource
-    import signal
 
     if faulthandler.is_enabled():
         faulthandler.disable()  # a crash is the expected way for the child to fail
@@ -331,22 +348,23 @@ def _guard(source, name: str) -> None:
     progress), an address-space limit (:data:`GUARD_MEMORY` beyond the
     current mappings) and at most one step per 4 bytes of file.  If it reports an
     error, dies, or overruns, the file is refused with a GridFormatError that
-    names what the child was reading.  Without ``os.fork`` (Windows) there is
-    no guard.
+    names what the child was reading.  A file (by path) that passed is
+    remembered by device, inode, size, modification and change time, and not
+    walked again while these stay the same.  Without ``os.fork`` (Windows)
+    there is no guard.
     """
     if not hasattr(os, "fork"):
         return
-    import select
-    import signal
-    import time
-    import warnings
-
+    key = None
     if hasattr(source, "seek"):
         pos = source.tell()
         size = source.seek(0, os.SEEK_END)
         source.seek(pos)
     else:
-        size = os.path.getsize(source)
+        st = os.stat(source)
+        key, size = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns), st.st_size
+        if key in _PASSED:
+            return
     rfd, wfd = os.pipe()
     try:
         with warnings.catch_warnings():
@@ -388,9 +406,16 @@ def _guard(source, name: str) -> None:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:  # pragma: no cover
                 pass
-        _, status = os.waitpid(pid, 0)
+        try:
+            status = os.waitpid(pid, 0)[1]
+        except ChildProcessError:  # SIGCHLD ignored by the application: reaped already
+            status = None
     where = where.decode("utf-8", "replace")
     if outcome == b"=":
+        if key is not None:
+            if len(_PASSED) >= _PASSED_MAX:
+                _PASSED.pop(next(iter(_PASSED)))
+            _PASSED[key] = None
         return
     if outcome is not None:
         raise GridFormatError(f"{name}: damaged HDF5 file: reading {where}: "
@@ -398,7 +423,7 @@ def _guard(source, name: str) -> None:
     if overrun:
         raise GridFormatError(f"{name}: damaged HDF5 file: reading {where} did not end within "
                               f"{GUARD_WALL_SECONDS} s (tfi_quat.io.hdf5.GUARD_WALL_SECONDS)")
-    if os.WIFSIGNALED(status):
+    if status is not None and os.WIFSIGNALED(status):
         sig = os.WTERMSIG(status)
         if sig in (signal.SIGXCPU, signal.SIGKILL):
             raise GridFormatError(
@@ -406,8 +431,9 @@ def _guard(source, name: str) -> None:
                 f"reading {where} (tfi_quat.io.hdf5.GUARD_CPU_SECONDS)")
         raise GridFormatError(f"{name}: damaged HDF5 file: libhdf5 crashed "
                               f"({signal.Signals(sig).name}) reading {where}")
+    code = "unknown" if status is None else os.WEXITSTATUS(status)
     raise GridFormatError(f"{name}: damaged HDF5 file: the metadata check stopped reading {where} "
-                          f"(exit status {os.WEXITSTATUS(status)})")
+                          f"(exit status {code})")
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -678,39 +704,14 @@ class _Reader:
                 raise GridFormatError(f"{name}: chunk {off} stores {c.size} bytes, more than a "
                                       f"compressed chunk of {cbytes} bytes can take ({bound})")
             mask, raw = ds.id.read_direct_chunk(off)
-            data = self._unfilter(raw, mask, filters, cbytes, dt.itemsize, f"{name}: chunk {off}")
-            src = np.frombuffer(data, dtype=dt).reshape(chunks)
-            out[tuple(slice(a - b0, b - b0) for a, b, (b0, _) in zip(lo, hi, box))] = \
-                src[tuple(slice(a - o, b - o) for a, b, o in zip(lo, hi, off))]
-            filled += int(np.prod([b - a for a, b in zip(lo, hi)]))
+            data, shuffled = _inflate(raw, mask, filters, cbytes, f"{name}: chunk {off}")
+            dst = out[tuple(slice(a - b0, b - b0) for a, b, (b0, _) in zip(lo, hi, box))]
+            src_sel = tuple(slice(a - o, b - o) for a, b, o in zip(lo, hi, off))
+            _place(data, shuffled, dt, chunks, src_sel, dst)
+            filled += dst.size
         if filled != out.size:
             raise GridFormatError(f"{name}: the stored chunks hold {filled} of the {out.size} "
                                   "values read (incomplete dataset)")
-
-    @staticmethod
-    def _unfilter(raw, mask: int, filters, cbytes: int, itemsize: int, name: str):
-        """Undo the filters of one stored chunk (``mask`` bit i set: filter i was skipped)."""
-        data = raw
-        for i in reversed(range(len(filters))):
-            if mask >> i & 1:
-                continue
-            if filters[i] == _DEFLATE:
-                z = zlib.decompressobj()
-                try:
-                    data = z.decompress(data, cbytes)
-                    if not z.eof and len(data) == cbytes and z.decompress(z.unconsumed_tail, 1):
-                        raise GridFormatError(f"{name}: inflates to more than the chunk's "
-                                              f"{cbytes} bytes (a decompression bomb)")
-                except zlib.error as exc:
-                    raise GridFormatError(f"{name}: corrupt gzip data: {exc}") from None
-                if not z.eof:
-                    raise GridFormatError(f"{name}: the gzip stream is cut short")
-            elif filters[i] == _SHUFFLE and itemsize > 1 and len(data) == cbytes:
-                data = np.frombuffer(data, np.uint8).reshape(itemsize, -1).T.ravel()
-        if len(data) != cbytes:
-            raise GridFormatError(f"{name}: holds {len(data)} bytes after decompression, "
-                                  f"expected {cbytes}")
-        return data
 
     def variant(self) -> HDF5Format:
         for n in range(self.nblocks):
@@ -739,6 +740,51 @@ class _Reader:
                 _check_int32(wide, self.path, where, ib_ds.name)
                 ib.T[...] = wide
         return Block(xyz, ib, name, allow_nonfinite=True)
+
+
+def _inflate(raw, mask: int, filters, cbytes: int, name: str):
+    """Undo the deflate filter of one stored chunk, never inflating beyond ``cbytes``.
+
+    ``mask`` bit i set: filter i was skipped for this chunk.  Returns the bytes and
+    whether they are still byte-shuffled (the shuffle filter is undone by :func:`_place`).
+    """
+    data = raw
+    for i in reversed(range(len(filters))):
+        if mask >> i & 1 or filters[i] != _DEFLATE:
+            continue
+        z = zlib.decompressobj()
+        try:
+            data = z.decompress(data, cbytes)
+            if not z.eof and len(data) == cbytes and z.decompress(z.unconsumed_tail, 1):
+                raise GridFormatError(f"{name}: inflates to more than the chunk's "
+                                      f"{cbytes} bytes (a decompression bomb)")
+        except zlib.error as exc:
+            raise GridFormatError(f"{name}: corrupt gzip data: {exc}") from None
+        if not z.eof:
+            raise GridFormatError(f"{name}: the gzip stream is cut short")
+    if len(data) != cbytes:
+        raise GridFormatError(f"{name}: holds {len(data)} bytes after decompression, "
+                              f"expected {cbytes}")
+    shuffled = any(c == _SHUFFLE and not mask >> i & 1 for i, c in enumerate(filters))
+    return data, shuffled
+
+
+def _place(data, shuffled: bool, dt: np.dtype, chunks, src_sel, dst: np.ndarray) -> None:
+    """Copy the part ``src_sel`` of one inflated chunk into ``dst``, undoing the shuffle.
+
+    A shuffled chunk holds byte 0 of every value, then byte 1, ...: each byte plane
+    goes into its byte of a flat temporary of one chunk, which is then copied
+    (and cast, if the stored type is not the destination's) into place.
+    """
+    size = dt.itemsize
+    if not shuffled or size == 1:
+        dst[...] = np.frombuffer(data, dtype=dt).reshape(chunks)[src_sel]
+        return
+    planes = np.frombuffer(data, np.uint8).reshape(size, -1)
+    values = np.empty((planes.shape[1], size), np.uint8)
+    for b in range(size):  # flat, one byte plane at a time: faster than a transposing copy
+        values[:, b] = planes[b]
+    dst[...] = values.view(dt).reshape(chunks)[src_sel]
 
 
 def _check_int32(arr: np.ndarray, path, where: str, dataset: str) -> None:
