@@ -477,3 +477,38 @@ def test_copy_of_a_reproducer_keeps_its_outcome(tmp_path):
     shutil.copy(DATA / "segv_plain.h5", q)
     with pytest.raises(GridFormatError, match=r"copy\.hdf5: damaged HDF5 file: libhdf5 crashed"):
         tfi_quat.read(q)
+
+
+def test_guard_runs_once_per_unchanged_file(tmp_path, monkeypatch):
+    """A file that passed is not walked again until it changes; a changed file is walked."""
+    forks = []
+    fork = os.fork
+
+    def counting_fork():
+        forks.append(1)
+        return fork()
+
+    monkeypatch.setattr(os, "fork", counting_fork)
+    p = tmp_path / "g.h5"
+    hdf5.write(p, Grid([Block(sheared_box(4, 3, 2))]))
+    hdf5.read(p)
+    hdf5.info(p)
+    hdf5.read_face(p, 0, "imin")
+    assert len(forks) == 1
+    # the same path, now holding damaged bytes: walked again, refused
+    p.write_bytes((DATA / "segv_plain.h5").read_bytes())
+    with pytest.raises(GridFormatError, match=r"g\.h5: damaged HDF5 file: libhdf5 crashed"):
+        hdf5.read(p)
+    assert len(forks) == 2
+    with pytest.raises(GridFormatError, match=r"libhdf5 crashed"):
+        hdf5.read(p)  # a refusal is not remembered
+    assert len(forks) == 3
+
+
+def test_file_objects_are_guarded_too():
+    with open(DATA / "segv_gzip.h5", "rb") as fh:
+        with pytest.raises(GridFormatError, match=r"damaged HDF5 file: libhdf5 crashed \(SIGSEGV\) reading "
+                                                  r"attribute 'format' of the root group"):
+            hdf5.info(fh)
+        with open(DATA / "g.h5", "rb") as good:
+            assert hdf5.info(good).nblocks == 2
