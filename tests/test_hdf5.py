@@ -144,17 +144,24 @@ def test_layout_matches_the_documentation(tmp_path):
     p = tmp_path / "g.h5"
     hdf5.write(p, grid)
     with h5py.File(p, "r") as f:
-        assert f.attrs["format"] == "tfi_quat-grid"
+        # HDF5 1.10 file-format objects: superblock version 3, checksummed metadata
+        assert f.id.get_create_plist().get_version()[0] == 3
+        # strings: fixed-length UTF-8 (kept in the checksummed object header), bytes in h5py
+        text = {k: f.attrs[k].decode() for k in ("format", "creator", "created", "source")}
+        for k in text:
+            info = h5py.check_string_dtype(f.attrs.get_id(k).dtype)
+            assert (info.encoding, info.length) == ("utf-8", len(text[k]))
+        assert text["format"] == "tfi_quat-grid"
         assert f.attrs["version"] == 1
         assert f.attrs["ndim"] == 3
         assert f.attrs["nblocks"] == 2
-        assert f.attrs["creator"] == f"tfi_quat {tfi_quat.__version__}"
-        assert f.attrs["created"].endswith("Z") and f.attrs["created"][:2] == "20"
-        assert f.attrs["source"] == "/data/wing.x"
+        assert text["creator"] == f"tfi_quat {tfi_quat.__version__}"
+        assert text["created"].endswith("Z") and text["created"][:2] == "20"
+        assert text["source"] == "/data/wing.x"
         assert list(f["blocks"]) == ["000001", "000002"]
         for n, b in enumerate(grid):
             g = f["blocks"][f"{n + 1:06d}"]
-            assert g.attrs["name"] == b.name
+            assert g.attrs["name"].decode() == b.name
             assert list(g.attrs["dims"]) == list(b.dims)
             ds = g["xyz"]
             ni, nj, nk = b.dims
@@ -476,15 +483,16 @@ def test_bad_layout_is_named(tmp_path, edit, message):
         hdf5.read(p)
 
 
-def test_damaged_file_errors_are_grid_format_errors(tmp_path):
-    """h5py raises KeyError/RuntimeError on damaged metadata; the reader names the file."""
+def test_links_are_not_followed(tmp_path):
+    """A block group that is an external link: refused by name, the other blocks still read."""
     p = tmp_path / "bad.h5"
     hdf5.write(p, two_block_grid())
     with h5py.File(p, "r+") as f:
         del f["blocks/000002"]
         f["blocks/000002"] = h5py.ExternalLink("nowhere.h5", "/blocks/000002")
     for fn in (hdf5.read, hdf5.info, lambda q: hdf5.read_block(q, 1), lambda q: hdf5.read_face(q, 1, "imin")):
-        with pytest.raises(GridFormatError, match=r"bad\.h5: damaged or unreadable HDF5 grid file \(KeyError"):
+        with pytest.raises(GridFormatError, match=r"bad\.h5: block 2: /blocks/000002 is an external link, "
+                                                  r"not a group \(links are not followed\)"):
             fn(p)
     assert hdf5.read_block(p, 0) == two_block_grid()[0]
 

@@ -36,6 +36,16 @@ Compressed datasets (gzip with the shuffle filter) are chunked in near-cubic
 chunks of at most 64 Ki values (one coordinate component per chunk, e.g.
 ``(1, 40, 40, 40)``), so a face read touches only the chunks along that face.
 
+**Strings and checksums.**  Strings are written as fixed-length UTF-8 and
+the file with HDF5 1.10 file-format objects (:data:`_LIBVER`), so every
+piece of metadata is checksummed; readers accept any string form.
+
+**Damaged and hostile files.**  Before this process opens a file, a forked
+child walks all its metadata under CPU, time and memory limits
+(:func:`_guard`); gzip chunks are inflated here, never beyond their
+declared size; the declared grid is checked against ``max_points`` or the
+memory available before anything is allocated.  See docs/formats.md.
+
 **Extra data.**  ``/extra`` holds arbitrary JSON text attached by the writer
 (``write(..., extra_json=...)``, read back with :func:`read_extra`).  Its
 top-level keys ``"connectivity"`` and ``"patches"`` are reserved for the
@@ -55,6 +65,11 @@ import datetime as _dt
 import functools
 import json
 import os
+import select
+import signal
+import time
+import warnings
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,6 +79,7 @@ import numpy as np
 from ..errors import GridFormatError, GridValueError, TfiQuatError
 from ..grid import FACES, Block, Grid, face_index
 from ._atomic import atomic_output, check_target
+from ._limits import check_points
 
 __all__ = ["HDF5Format", "HDF5Info", "read", "write", "read_block", "read_face", "info",
            "read_extra", "is_hdf5", "FORMAT_NAME", "LAYOUT_VERSION"]
@@ -76,6 +92,9 @@ LAYOUT_VERSION = 1
 _CHUNK_VALUES = 1 << 16
 _COMPRESSIONS = ("gzip",)
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+#: HDF5 file-format objects written: those of HDF5 1.10 (superblock 3, object header 2,
+#: fixed-array chunk index), all checksummed; readable by HDF5 >= 1.10
+_LIBVER = ("v110", "v110")
 
 
 @dataclass(frozen=True)
@@ -151,6 +170,272 @@ class HDF5Info:
         return sum(int(np.prod(d)) for d in self.dims)
 
 
+# ----------------------------------------------------------------------------- guard
+
+#: CPU seconds that one step of the metadata walk (one attribute, one chunk index, ...) may
+#: use: a damaged file can make libhdf5 loop
+GUARD_CPU_SECONDS = 10
+#: wall-clock seconds that one step of the metadata walk may take (a stalled file system)
+GUARD_WALL_SECONDS = 120
+#: bytes that the metadata walk may map beyond what the process maps already
+GUARD_MEMORY = 1 << 30
+
+#: files that passed the walk, by (device, inode, size, mtime, ctime): unchanged, they pass again
+_PASSED: dict = {}
+_PASSED_MAX = 256
+
+_DEFLATE, _SHUFFLE, _FLETCHER32 = 1, 2, 3
+_FILTER_NAMES = {_DEFLATE: "deflate (gzip)", _SHUFFLE: "shuffle", _FLETCHER32: "fletcher32",
+                 4: "szip", 5: "nbit", 6: "scaleoffset", 32000: "lzf"}
+
+
+def _filters(ds: h5py.Dataset) -> list[int]:
+    """Filter codes of a dataset's pipeline, in the order they were applied on writing."""
+    plist = ds.id.get_create_plist()
+    return [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
+
+
+def _chunk_bound(chunk_bytes: int, filters) -> int:
+    """Most bytes a stored chunk of ``chunk_bytes`` can take after our filters.
+
+    zlib's ``compressBound`` for deflate, plus four bytes for a fletcher32 checksum.
+    """
+    n = chunk_bytes
+    if _DEFLATE in filters:
+        n += (n >> 12) + (n >> 14) + (n >> 25) + 13
+    return n + (4 if _FLETCHER32 in filters else 0)
+
+
+def _chunk_infos(ds: h5py.Dataset) -> list:
+    """Offset, filter mask, file position and size of every stored chunk of ``ds``."""
+    out = []
+    if hasattr(ds.id, "chunk_iter"):
+        ds.id.chunk_iter(out.append)
+        return out
+    return [ds.id.get_chunk_info(i) for i in range(ds.id.get_num_chunks())]
+
+
+def _walk_metadata(source, report) -> None:
+    """Read every piece of metadata the reader may use; what the guard's child runs.
+
+    Opens the file; reads every attribute of every object, every group's links,
+    every dataset's type, shape, layout and filters, the whole chunk index of a
+    chunked dataset (each chunk must lie inside the file and not exceed what
+    its filters can produce) and the value of string datasets.  ``report(where)``
+    is called before each step, so that a crash can be placed.  Raises on the
+    first problem.
+    """
+    report("the superblock")
+    with h5py.File(source, "r") as f:
+        eof = f.id.get_filesize()
+
+        def attrs(obj, where):
+            report(f"the attribute list of {where}")
+            for name in obj.attrs:
+                report(f"attribute {name!r} of {where}")
+                obj.attrs[name]
+
+        def dataset(ds, where):
+            report(f"the header of dataset {where}")
+            ds.shape, ds.dtype, ds.chunks, ds.compression, ds.compression_opts
+            filters = _filters(ds)
+            report(f"the storage of dataset {where}")
+            stored = ds.id.get_storage_size()
+            if ds.chunks is None:
+                offset = ds.id.get_offset()
+                if offset is not None and offset + stored > eof:
+                    raise ValueError(f"dataset {where}: its data (bytes {offset}..{offset + stored}) "
+                                     f"lie beyond the end of the file ({eof} bytes)")
+                if ds.dtype.kind in "OSU":
+                    report(f"the value of dataset {where}")
+                    ds[()]
+                return
+            report(f"the chunk index of dataset {where}")
+            known = all(c in _FILTER_NAMES for c in filters)
+            bound = _chunk_bound(int(np.prod(ds.chunks)) * ds.dtype.itemsize, filters)
+            for c in _chunk_infos(ds):
+                if c.byte_offset + c.size > eof or (known and c.size > bound):
+                    raise ValueError(f"dataset {where}: chunk {c.chunk_offset} of {c.size} bytes at "
+                                     f"byte {c.byte_offset} does not fit (file of {eof} bytes, "
+                                     f"chunk of at most {bound} bytes)")
+
+        def visit(name, obj):
+            where = "/" + name
+            attrs(obj, where)
+            if isinstance(obj, h5py.Group):
+                report(f"the links of group {where}")
+                for key in obj:
+                    obj.get(key, getlink=True)
+            elif isinstance(obj, h5py.Dataset):
+                dataset(obj, where)
+
+        attrs(f, "the root group")
+        report("the links of the root group")
+        for key in f:
+            f.get(key, getlink=True)
+        report("the object tree")
+        f.visititems(visit)
+
+
+def _limit_child() -> None:
+    """Limits of the guard's child: address space, no core file, SIGXCPU ends it."""
+    import faulthandler
+    import resource
+
+    if faulthandler.is_enabled():
+        faulthandler.disable()  # a crash is the expected way for the child to fail
+    signal.signal(signal.SIGXCPU, signal.SIG_DFL)
+    resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
+    mapped = None
+    with open("/proc/self/status", "rb") as fh:
+        for line in fh:
+            if line.startswith(b"VmSize:"):
+                mapped = int(line.split()[1]) * 1024
+    if mapped is not None:
+        soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+        cap = mapped + int(GUARD_MEMORY)
+        if soft == resource.RLIM_INFINITY or soft > cap:
+            resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
+
+
+def _guard_child(source, size: int, wfd) -> None:
+    """Body of the guard's child: walk, write the outcome to ``wfd``, ``os._exit``."""
+    import resource
+
+    status = 3
+    try:
+        steps = 0
+        # every step of the walk reads at least a few bytes of metadata
+        max_steps = 100 + size // 4
+        cpu_hard = resource.getrlimit(resource.RLIMIT_CPU)[1]
+
+        def report(where):
+            # each step gets its own CPU allowance: the limit follows the progress
+            nonlocal steps
+            steps += 1
+            if steps > max_steps:
+                raise ValueError(f"more than {max_steps} metadata items, more than the file can hold")
+            use = resource.getrusage(resource.RUSAGE_SELF)
+            soft = int(use.ru_utime + use.ru_stime + GUARD_CPU_SECONDS) + 1
+            if cpu_hard != resource.RLIM_INFINITY:
+                soft = min(soft, cpu_hard)
+            resource.setrlimit(resource.RLIMIT_CPU, (soft, cpu_hard))
+            os.write(wfd, b"@" + where.encode("utf-8", "replace") + b"\n")
+
+        try:
+            _limit_child()
+            _walk_metadata(source, report)
+            outcome = "="
+        except MemoryError:
+            outcome = f"!needs more than {GUARD_MEMORY / 2**20:.0f} MiB of memory"
+        except BaseException as exc:  # everything ends up in the parent's message
+            outcome = f"!{type(exc).__name__}: {exc}"[:2000]
+        os.write(wfd, outcome.replace("\n", " ").encode("utf-8", "replace") + b"\n")
+        status = 0
+    finally:
+        os._exit(status)
+
+
+def _guard(source, name: str) -> None:
+    """Walk the HDF5 metadata of ``source`` in a forked child before this process touches it.
+
+    libhdf5 can crash, loop forever or allocate gigabytes on damaged metadata
+    (a few flipped bytes suffice), and a crash would take the caller's process
+    down.  The child (``os.fork``; it calls only h5py, whose lock is released
+    at fork, and ends with ``os._exit``) reads everything the reader will read
+    (:func:`_walk_metadata`) under a CPU limit (:data:`GUARD_CPU_SECONDS` per
+    step of the walk), a wall-clock limit (:data:`GUARD_WALL_SECONDS` without
+    progress), an address-space limit (:data:`GUARD_MEMORY` beyond the
+    current mappings) and at most one step per 4 bytes of file.  If it reports an
+    error, dies, or overruns, the file is refused with a GridFormatError that
+    names what the child was reading.  A file (by path) that passed is
+    remembered by device, inode, size, modification and change time, and not
+    walked again while these stay the same.  Without ``os.fork`` (Windows)
+    there is no guard.
+    """
+    if not hasattr(os, "fork"):
+        return
+    key = None
+    if hasattr(source, "seek"):
+        pos = source.tell()
+        size = source.seek(0, os.SEEK_END)
+        source.seek(pos)
+    else:
+        st = os.stat(source)
+        key, size = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns), st.st_size
+        if key in _PASSED:
+            return
+    rfd, wfd = os.pipe()
+    try:
+        with warnings.catch_warnings():
+            # Python >= 3.12 warns about fork() in a process with other threads
+            # (numba's pool): the child runs no code that needs them
+            warnings.simplefilter("ignore", DeprecationWarning)
+            pid = os.fork()
+    except BaseException:
+        os.close(rfd)
+        os.close(wfd)
+        raise
+    if pid == 0:  # pragma: no cover  (the child; coverage cannot follow it)
+        os.close(rfd)
+        _guard_child(source, size, wfd)
+    os.close(wfd)
+    where, outcome, overrun, pending = b"opening the file", None, False, b""
+    deadline = time.monotonic() + GUARD_WALL_SECONDS
+    try:
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([rfd], [], [], left)[0]:
+                overrun = True
+                break
+            chunk = os.read(rfd, 1 << 16)
+            if not chunk:
+                break
+            *lines, pending = (pending + chunk).split(b"\n")
+            if lines:
+                deadline = time.monotonic() + GUARD_WALL_SECONDS  # the child made progress
+            for line in lines:
+                if line[:1] == b"@":
+                    where = line[1:]
+                else:
+                    outcome = line
+    finally:
+        os.close(rfd)
+        if outcome is None:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:  # pragma: no cover
+                pass
+        try:
+            status = os.waitpid(pid, 0)[1]
+        except ChildProcessError:  # SIGCHLD ignored by the application: reaped already
+            status = None
+    where = where.decode("utf-8", "replace")
+    if outcome == b"=":
+        if key is not None:
+            if len(_PASSED) >= _PASSED_MAX:
+                _PASSED.pop(next(iter(_PASSED)))
+            _PASSED[key] = None
+        return
+    if outcome is not None:
+        raise GridFormatError(f"{name}: damaged HDF5 file: reading {where}: "
+                              f"{outcome[1:].decode('utf-8', 'replace')}")
+    if overrun:
+        raise GridFormatError(f"{name}: damaged HDF5 file: reading {where} did not end within "
+                              f"{GUARD_WALL_SECONDS} s (tfi_quat.io.hdf5.GUARD_WALL_SECONDS)")
+    if status is not None and os.WIFSIGNALED(status):
+        sig = os.WTERMSIG(status)
+        if sig in (signal.SIGXCPU, signal.SIGKILL):
+            raise GridFormatError(
+                f"{name}: damaged HDF5 file: libhdf5 used more than {GUARD_CPU_SECONDS} s of CPU "
+                f"reading {where} (tfi_quat.io.hdf5.GUARD_CPU_SECONDS)")
+        raise GridFormatError(f"{name}: damaged HDF5 file: libhdf5 crashed "
+                              f"({signal.Signals(sig).name}) reading {where}")
+    code = "unknown" if status is None else os.WEXITSTATUS(status)
+    raise GridFormatError(f"{name}: damaged HDF5 file: the metadata check stopped reading {where} "
+                          f"(exit status {code})")
+
+
 # ----------------------------------------------------------------------------- helpers
 
 def _block_group_name(n: int) -> str:
@@ -190,21 +475,38 @@ def _as_int(value, what: str, path) -> int:
     return int(arr.reshape(()))
 
 
+def _alloc(shape, dtype, path, where, order="F") -> np.ndarray:
+    """``np.empty(shape, dtype, order)``; a refused allocation is a GridFormatError."""
+    try:
+        return np.empty(shape, dtype=dtype, order=order)
+    except MemoryError:
+        nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+        raise GridFormatError(f"{path}: {where}: cannot allocate {nbytes:,} bytes for the "
+                              f"declared shape {tuple(shape)}: out of memory") from None
+
+
+_INT32 = np.iinfo(np.int32)
+
+
 class _Reader:
-    """An open HDF5 grid file, checked at the root; checks blocks on demand."""
+    """An open HDF5 grid file, checked at the root; checks blocks on demand.
+
+    The file's metadata is walked in a guarded child process (:func:`_guard`)
+    before this process opens it.
+    """
 
     def __init__(self, path):
         self.path = path
-        p = Path(os.fspath(path)) if not hasattr(path, "read") else None
-        if p is not None:
-            if not p.exists():
-                raise FileNotFoundError(f"{p}: no such file")
-            if p.is_dir():
-                raise GridFormatError(f"{p}: is a directory, not a grid file")
-            if p.stat().st_size == 0:
+        if not hasattr(path, "read"):
+            p = Path(os.fspath(path))
+            # the OS's own FileNotFoundError / IsADirectoryError / PermissionError, naming the path
+            with open(p, "rb") as fh:
+                size = os.fstat(fh.fileno()).st_size
+            if size == 0:
                 raise GridFormatError(f"{p}: empty file, not an HDF5 grid")
             if not is_hdf5(p):
                 raise GridFormatError(f"{p}: not an HDF5 file (no HDF5 signature)")
+        _guard(path, str(path))
         try:
             self.f = h5py.File(path, "r")
         except OSError as exc:
@@ -230,6 +532,25 @@ class _Reader:
         except OSError as exc:
             raise GridFormatError(f"{self.path}: {where}: cannot read attribute {name!r}: {exc}") from None
 
+    def _member(self, group: h5py.Group, key: str, kind: type, where: str):
+        """Member ``key`` of ``group`` if it is a hard link to a ``kind``; None when absent.
+
+        Soft and external links are not followed: the guard vouches for this file only.
+        """
+        link = group.get(key, getlink=True)
+        if link is None:
+            return None
+        what = "group" if kind is h5py.Group else "dataset"
+        full = f"{group.name.rstrip('/')}/{key}"
+        if not isinstance(link, h5py.HardLink):
+            kind_of = {h5py.SoftLink: "a soft", h5py.ExternalLink: "an external"}.get(type(link), "a")
+            raise GridFormatError(f"{self.path}: {where}: {full} is {kind_of} link, not a {what} "
+                                  "(links are not followed)")
+        obj = group[key]
+        if not isinstance(obj, kind):
+            raise GridFormatError(f"{self.path}: {where}: {full} is not a {what}")
+        return obj
+
     def _check_root(self) -> None:
         f, path = self.f, self.path
         fmt = _as_str(self._attr(f, "format", "root group"))
@@ -245,9 +566,17 @@ class _Reader:
         self.nblocks = _as_int(self._attr(f, "nblocks", "root group"), "root attribute 'nblocks'", path)
         if self.nblocks < 1:
             raise GridFormatError(f"{path}: root attribute nblocks = {self.nblocks}, expected >= 1")
-        if "blocks" not in f or not isinstance(f["blocks"], h5py.Group):
+        blocks = self._member(f, "blocks", h5py.Group, "root group")
+        if blocks is None:
             raise GridFormatError(f"{path}: group /blocks is missing")
-        self.blocks = f["blocks"]
+        self.blocks = blocks
+        expected = {_block_group_name(n) for n in range(self.nblocks)}
+        extra = sorted(k for k in blocks if k not in expected)
+        if extra:
+            more = f" (and {len(extra) - 3} more)" if len(extra) > 3 else ""
+            raise GridFormatError(
+                f"{path}: /blocks holds {', '.join('/blocks/' + k for k in extra[:3])}{more}, "
+                f"beyond the root attribute nblocks = {self.nblocks}")
 
     def index(self, b) -> int:
         """0-based block number of ``b`` (an int, negative from the end, or a block name)."""
@@ -267,10 +596,11 @@ class _Reader:
 
     def group(self, n: int) -> h5py.Group:
         name = _block_group_name(n)
-        if name not in self.blocks or not isinstance(self.blocks[name], h5py.Group):
+        g = self._member(self.blocks, name, h5py.Group, f"block {n + 1}")
+        if g is None:
             raise GridFormatError(f"{self.path}: block {n + 1}: group /blocks/{name} is missing "
                                   f"(root attribute nblocks = {self.nblocks})")
-        return self.blocks[name]
+        return g
 
     def meta(self, n: int):
         """Checked metadata of block ``n``: (name, dims, xyz dataset, iblank dataset or None)."""
@@ -294,18 +624,24 @@ class _Reader:
         return name, dims, xyz, ib
 
     def _dataset(self, g, key, where, shape, kinds) -> h5py.Dataset:
-        if key not in g:
+        ds = self._member(g, key, h5py.Dataset, where)
+        if ds is None:
             raise GridFormatError(f"{self.path}: {where}: dataset {key!r} is missing")
-        ds = g[key]
         dsname = f"{where}, dataset {ds.name}"
-        if not isinstance(ds, h5py.Dataset):
-            raise GridFormatError(f"{self.path}: {dsname} is not a dataset")
         if ds.shape != shape:
             raise GridFormatError(f"{self.path}: {dsname}: shape {ds.shape} does not match the "
                                   f"block dims (expected {shape})")
         if ds.dtype.kind not in kinds:
             raise GridFormatError(f"{self.path}: {dsname}: dtype {ds.dtype} is not "
                                   f"{'a float' if kinds == 'f' else 'an integer'} type")
+        filters = _filters(ds)
+        for code in filters:
+            if code not in (_DEFLATE, _SHUFFLE, _FLETCHER32):
+                raise GridFormatError(f"{self.path}: {dsname}: filter {_FILTER_NAMES.get(code, code)!r} "
+                                      "is not part of the layout (gzip, shuffle, fletcher32)")
+        if _DEFLATE in filters and _FLETCHER32 in filters:
+            raise GridFormatError(f"{self.path}: {dsname}: gzip together with fletcher32 "
+                                  "is not supported")
         # every value must be stored: HDF5 would return fill values for missing data
         if ds.chunks is None:
             stored, need = ds.id.get_storage_size(), ds.size * ds.dtype.itemsize
@@ -321,14 +657,61 @@ class _Reader:
         return ds
 
     def read_into(self, ds, out: np.ndarray, where: str, sel=None) -> None:
-        """Fill ``out`` (C-contiguous, the dataset's selection shape) from ``ds``."""
+        """Fill ``out`` (C-contiguous, the dataset's selection shape) from ``ds``.
+
+        ``sel``: a tuple of unit-step slices, one per dataset axis (None: all).
+        gzip-compressed datasets are decompressed here (:meth:`_read_deflated`),
+        never into more than the chunk's declared size.
+        """
         try:
-            if sel is None:
+            filters = _filters(ds)
+            if _DEFLATE in filters:
+                self._read_deflated(ds, out, where, sel, filters)
+            elif sel is None:
                 ds.read_direct(out)
             else:
                 ds.read_direct(out, source_sel=sel)
         except (OSError, TypeError, ValueError) as exc:
+            if isinstance(exc, TfiQuatError):
+                raise
             raise GridFormatError(f"{self.path}: {where}, dataset {ds.name}: cannot read: {exc}") from None
+
+    def _read_deflated(self, ds, out, where, sel, filters) -> None:
+        """Read a (shuffle +) deflate chunked dataset chunk by chunk, each inflated with a cap.
+
+        libhdf5's own deflate filter grows its buffer for as long as the stream
+        goes on (a 400 KB chunk can inflate to 400 MB); here no chunk may
+        inflate to more than its ``prod(chunks) * itemsize`` bytes.
+        """
+        shape, chunks, dt = ds.shape, ds.chunks, ds.dtype
+        cbytes = int(np.prod(chunks)) * dt.itemsize
+        bound = _chunk_bound(cbytes, filters)
+        box = [(0, s) for s in shape] if sel is None else [s.indices(n)[:2] for s, n in zip(sel, shape)]
+        name = f"{self.path}: {where}, dataset {ds.name}"
+        seen, filled = set(), 0
+        for c in _chunk_infos(ds):
+            off = tuple(int(o) for o in c.chunk_offset)
+            if (len(off) != len(shape) or off in seen
+                    or any(o % k or not 0 <= o < s for o, k, s in zip(off, chunks, shape))):
+                raise GridFormatError(f"{name}: the chunk index lists a chunk at {off}, "
+                                      f"which is not a chunk of shape {shape} in chunks of {chunks}")
+            seen.add(off)
+            lo = [max(o, a) for o, (a, _) in zip(off, box)]
+            hi = [min(o + k, b) for o, k, (_, b) in zip(off, chunks, box)]
+            if any(a >= b for a, b in zip(lo, hi)):
+                continue
+            if c.size > bound:
+                raise GridFormatError(f"{name}: chunk {off} stores {c.size} bytes, more than a "
+                                      f"compressed chunk of {cbytes} bytes can take ({bound})")
+            mask, raw = ds.id.read_direct_chunk(off)
+            data, shuffled = _inflate(raw, mask, filters, cbytes, f"{name}: chunk {off}")
+            dst = out[tuple(slice(a - b0, b - b0) for a, b, (b0, _) in zip(lo, hi, box))]
+            src_sel = tuple(slice(a - o, b - o) for a, b, o in zip(lo, hi, off))
+            _place(data, shuffled, dt, chunks, src_sel, dst)
+            filled += dst.size
+        if filled != out.size:
+            raise GridFormatError(f"{name}: the stored chunks hold {filled} of the {out.size} "
+                                  "values read (incomplete dataset)")
 
     def variant(self) -> HDF5Format:
         for n in range(self.nblocks):
@@ -338,18 +721,81 @@ class _Reader:
                 return HDF5Format(str(ds.compression), level, bool(ds.shuffle), self.version)
         return HDF5Format(version=self.version)
 
-    def block(self, n: int, allow_nonfinite: bool) -> Block:
-        name, dims, xyz_ds, ib_ds = self.meta(n)
+    def block(self, n: int, allow_nonfinite: bool, meta=None) -> Block:
+        name, dims, xyz_ds, ib_ds = self.meta(n) if meta is None else meta
         where = f"block {n + 1}"
-        xyz = np.empty(dims + (3,), dtype=np.float64, order="F")
+        xyz = _alloc(dims + (3,), np.float64, self.path, where)
         self.read_into(xyz_ds, xyz.T, where)
         if not allow_nonfinite:
             _check_finite(xyz, self.path, where, xyz_ds.name)
         ib = None
         if ib_ds is not None:
-            ib = np.empty(dims, dtype=np.int32, order="F")
-            self.read_into(ib_ds, ib.T, where)
+            ib = _alloc(dims, np.int32, self.path, where)
+            if np.can_cast(ib_ds.dtype, np.int32):
+                self.read_into(ib_ds, ib.T, where)
+            else:
+                # read as stored: HDF5 would clamp values beyond int32 without a word
+                wide = _alloc(ib_ds.shape, ib_ds.dtype.newbyteorder("="), self.path, where, "C")
+                self.read_into(ib_ds, wide, where)
+                _check_int32(wide, self.path, where, ib_ds.name)
+                ib.T[...] = wide
         return Block(xyz, ib, name, allow_nonfinite=True)
+
+
+def _inflate(raw, mask: int, filters, cbytes: int, name: str):
+    """Undo the deflate filter of one stored chunk, never inflating beyond ``cbytes``.
+
+    ``mask`` bit i set: filter i was skipped for this chunk.  Returns the bytes and
+    whether they are still byte-shuffled (the shuffle filter is undone by :func:`_place`).
+    """
+    data = raw
+    for i in reversed(range(len(filters))):
+        if mask >> i & 1 or filters[i] != _DEFLATE:
+            continue
+        z = zlib.decompressobj()
+        try:
+            data = z.decompress(data, cbytes)
+            if not z.eof and len(data) == cbytes and z.decompress(z.unconsumed_tail, 1):
+                raise GridFormatError(f"{name}: inflates to more than the chunk's "
+                                      f"{cbytes} bytes (a decompression bomb)")
+        except zlib.error as exc:
+            raise GridFormatError(f"{name}: corrupt gzip data: {exc}") from None
+        if not z.eof:
+            raise GridFormatError(f"{name}: the gzip stream is cut short")
+    if len(data) != cbytes:
+        raise GridFormatError(f"{name}: holds {len(data)} bytes after decompression, "
+                              f"expected {cbytes}")
+    shuffled = any(c == _SHUFFLE and not mask >> i & 1 for i, c in enumerate(filters))
+    return data, shuffled
+
+
+def _place(data, shuffled: bool, dt: np.dtype, chunks, src_sel, dst: np.ndarray) -> None:
+    """Copy the part ``src_sel`` of one inflated chunk into ``dst``, undoing the shuffle.
+
+    A shuffled chunk holds byte 0 of every value, then byte 1, ...: each byte plane
+    goes into its byte of a flat temporary of one chunk, which is then copied
+    (and cast, if the stored type is not the destination's) into place.
+    """
+    size = dt.itemsize
+    if not shuffled or size == 1:
+        dst[...] = np.frombuffer(data, dtype=dt).reshape(chunks)[src_sel]
+        return
+    planes = np.frombuffer(data, np.uint8).reshape(size, -1)
+    values = np.empty((planes.shape[1], size), np.uint8)
+    for b in range(size):  # flat, one byte plane at a time: faster than a transposing copy
+        values[:, b] = planes[b]
+    dst[...] = values.view(dt).reshape(chunks)[src_sel]
+
+
+def _check_int32(arr: np.ndarray, path, where: str, dataset: str) -> None:
+    """Raise GridFormatError when an IBLANK array ``(nk, nj, ni)`` has values beyond int32."""
+    if arr.size == 0 or (int(arr.min()) >= _INT32.min and int(arr.max()) <= _INT32.max):
+        return
+    bad = (arr < _INT32.min) | (arr > _INT32.max)
+    k, j, i = (int(x) for x in np.argwhere(bad)[0])
+    raise GridFormatError(
+        f"{path}: {where}, dataset {dataset}: {int(bad.sum())} IBLANK value(s) beyond int32, "
+        f"first {int(arr[k, j, i])} at point ({i + 1}, {j + 1}, {k + 1}) (1-based)")
 
 
 def _check_finite(arr: np.ndarray, path, where: str, dataset: str, face=None) -> None:
@@ -387,7 +833,7 @@ def _damaged_file_errors(fn):
     def wrapper(path, *args, **kwargs):
         try:
             return fn(path, *args, **kwargs)
-        except (TfiQuatError, FileNotFoundError):
+        except (TfiQuatError, FileNotFoundError, IsADirectoryError, PermissionError):
             raise
         except (OSError, KeyError, RuntimeError, TypeError) as exc:
             raise GridFormatError(f"{path}: damaged or unreadable HDF5 grid file "
@@ -396,7 +842,7 @@ def _damaged_file_errors(fn):
 
 
 @_damaged_file_errors
-def read(path, *, allow_nonfinite: bool = False) -> Grid:
+def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None) -> Grid:
     """Read an HDF5 grid file (layout :data:`LAYOUT_VERSION` or older).
 
     Parameters
@@ -404,6 +850,9 @@ def read(path, *, allow_nonfinite: bool = False) -> Grid:
     path : str or path-like
     allow_nonfinite : bool
         Accept NaN or infinite coordinates (default: GridFormatError).
+    max_points : int, optional
+        Refuse a file declaring more grid points than this (default: what
+        fits in the memory available), before anything is allocated.
 
     Returns
     -------
@@ -415,12 +864,21 @@ def read(path, *, allow_nonfinite: bool = False) -> Grid:
     Raises
     ------
     GridFormatError
-        Not an HDF5 file, missing groups/attributes/datasets (named), an
-        unsupported layout version, a dataset whose shape or dtype does not
-        match its block's dims, an incomplete dataset, non-finite coordinates.
+        Not an HDF5 file, damaged metadata (libhdf5 crashing, looping or
+        allocating while reading it, see :func:`_guard`), missing or extra
+        groups/attributes/datasets (named), an unsupported layout version, a
+        dataset whose shape or dtype does not match its block's dims, an
+        incomplete dataset, a gzip chunk inflating beyond its size, IBLANK
+        values beyond int32, non-finite coordinates, more points than
+        ``max_points`` or the available memory.
+    FileNotFoundError, IsADirectoryError, PermissionError
+        From the operating system, naming the path.
     """
     with _Reader(path) as r:
-        blocks = [r.block(n, allow_nonfinite) for n in range(r.nblocks)]
+        metas = [r.meta(n) for n in range(r.nblocks)]
+        check_points(f"{path}: {r.nblocks} block(s)", sum(int(np.prod(m[1])) for m in metas),
+                     max_points=max_points)
+        blocks = [r.block(n, allow_nonfinite, m) for n, m in enumerate(metas)]
         variant = r.variant()
         try:
             return Grid(blocks, r.ndim, source_format=variant, source_path=path)
@@ -429,7 +887,7 @@ def read(path, *, allow_nonfinite: bool = False) -> Grid:
 
 
 @_damaged_file_errors
-def read_block(path, b, *, allow_nonfinite: bool = False) -> Block:
+def read_block(path, b, *, allow_nonfinite: bool = False, max_points: int | None = None) -> Block:
     """Read one block, and nothing else, from an HDF5 grid file.
 
     Parameters
@@ -439,6 +897,8 @@ def read_block(path, b, *, allow_nonfinite: bool = False) -> Block:
         0-based block number (negative counts from the end) or block name.
     allow_nonfinite : bool
         Accept NaN or infinite coordinates.
+    max_points : int, optional
+        Refuse a block of more points (default: what fits in memory).
 
     Returns
     -------
@@ -446,11 +906,15 @@ def read_block(path, b, *, allow_nonfinite: bool = False) -> Block:
         ``xyz`` float64 ``(ni, nj, nk, 3)`` Fortran order, ``iblank`` int32 or None.
     """
     with _Reader(path) as r:
-        return r.block(r.index(b), allow_nonfinite)
+        n = r.index(b)
+        meta = r.meta(n)
+        check_points(f"{path}: block {n + 1}", int(np.prod(meta[1])), max_points=max_points)
+        return r.block(n, allow_nonfinite, meta)
 
 
 @_damaged_file_errors
-def read_face(path, b, face, *, allow_nonfinite: bool = False) -> np.ndarray:
+def read_face(path, b, face, *, allow_nonfinite: bool = False,
+              max_points: int | None = None) -> np.ndarray:
     """Read the points of one face of one block (a hyperslab), and nothing else.
 
     Parameters
@@ -462,6 +926,8 @@ def read_face(path, b, face, *, allow_nonfinite: bool = False) -> np.ndarray:
         ``"imin" "imax" "jmin" "jmax" "kmin" "kmax"`` or 0..5.
     allow_nonfinite : bool
         Accept NaN or infinite coordinates.
+    max_points : int, optional
+        Refuse a face of more points (default: what fits in memory).
 
     Returns
     -------
@@ -476,13 +942,15 @@ def read_face(path, b, face, *, allow_nonfinite: bool = False) -> np.ndarray:
         d, side = divmod(f, 2)
         pos = dims[d] - 1 if side else 0
         run = [dims[a] for a in range(3) if a != d]
-        out = np.empty((run[0], run[1], 3), dtype=np.float64, order="F")
+        where = f"block {n + 1} face {FACES[f]}"
+        check_points(f"{path}: {where}", run[0] * run[1], max_points=max_points,
+                     bytes_per_point=3 * 8)
+        out = _alloc((run[0], run[1], 3), np.float64, path, where)
         # dataset axes are (c, k, j, i): block axis a is dataset axis 3 - a
         sel = [slice(None)] * 4
         sel[3 - d] = slice(pos, pos + 1)
         view = out.T.reshape(tuple(1 if a == 3 - d else s for a, s in
                                    enumerate((3, dims[2], dims[1], dims[0]))))
-        where = f"block {n + 1} face {FACES[f]}"
         r.read_into(xyz_ds, view, where, np.s_[tuple(sel)])
         if not allow_nonfinite:
             _check_finite(out, path, where, xyz_ds.name, face=(d, pos))
@@ -645,27 +1113,39 @@ def _write_file(path, grid: Grid, comp, level, extra_text) -> None:
     """Create the HDF5 file ``path`` (it must not exist) holding ``grid``: the bytes of a write."""
     from .. import __version__
     src_fmt = "" if grid.source_format is None else repr(grid.source_format)
-    with h5py.File(path, "x") as f:
-        f.attrs["format"] = FORMAT_NAME
+    # file-format objects of HDF5 1.10: every piece of metadata carries a checksum
+    with h5py.File(path, "x", libver=_LIBVER) as f:
+        _set_text(f, "format", FORMAT_NAME)
         f.attrs["version"] = np.int64(LAYOUT_VERSION)
         f.attrs["ndim"] = np.int64(grid.ndim)
         f.attrs["nblocks"] = np.int64(grid.nblocks)
-        f.attrs["creator"] = f"tfi_quat {__version__}"
-        f.attrs["created"] = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-        f.attrs["source"] = "" if grid.source_path is None else str(grid.source_path)
-        f.attrs["source_format"] = src_fmt
+        _set_text(f, "creator", f"tfi_quat {__version__}")
+        _set_text(f, "created", _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
+        _set_text(f, "source", "" if grid.source_path is None else str(grid.source_path))
+        _set_text(f, "source_format", src_fmt)
         blocks = f.create_group("blocks")
         for n, b in enumerate(grid.blocks):
             g = blocks.create_group(_block_group_name(n))
-            g.attrs["name"] = b.name or ""
+            _set_text(g, "name", b.name or "")
             g.attrs["dims"] = np.asarray(b.dims, dtype=np.int64)
             _write_array(g, "xyz", b.xyz.T, comp, level)
             if b.iblank is not None:
                 _write_array(g, "iblank", np.asarray(b.iblank, dtype=np.int32, order="F").T,
                              comp, level)
         if extra_text is not None:
-            f.create_dataset("extra", data=extra_text, dtype=h5py.string_dtype("utf-8"),
-                             track_times=False)
+            data = extra_text.encode("utf-8")
+            f.create_dataset("extra", data=np.bytes_(data),
+                             dtype=h5py.string_dtype("utf-8", max(1, len(data))), track_times=False)
+
+
+def _set_text(obj, name: str, text: str) -> None:
+    """A fixed-length UTF-8 string attribute: kept in the (checksummed) object header.
+
+    h5py's default, a variable-length string, lives in the global heap, which
+    has no checksum.
+    """
+    data = text.encode("utf-8")
+    obj.attrs.create(name, np.bytes_(data), dtype=h5py.string_dtype("utf-8", max(1, len(data))))
 
 
 def _write_array(g: h5py.Group, key: str, data: np.ndarray, comp, level) -> None:
