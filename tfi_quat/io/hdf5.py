@@ -77,7 +77,7 @@ import h5py
 import numpy as np
 
 from ..errors import GridFormatError, GridValueError, TfiQuatError
-from ..grid import FACES, Block, Grid, face_index
+from ..grid import FACES, Block, Grid, face_axis, face_index, face_layer, face_shape
 from ._atomic import atomic_output, check_target
 from ._limits import check_points
 
@@ -939,9 +939,9 @@ def read_face(path, b, face, *, allow_nonfinite: bool = False,
     with _Reader(path) as r:
         n = r.index(b)
         _, dims, xyz_ds, _ = r.meta(n)
-        d, side = divmod(f, 2)
-        pos = dims[d] - 1 if side else 0
-        run = [dims[a] for a in range(3) if a != d]
+        d = face_axis(f)[0]
+        pos = face_layer(dims, f)
+        run = face_shape(dims, f)
         where = f"block {n + 1} face {FACES[f]}"
         check_points(f"{path}: {where}", run[0] * run[1], max_points=max_points,
                      bytes_per_point=3 * 8)
