@@ -180,12 +180,13 @@ symmetry = []
 fixed = ["1:imin", "1:imax", "2:imin", "2:jmin", "2:jmax"]
 
 [motion]
-rotate = 5.0
+rotate = 2.0
 axis = [0.0, 0.0, 1.0]
 about = [0.25, 0.0, 0.0]
 translate = [0.0, 0.01, 0.0]
-twist = 2.0
+bend = 0.01
 span_axis = [1.0, 0.0, 0.0]
+direction = [0.0, 1.0, 0.0]
 span = 1.5
 """
 
@@ -615,29 +616,33 @@ class Result:
 
 
 def warm_up(folder, targets) -> None:
-    """Import and load everything the checks use (numba kernels from the cache) before timing.
+    """Import and load what ``targets`` use (numba kernels from the cache) before timing.
 
     Run once per worker, before its first mutant, so that the per-mutant timeout
     measures the read and not the start-up.
     """
     import tfi_quat as tq
-    import tfi_quat.topology  # noqa: F401
-    from tfi_quat.case import load_case  # noqa: F401
-    from tfi_quat.cli import build_parser, main
     folder = Path(folder)
-    build_parser()
-    for p in sorted(folder.glob("*.x")) + sorted(folder.glob("*.h5")):
-        tq.read(p)
-    grid = tq.read(folder / "grid.x")
-    tq.Connectivity.from_json(folder / "map.json", grid=grid)
-    tq.Connectivity.from_nmf(folder / "map.nmf", grid=grid)
+    checks = {t.check for t in targets}
     commands = {t.argv[0] for t in targets if t.check == "cli"}
-    with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):
-        if "deform" in commands:
-            main(["deform", str(folder / "grid.x"), "--nmf", str(folder / "map.nmf"), "--rotate", "1",
-                  "-o", str(folder / "warm.x"), "--force"])
-        if "connect" in commands:
-            main(["connect", str(folder / "grid.x"), "-o", str(folder / "warm.json"), "--force"])
+    for t in targets:
+        if t.check in ("plot3d", "hdf5"):
+            tq.read(folder / f"{t.seed}{'.h5' if t.seed.startswith('h5') else '.x'}")
+    if checks & {"json", "nmf", "case", "cli"}:
+        from tfi_quat.case import load_case
+        grid = tq.read(folder / "grid.x")
+        tq.Connectivity.from_json(folder / "map.json", grid=grid)
+        tq.Connectivity.from_nmf(folder / "map.nmf", grid=grid)
+        load_case(folder / "case.toml")
+    if commands:
+        from tfi_quat.cli import main
+        with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):
+            main(["info", str(folder / "grid.x")])
+            if "deform" in commands:
+                main(["deform", "--case", str(folder / "case.toml"), "-o", str(folder / "warm.x"),
+                      "--force"])
+            if "connect" in commands:
+                main(["connect", str(folder / "grid.x"), "-o", str(folder / "warm.json"), "--force"])
 
 
 def worker_main(argv=None) -> None:
@@ -649,18 +654,17 @@ def worker_main(argv=None) -> None:
     to see (end of file on the pipe, or no answer in time).
     """
     argv = sys.argv[1:] if argv is None else argv
-    folder, mem_limit, names = argv[1], int(argv[2]), argv[3].split(",")
+    folder, mem_limit = argv[1], int(argv[2])
+    names = [n for n in argv[3].split(",") if n]
     resource.setrlimit(resource.RLIMIT_AS, (mem_limit, mem_limit))
     proto = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)               # start-up output goes to the log
+    warm_up(folder, [TARGETS[n] for n in names])
     devnull = os.open(os.devnull, os.O_RDWR)
-    for fd in (0, 1, 2):        # silence C libraries (HDF5 diagnostics) and stray prints
-        if fd:
-            os.dup2(devnull, fd)
-    jobs = sys.stdin
-    targets = [TARGETS[n] for n in names]
-    warm_up(folder, targets)
+    for fd in (1, 2):           # then silence C libraries (HDF5 diagnostics) and stray prints
+        os.dup2(devnull, fd)
     proto.write("ready\n")
-    for line in jobs:
+    for line in sys.stdin:
         job = json.loads(line)
         target = Target(job["target"], "", job["check"], tuple(job["argv"]))
         outcome, detail = classify(target, Path(job["path"]), job["ref"], job["intact"], Path(job["outdir"]))
@@ -670,13 +674,14 @@ def worker_main(argv=None) -> None:
 class _Worker:
     """One worker subprocess with its current job."""
 
-    def __init__(self, folder, mem_limit, targets):
-        self.proc = subprocess.Popen(
-            [sys.executable, os.path.abspath(__file__), "--worker", str(folder), str(mem_limit),
-             ",".join(t.name for t in targets)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-            bufsize=1, env=dict(os.environ, PYTHONHASHSEED="0", OMP_NUM_THREADS="1",
-                                OPENBLAS_NUM_THREADS="1"))
+    def __init__(self, folder, mem_limit, targets, log):
+        self.log = log
+        with open(log, "ab") as err:      # start-up errors (the worker silences itself once ready)
+            self.proc = subprocess.Popen(
+                [sys.executable, os.path.abspath(__file__), "--worker", str(folder), str(mem_limit),
+                 ",".join(t.name for t in targets)],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True, bufsize=1,
+                env=dict(os.environ, PYTHONHASHSEED="0", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1"))
         self.ready = False
         self.job = None
         self.t0 = time.monotonic()
@@ -737,7 +742,7 @@ def run_mutants(jobs_iter, *, seed_folder, workdir, jobs: int = 2, timeout: floa
     results: list[Result] = []
     grid_copy = workdir / "grid.x"
     grid_copy.write_bytes((Path(seed_folder) / "grid.x").read_bytes())
-    workers = [_Worker(seed_folder, mem_limit, targets) for _ in range(jobs)]
+    workers = [_Worker(seed_folder, mem_limit, targets, workdir / "workers.log") for _ in range(jobs)]
     pending = iter(jobs_iter)
     exhausted = False
 
@@ -801,8 +806,9 @@ def run_mutants(jobs_iter, *, seed_folder, workdir, jobs: int = 2, timeout: floa
                                else f"exited with status {rc} without a result")
                         finish(w, "crash", how)
                     elif not w.ready:
-                        raise RuntimeError(f"a fuzz worker failed to start (exit status {rc})")
-                    workers[n] = _Worker(seed_folder, mem_limit, targets)
+                        tail = w.log.read_text(errors="replace")[-2000:]
+                        raise RuntimeError(f"a fuzz worker failed to start (exit status {rc}):\n{tail}")
+                    workers[n] = _Worker(seed_folder, mem_limit, targets, workdir / "workers.log")
                 elif line is not None:
                     if not w.ready:
                         w.ready = line.strip() == "ready"
@@ -812,7 +818,7 @@ def run_mutants(jobs_iter, *, seed_folder, workdir, jobs: int = 2, timeout: floa
                 elif w.job is not None and now - w.t0 > timeout:
                     w.close(kill=True)
                     finish(w, "hang", f"no answer after {timeout:g} s (killed)")
-                    workers[n] = _Worker(seed_folder, mem_limit, targets)
+                    workers[n] = _Worker(seed_folder, mem_limit, targets, workdir / "workers.log")
                 elif not w.ready and now - w.t0 > startup_timeout:
                     raise RuntimeError(f"a fuzz worker did not start within {startup_timeout:g} s")
     finally:
