@@ -17,8 +17,8 @@ import pytest
 import fuzzing
 
 CAMPAIGN_SEED = 2024
-READER_MUTANTS = 100
-CLI_MUTANTS = 15
+READER_MUTANTS = 80
+CLI_MUTANTS = 12
 
 
 def _count(target: fuzzing.Target) -> int:
