@@ -1,4 +1,4 @@
-"""The Deformer against the properties of DESIGN section 4, on several grid shapes."""
+"""The Deformer against the properties of docs/method.md §4, on several grid shapes."""
 
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ def test_reference_untouched_and_no_drift(case, formulation):
 
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_rigid_motion_of_every_boundary_is_rigid_everywhere(case, formulation):
-    """DESIGN property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
+    """docs/method.md §4, property 3: all boundaries walls, one rigid motion -> the grid moves rigidly."""
     name, grid, walls, sym, fixed = case
     faces = ("imin", "imax", "jmin", "jmax") + (("kmin", "kmax") if grid.ndim == 3 else ())
     every = [f"{b + 1}:{f}" for b in range(len(grid)) for f in faces]
@@ -155,7 +155,7 @@ def _orthogonality_change(out, ref, layers=5):
 @pytest.mark.parametrize("angle", [10.0, 30.0, 45.0])
 @pytest.mark.parametrize("formulation", ["samareh"])
 def test_near_wall_orthogonality_kept_under_rigid_rotation(angle, formulation):
-    """DESIGN property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
+    """docs/method.md §4, property 6 on an O-grid: quaternion TFI keeps the wall angle, plain TFI does not."""
     grid, walls, sym, fixed = G.o_grid(65, 33)
     move = rigid_motion(angle, (0, 0, 1), (0.5, 0.0, 0.0), (0.3, 0.2, 0.0))
     q = Deformer(grid, walls=walls, fixed=fixed, formulation=formulation).deform(move)
@@ -176,7 +176,7 @@ def _transform_grid(grid, f):
 @pytest.mark.parametrize("name", ["o-grid", "box-pair", "o-grid-3d"])
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_translation_and_rotation_of_the_whole_problem(name, formulation):
-    """DESIGN property 5: moving the whole problem moves the result the same way."""
+    """docs/method.md §4, property 5: moving the whole problem moves the result the same way."""
     grid, walls, sym, fixed = CASES[name]()
     move = _motion_for(name)
     base = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, formulation=formulation).deform(move)

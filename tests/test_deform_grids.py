@@ -1,4 +1,4 @@
-"""The Deformer on the shipped grids: DESIGN section 4, every property, on every topology.
+"""The Deformer on the shipped grids: docs/method.md §4, every property, on every topology.
 
 Grids: the 2-D C-grid and O-grid airfoils and their one-cell-thick 3-D
 extrusions (wall normal j, not the last index), the 2-D two-block case, the
