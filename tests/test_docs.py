@@ -56,10 +56,15 @@ def test_getting_started_python_runs(tmp_path, monkeypatch):
 def test_cli_tutorial_runs(tmp_path):
     """Every ```sh block of the CLI tutorial, in order, as one bash script in an empty folder."""
     script = "set -euo pipefail\n" + "\n".join(code_blocks(DOCS / "tutorial-cli.md", "sh"))
+    # `tfi-quat` runs this checkout's sources (and their numba cache) whether the project
+    # is installed editable or not; tests/test_install.py tests the installed command
+    bindir = tmp_path.parent / (tmp_path.name + "_bin")
+    bindir.mkdir()
+    (bindir / "tfi-quat").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m tfi_quat.cli "$@"\n')
+    (bindir / "tfi-quat").chmod(0o755)
     env = dict(os.environ)
-    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
-    # the tfi-quat next to this interpreter runs this checkout (editable install, or a
-    # regular install of the same sources)
+    env["PATH"] = str(bindir) + os.pathsep + env.get("PATH", "")
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
     res = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
                          timeout=1800)
     assert res.returncode == 0, f"tutorial failed:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}"
