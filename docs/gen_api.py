@@ -216,8 +216,12 @@ def docstring_md(doc: str) -> str:
             in_code = True
         if in_code:
             out.append(line)
+        elif (section in ENTRY_SECTIONS and stripped and not line.startswith(" ") and " : " not in stripped
+              and i + 1 < len(lines) and not lines[i + 1].startswith(" ")):
+            section = None                # a paragraph after the entries, not an entry
+            out.append(_inline(line))
         elif section in ENTRY_SECTIONS and stripped and not line.startswith(" "):
-            name, sep, typ = stripped.partition(" : ")
+            name, sep, typ = stripped.removesuffix(" :").partition(" : ")
             out.append(f"- `{name}`" + (f" : {_inline(typ)}" if sep else ""))
         elif section in ENTRY_SECTIONS and stripped:
             out.append("  " + _inline(stripped))

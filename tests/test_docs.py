@@ -136,3 +136,14 @@ def test_no_pointer_outside_the_repository():
     bad = [f"{f.relative_to(ROOT)}:{i}" for f in files if f.resolve() != Path(__file__).resolve()
            for i, line in enumerate(f.read_text(encoding="utf-8").splitlines(), 1) if pattern.search(line)]
     assert not bad, "pointers outside the repository: " + ", ".join(bad)
+
+
+def test_ci_runs_the_readme_test_command():
+    """`.ci/run` runs exactly the README's install-and-test command, and the README's
+    set-up commands are regular (non-editable) installs."""
+    blocks = code_blocks(ROOT / "README.md", "sh")
+    test_cmd = [b.strip() for b in blocks if "pytest" in b]
+    demo_cmd = [b.strip() for b in blocks if "tfi-quat demo" in b]
+    assert len(test_cmd) == 1 and len(demo_cmd) == 1
+    assert test_cmd[0] in (ROOT / ".ci" / "run").read_text(encoding="utf-8").splitlines()
+    assert " -e " not in test_cmd[0] and " -e " not in demo_cmd[0]
