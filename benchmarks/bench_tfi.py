@@ -1,4 +1,4 @@
-"""Benchmark of the TFI volume stage (DESIGN 6): fused quaternion kernel, baseline, arclength.
+"""Benchmark of the TFI volume stage (docs/method.md §6): fused quaternion kernel, baseline, arclength.
 
 Prints points per second, bytes moved per point and the ratio of the
 kernel's effective bandwidth to the machine's streaming bandwidth, measured

@@ -1,4 +1,4 @@
-"""Boundary quaternions (DESIGN 3.1): rigid motions recovered exactly, invariance,
+"""Boundary quaternions (docs/method.md §3.1): rigid motions recovered exactly, invariance,
 smoothness under bending, halo rows across patch edges, degenerate points, bad input.
 
 scipy's Rotation is the independent oracle for the rigid motions.
@@ -163,7 +163,7 @@ def test_zero_motion_gives_identity_and_zero_delta():
         np.testing.assert_allclose(delta, 0.0, atol=1e-15)
 
 
-# ------------------------------------------------------------------ invariance (DESIGN 3.6)
+# ------------------------------------------------------------------ invariance (docs/method.md §3.6)
 def bent(ru, amount=0.4):
     """A smooth non-rigid deformation: bend about x growing along z, plus a stretch."""
     b = amount * (ru[..., 2] / 3.0) ** 2
@@ -481,7 +481,7 @@ def test_regression_edge_angles_cancelling_exactly_gave_nan():
 @given(deg=st.floats(-180.0, 180.0), shift=vec3.map(lambda v: 10.0 * v), g=vec3,
        gdeg=st.floats(0.0, 180.0))
 def test_moving_the_whole_2d_problem_moves_q_and_delta(deg, shift, g, gdeg):
-    """DESIGN 3.6 for a wall curve: translating the problem leaves (q, delta) unchanged;
+    """docs/method.md §3.6 for a wall curve: translating the problem leaves (q, delta) unchanged;
     rotating it by G (points, centre and the plane normal) gives (G q G*, G delta)."""
     ru = airfoil_curve()
     rd = ru.copy()

@@ -1,4 +1,4 @@
-"""Tests of tfi_quat.tfi: arclength parameters and Soni TFI kernels (DESIGN 3.2, 3.4, 3.5)."""
+"""Tests of tfi_quat.tfi: arclength parameters and Soni TFI kernels (docs/method.md §3.2, §3.4, §3.5)."""
 
 from __future__ import annotations
 
@@ -413,7 +413,7 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-15)
 
 
-# ------------------------------------------------------------- DESIGN property 7
+# ------------------------------------------------------------- docs/method.md §4, property 7
 def o_grid(ni=17, nj=9, nk=4, c_grid=False):
     """Wall at jmin (ellipse or C-shape), far field at jmax, straight wall-normal lines
     whose stretching varies with i and k; i around, k extrusion with a twist and scale."""
@@ -702,7 +702,7 @@ def test_fallback_points_of_the_fused_kernels_equal_the_reference(in_place):
 # ------------------------------------------------------------- no full-size temporaries
 @pytest.mark.parametrize("with_q", [True, False])
 def test_fused_stage_allocates_only_surface_tables(with_q):
-    """DESIGN 6: the volume stage writes R_d without full-size Δ or Q arrays.
+    """docs/method.md §6: the volume stage writes R_d without full-size Δ or Q arrays.
 
     Peak memory traced while deforming a 128^3 block into a given ``out`` stays
     below half of one full-size Δ array (24 bytes per point); the O(surface)
@@ -739,7 +739,7 @@ def test_fused_stage_allocates_only_surface_tables(with_q):
 
 
 def test_volume_kernels_are_parallel_and_cached():
-    """cache=True and parallel=True on the kernels of the volume stage (DESIGN 6), set in _jit."""
+    """cache=True and parallel=True on the kernels of the volume stage (docs/method.md §6), set in _jit."""
     from tfi_quat import _jit
     for k in (tfi._deform3_q, tfi._deform3_d, tfi._deform2_q, tfi._deform2_d, tfi._arclength_kernel,
               tfi._prep, tfi._fields2, tfi._gather):

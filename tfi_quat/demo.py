@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import time
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -26,18 +27,46 @@ import numpy as np
 from . import quaternion as qa
 from .errors import CaseError
 
-__all__ = ["DemoMotion", "default_grid_path", "run_demo"]
+__all__ = ["DemoMotion", "default_grid_path", "run_demo", "sample_path"]
 
-#: the shipped grid the demo runs on, relative to the repository root
+#: the shipped grid the demo runs on
 GRID_NAME = "naca0012_c_257x65"
 
 
+def sample_path(name: str) -> Path:
+    """Path of a shipped sample grid or case file, e.g. ``"naca0012_c_257x65.x"``.
+
+    The sample grids (``grids/README.md``) are installed with the package
+    (``tfi_quat/grids/``); in a source checkout they are read from its
+    ``grids/`` folder.
+
+    Parameters
+    ----------
+    name : str
+        File name inside ``grids/``, with its extension.
+
+    Returns
+    -------
+    pathlib.Path
+        The file's path.
+
+    Raises
+    ------
+    FileNotFoundError
+        If no such sample is shipped (the message names the places looked in).
+    """
+    installed = Path(str(resources.files(__package__))) / "grids"
+    checkout = Path(__file__).resolve().parents[1] / "grids"
+    for folder in (installed, checkout):
+        path = folder / name
+        if path.is_file():
+            return path
+    raise FileNotFoundError(f"{name}: no such sample grid in {installed} or {checkout}")
+
+
 def default_grid_path() -> Path:
-    """``grids/naca0012_c_257x65.x``: from the working directory, else next to the package."""
-    here = Path("grids") / f"{GRID_NAME}.x"
-    if here.exists():
-        return here
-    return Path(__file__).resolve().parents[1] / "grids" / f"{GRID_NAME}.x"
+    """The demo's grid, ``grids/naca0012_c_257x65.x``, as shipped (:func:`sample_path`)."""
+    return sample_path(f"{GRID_NAME}.x")
 
 
 @dataclass(frozen=True)
@@ -131,7 +160,7 @@ def run_demo(outdir, grid_path=None, motion: DemoMotion | None = None, overwrite
     grid_path = Path(grid_path) if grid_path is not None else default_grid_path()
     case_path = grid_path.with_suffix(".toml")
     if not grid_path.exists():
-        raise CaseError(f"{grid_path}: demo grid not found (run from the repository root or give --grid)")
+        raise CaseError(f"{grid_path}: demo grid not found")
     if not case_path.exists():
         raise CaseError(f"{case_path}: the demo grid's case file is missing")
     motion = motion or DemoMotion()

@@ -35,6 +35,8 @@ class _Format:
     variant_type: type | None = None
 
 
+#: the registered formats: name -> (name, extensions, reader, writer, variant type), filled by
+#: :func:`register` as each format module is imported
 FORMATS: dict[str, _Format] = {}
 
 
