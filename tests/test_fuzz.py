@@ -46,8 +46,10 @@ def test_no_crash_hang_overmem_foreign_or_wrong(campaign, name):
     bad = {o: counts[o] for o in fuzzing.FAILURES if counts[o]}
     assert not bad, (f"{name}: {bad} of {len(mine)} mutants\n"
                      + fuzzing.failure_report(mine))
-    # the mutants are not all rejected outright: some damage leaves a readable file
-    assert counts["error"] < len(mine)
+    # the mutants are not all rejected outright: some damage leaves a readable file (checked on
+    # the readers' 80 mutants; a dozen CLI mutants of a strictly checked map can all be errors)
+    if target.check != "cli":
+        assert counts["error"] < len(mine)
 
 
 def test_mutants_are_deterministic(seeds):

@@ -2,7 +2,7 @@
 
 Used by the two-level Deformer: each wall body's motion is split into the
 rigid motion that fits it best (applied to the whole field, Samareh's way) and
-the residual deformation (applied near the walls).  DESIGN 3.6: the fit is
+the residual deformation (applied near the walls).  docs/method.md §3.6: the fit is
 frame-invariant, so the result translates and rotates with the problem.
 
 Conventions: quaternions scalar first ``(w, x, y, z)``; a rigid motion maps
