@@ -440,7 +440,7 @@ def kfrom_matrix(m, out):
 def kfrom_two_vectors(a, b, out):
     """Minimal rotation taking direction ``a`` (3,) to direction ``b`` (3,).
 
-    Axis ``a x b / |a x b|`` (normalised, DESIGN 3.8), angle
+    Axis ``a x b / |a x b|`` (normalised, docs/method.md §3.8), angle
     ``atan2(|a x b|, a . b)``; parallel inputs give the identity, exactly
     antiparallel ones a rotation by pi about a perpendicular axis.  Inputs
     are normalised here; a zero input gives the identity.  ``w >= 0``.
