@@ -409,6 +409,9 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
         out[...] = s
     dims = xyz.shape[:3]
     for d in range(ndim):
+        if dims[d] == 1:                        # no lines to walk: compile nothing for them
+            out[..., d] = 0.0
+            continue
         others = tuple(dims[m] for m in range(3) if m != d)
         l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)
         l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
@@ -451,6 +454,9 @@ def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_R
         raise GridValueError(f"out: expected a float64 Fortran-order array of shape {xyz.shape}")
     dims = xyz.shape[:3]
     for d in range(3):
+        if dims[d] == 1:                        # one point per line: the parameter is 0, and
+            out[..., d] = 0.0                   # a 2-D run compiles no kernel for it
+            continue
         others = tuple(dims[m] for m in range(3) if m != d)
         if d < ndim:
             l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)
