@@ -957,11 +957,16 @@ def patch_params(s) -> tuple:
 
 
 def tfi_patch_fast(delta, q, params, lead: int = 0) -> None:
-    """:func:`tfi_patch` through a compiled kernel (same result to round-off).
+    """2-D Soni TFI of (Δ, Q) on a patch, in place: fill the interior from the four sides.
 
-    ``params`` is :func:`patch_params` of the patch's arclength parameters,
-    computed once; ``delta`` (na, nb, 3) and ``q`` (na, nb, 4) or None are
-    filled in place from their four sides (the sides are left as they are).
+    ``params`` is :func:`patch_params` of the patch's arclength parameters
+    (from the **undeformed** surface, :func:`arclength_surface`), computed
+    once; ``delta`` (na, nb, 3) and ``q`` (na, nb, 4) of unit quaternions, or
+    None for the baseline, are filled in place from their four sides
+    ``a = 0``, ``a = na - 1``, ``b = 0``, ``b = nb - 1`` (consistent at the
+    corners; left as they are).  ``lead`` 0: slerp between the sides a = 0
+    and a = na - 1; 1: between b = 0 and b = nb - 1.  The numpy reference it
+    is tested against is ``tests/oracles.py``.
     """
     s4, fs = params
     na, nb = s4.shape[:2]
