@@ -16,10 +16,12 @@ Usage::
 
     python3 benchmarks/bench_startup.py                 # 1 round, top 15 kernels
     python3 benchmarks/bench_startup.py --rounds 2 --top 25
-    python3 benchmarks/bench_startup.py --old /tmp/old-checkout   # the same for another copy
+    python3 benchmarks/bench_startup.py --root /tmp/old-checkout  # the same for another copy
 
-``--old PATH`` runs the demo of the package at PATH (a checkout of the
-repository) instead of this one, for comparing two versions.
+``--root PATH`` runs the demo of the package at PATH (a checkout of the
+repository) instead of this one, for comparing two versions.  Do not edit
+the package while it runs: numba invalidates a file's cached kernels when
+the file changes, and the warm run would compile again.
 """
 
 from __future__ import annotations
@@ -87,9 +89,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=1, help="cold/warm pairs (default 1)")
     ap.add_argument("--warm", type=int, default=2, help="warm runs per pair, best kept (default 2)")
     ap.add_argument("--top", type=int, default=15, help="kernels listed by compile time (default 15)")
-    ap.add_argument("--old", type=Path, default=None, help="run the package at this checkout instead")
+    ap.add_argument("--root", type=Path, default=None, help="run the package at this checkout instead")
     args = ap.parse_args(argv)
-    pkg = (args.old or ROOT).resolve()
+    pkg = (args.root or ROOT).resolve()
     if not (pkg / "tfi_quat" / "__init__.py").exists():
         raise SystemExit(f"{pkg}: no tfi_quat package there")
     cold, warm, last_cold = [], [], None
@@ -107,6 +109,8 @@ def main(argv=None) -> int:
                 warm.append(w["wall_s"])
                 print(f"round {r + 1}: warm {w['wall_s']:7.2f} s (import {w['import_s']:.2f} s, "
                       f"{len(w['compiles'])} compilations)", flush=True)
+                for name, t0, t1 in w["compiles"]:
+                    print(f"    compiled when warm: {name} ({t1 - t0:.2f} s)")
     bc, bw = min(cold), min(warm)
     print(f"\npackage: {pkg}")
     print(f"cold (best of {len(cold)}): {bc:.2f} s   warm (best of {len(warm)}): {bw:.2f} s   "

@@ -1068,3 +1068,20 @@ def test_gather_plan_and_deform_block_gathered_validate_arguments():
     with pytest.raises(GridValueError, match="out: expected"):
         tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, out=np.empty(xyz.shape))
     assert "GatherPlan(dims=(4, 3, 2)" in repr(plan)
+
+
+@given(seeds_st)
+def test_fallback_log_is_half_the_quaternion_log(seed):
+    """kernels.rel_log (the fallback's tangent map) is quaternion.log of conj(b) ⊗ q, halved:
+    the package has one quaternion log (tiny angles, both hemispheres, and zero included)."""
+    from tfi_quat import kernels
+    rng = np.random.default_rng(seed)
+    b = quat(rng.normal(size=3))
+    rv = rng.normal(size=3) * rng.choice([1e-200, 1e-40, 1e-9, 1.0, 3.0])
+    q = qa.multiply(b, quat(rv))
+    for qq in (q, -q):
+        got = np.array(kernels.rel_log(*b, *qq))
+        np.testing.assert_allclose(got, 0.5 * qa.log(qa.multiply(qa.conjugate(b), qq)), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(got, 0.5 * qa.log(quat(rv)), rtol=0, atol=1e-14)
+    for bb in (b, -b):
+        assert np.array_equal(np.array(kernels.rel_log(*b, *bb)), np.zeros(3))
