@@ -21,9 +21,18 @@ kernels they replaced (frozen copies below, run in the same process,
 interleaved) and against the fused ``blending.wall_layer_arclength``; it
 checks that all three give the same bits.
 
+With ``--old PATH`` (a checkout of an older version of the repository, e.g.
+``git clone -q <repo> /tmp/old``) it times instead the fused volume kernels
+of that version and of this one side by side in one process: the old
+package is imported as ``tfi_quat_old``, both run on the same arrays and
+tables, alternately (``best_interleaved``), and the script prints each
+kernel's best time, the ratio old/new (>= 1: the new code is as fast) and
+whether both give the same bits.
+
 Usage::
 
     python3 benchmarks/bench_tfi.py                 # 10.1 M points (216^3)
+    python3 benchmarks/bench_tfi.py --old /tmp/old --points 2e6 --repeat 7
     python3 benchmarks/bench_tfi.py --points 2e5    # quick
     python3 benchmarks/bench_tfi.py --setup-wing 2.8 --repeat 9    # 10.9 M points, 4 blocks
 """
@@ -341,6 +350,136 @@ def setup_wing(scale, repeat, pickled=None):
     return 0
 
 
+def import_old(path):
+    """The package of the checkout at ``path``, imported as ``tfi_quat_old`` (its own numba
+    cache, next to its files)."""
+    import importlib.util
+    root = os.path.join(os.path.abspath(path), "tfi_quat")
+    spec = importlib.util.spec_from_file_location("tfi_quat_old", os.path.join(root, "__init__.py"),
+                                                  submodule_search_locations=[root])
+    if spec is None or not os.path.exists(os.path.join(root, "__init__.py")):
+        raise SystemExit(f"--old {path}: no tfi_quat package there")
+    pkg = importlib.util.module_from_spec(spec)
+    sys.modules["tfi_quat_old"] = pkg
+    spec.loader.exec_module(pkg)
+    import importlib
+    return importlib.import_module("tfi_quat_old.tfi")
+
+
+def _old_volume(old, hasn, hasq, based):
+    """The old version's volume kernel of one kind, called with the new kernels' signature
+    ``(xyz, s, out, cx, cy, cz, L, M, N, 8 tables, lineB, gB, hB)``."""
+    if hasattr(old, "_volume_kernel"):            # an old copy that already has one definition
+        return old._volume_kernel(hasn, hasq, based)
+    if hasn:
+        k = {(True, False): old._deform3_q, (False, False): old._deform3_d,
+             (True, True): old._deform3_qb}[hasq, based]
+    else:
+        k = {(True, False): old._deform2_q, (False, False): old._deform2_d,
+             (True, True): old._deform2_qb}[hasq, based]
+
+    def call(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN, lB, gB, hB):
+        lmn = (L, M, N) if hasn else (L, M)
+        if not hasq:
+            return k(xyz, s, out, *lmn, lineD, gD, hD)
+        tabs = (lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+        return k(xyz, s, out, cx, cy, cz, *lmn, *tabs, *((lB, gB, hB) if based else ()))
+    return call
+
+
+def side_by_side(path, points, repeat, order):
+    """Old and new volume kernels (and arclength) on the same inputs, interleaved."""
+    old = import_old(path)
+    n3 = max(4, int(round(points ** (1.0 / 3.0))))
+    n2 = max(4, int(round(points ** 0.5)))
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"old: {os.path.dirname(old.__file__)}  new: {os.path.dirname(tfi.__file__)}")
+    print(f"3-D block {n3}^3, 2-D block {n2}^2 x 1; threads {numba.get_num_threads()}; order {order}; "
+          f"best of {repeat}, old and new alternating; load average {load:.1f} on {os.cpu_count()} CPUs")
+
+    def dfun(p):
+        return 0.01 * np.sin(p)
+
+    def qfun(p):
+        rv = 0.05 * np.cos(p)
+        ang = np.linalg.norm(rv, axis=-1, keepdims=True)
+        return normalize(np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * rv / np.maximum(ang, 1e-300)], -1))
+
+    def bfun(p):
+        return 0.003 * np.cos(2.0 * p)
+
+    c = np.array([0.5, 0.5, 0.0])
+    rows = []
+    for hasn in (True, False):
+        if hasn:
+            xyz = make_block(n3)
+            o = order
+        else:
+            xyz = _plane(n2)
+            o = order[:2] if sorted(order[:2]) == [0, 1] else (0, 1)
+        dims = xyz.shape[:3]
+        b = Block(xyz)
+        s = tfi.arclength(xyz)
+        nf = 6 if hasn else 4
+        faces = [b.face(f) for f in range(nf)]
+        if hasn:
+            fdd = tfi._faces([dfun(f) for f in faces], dims, 3, "fd")
+            fqq = tfi._faces([qfun(f) for f in faces], dims, 4, "fq")
+            fbb = tfi._faces([bfun(f) for f in faces], dims, 3, "fb")
+        else:
+            fdd = tfi._sides_as_faces([dfun(f[:, 0]) for f in faces], dims, 3, "fd")
+            fqq = tfi._sides_as_faces([qfun(f[:, 0]) for f in faces], dims, 4, "fq")
+            fbb = tfi._sides_as_faces([bfun(f[:, 0]) for f in faces], dims, 3, "fb")
+        fs = tfi.face_params(s)[:nf]
+        o3 = o if hasn else o + (2,)
+        tq = tfi._tables(dims, o3, fdd, fqq, fs, hasn)
+        td = tfi._tables(dims, o3, fdd, None, fs, hasn)
+        tb = tfi._tables(dims, o3, fbb, None, fs, hasn)
+        base = (tb[0], tb[2], tb[4])
+        for hasq, based in ((True, False), (False, False), (True, True)):
+            tabs = tq if hasq else td
+            lB, gB, hB = base if based else (tabs[0], tabs[2], tabs[4])
+            args = (xyz, s)
+            new_k = tfi._volume_kernel(hasn, hasq, based)
+            old_k = _old_volume(old, hasn, hasq, based)
+            out_n = np.empty_like(xyz, order="F")
+            out_o = np.empty_like(xyz, order="F")
+            tail = (*c, *o3, *tabs, lB, gB, hB)
+            new_k(*args, out_n, *tail)               # compile / load
+            old_k(*args, out_o, *tail)
+            same = np.array_equal(out_n.view(np.int64), out_o.view(np.int64))
+            t_n, t_o = best_interleaved([lambda: new_k(*args, out_n, *tail),
+                                         lambda: old_k(*args, out_o, *tail)], repeat)
+            kind = f"{'3' if hasn else '2'}-D {'quaternion' if hasq else 'baseline'}{' based' if based else ''}"
+            rows.append((kind, xyz.shape[0] * xyz.shape[1] * xyz.shape[2], t_n, t_o, same))
+        # arclength (tile walker) on the same block
+        so = old.arclength(xyz)
+        same = np.array_equal(s.view(np.int64), so.view(np.int64))
+        t_n, t_o = best_interleaved([lambda: tfi.arclength(xyz), lambda: old.arclength(xyz)], repeat)
+        rows.append((f"{'3' if hasn else '2'}-D arclength", xyz.shape[0] * xyz.shape[1] * xyz.shape[2],
+                     t_n, t_o, same))
+    print(f"{'kernel':<24s} {'points':>9s} {'new ms':>9s} {'old ms':>9s} {'old/new':>8s}  same bits")
+    worst = float("inf")
+    for kind, npts, t_n, t_o, same in rows:
+        worst = min(worst, t_o / t_n)
+        print(f"{kind:<24s} {npts:9d} {t_n * 1e3:9.2f} {t_o * 1e3:9.2f} {t_o / t_n:8.3f}  {same}")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"lowest old/new ratio {worst:.3f} (>= 0.95: no slower); load average at the end {load:.1f}")
+    return 0 if all(r[4] for r in rows) else 1
+
+
+def _plane(n):
+    """A 2-D (n, n, 1, 3) sheared, wall-clustered plane without forming an n^3 block."""
+    u = np.linspace(0.0, 1.0, n)
+    g = (np.exp(3.0 * u) - 1.0) / (np.exp(3.0) - 1.0)
+    xyz = np.empty((n, n, 1, 3), order="F")
+    i, j = u[:, None], g[None, :]
+    xyz[:, :, 0, 0] = 2.0 * i + 0.3 * j
+    xyz[:, :, 0, 1] = 1.5 * j + 0.02 * i * i
+    xyz[:, :, 0, 2] = 0.1 * i * j
+    return xyz
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=float, default=216 ** 3, help="block size in points (cube)")
@@ -350,7 +489,12 @@ def main(argv=None):
                     help="time the Deformer's set-up kernels on the wing of this scale instead")
     ap.add_argument("--wing-pickle", default=None, metavar="PATH",
                     help="with --setup-wing: load (grid, patches, connectivity) from this pickle")
+    ap.add_argument("--old", default=None, metavar="PATH",
+                    help="time the volume kernels of the checkout at PATH and of this one side by side")
     args = ap.parse_args(argv)
+    if args.old is not None:
+        return side_by_side(args.old, args.points, args.repeat,
+                            tuple(int(v) for v in args.order.split(",")))
     if args.setup_wing is not None:
         return setup_wing(args.setup_wing, args.repeat, args.wing_pickle)
     n = max(4, int(round(args.points ** (1.0 / 3.0))))
@@ -419,8 +563,9 @@ def main(argv=None):
     fdd, fqq = tfi._faces(fd, dims, 3, "fd"), tfi._faces(fq, dims, 4, "fq")
     tq = tfi._tables(dims, order, fdd, fqq, fs, True)
     td = tfi._tables(dims, order, fdd, None, fs, True)
-    t_kq = best(lambda: tfi._deform3_q(xyz, s, out, *c, *order, *tq), args.repeat)
-    t_kd = best(lambda: tfi._deform3_d(xyz, s, out, *order, td[0], td[2], td[4]), args.repeat)
+    kq, kd = tfi._volume_kernel(True, True, False), tfi._volume_kernel(True, False, False)
+    t_kq = best(lambda: kq(xyz, s, out, *c, *order, *tq, tq[0], tq[2], tq[4]), args.repeat)
+    t_kd = best(lambda: kd(xyz, s, out, *c, *order, *td, td[0], td[2], td[4]), args.repeat)
 
     # streaming bandwidth of the same bytes (read R_u and s, write R_d), same run
     sb = s.itemsize * 3

@@ -1,6 +1,6 @@
 """The Deformer's compiled per-step kernels against independent references.
 
-``_patch_level`` against :func:`tfi_quat.tfi.tfi_patch` (the reference 2-D TFI),
+``_patch_level`` against ``oracles.tfi_patch`` (the reference 2-D TFI),
 ``_rigid_blend`` and the fade against ``scipy.spatial.transform``, the symmetry
 fix and the halo gather against their definitions.
 """
@@ -18,6 +18,7 @@ from tfi_quat.deform import stages as S
 from tfi_quat.deform import Deformer, rigid_motion, twolevel
 
 import _deform_grids as G
+import oracles
 
 
 def _wxyz(r: Rotation) -> np.ndarray:
@@ -46,7 +47,7 @@ def _fields(x, seed):
 @settings(max_examples=40, deadline=None)
 def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
     """Two patches (both leading directions) in one call, global ids scattered at random:
-    interiors equal tfi.tfi_patch's to round-off, sides and unwritten points untouched."""
+    interiors equal oracles.tfi_patch's to round-off, sides and unwritten points untouched."""
     rng = np.random.default_rng(seed)
     shapes = [(na, nb, 0), (nb + 1, na, 1)]
     n_tot = sum(a * b for a, b, _ in shapes)
@@ -67,7 +68,7 @@ def test_patch_level_is_the_reference_patch_tfi(na, nb, seed):
         write[1:-1, 1:-1] = rng.uniform(size=(a - 2, b - 2)) < 0.8
         patches.append((g, s, lead, write))
         dr, qr = d.copy(), q.copy()
-        tfi.tfi_patch(dr, qr, s, lead=lead)
+        oracles.tfi_patch(dr, qr, s, lead=lead)
         refs.append((dr, qr))
     gd0, gq0 = gd.copy(), gq.copy()
     S.patch_level(gd, gq, True, *S.level_pack(patches), np.zeros(0), np.zeros((0, 3)))
@@ -108,7 +109,7 @@ def test_patch_level_takes_the_rotation_vector_fallback():
     gd, gq = d.reshape(-1, 3).copy(), q.reshape(-1, 4).copy()
     S.patch_level(gd, gq, True, *S.level_pack([(g, s, 1, write)]), np.zeros(0), np.zeros((0, 3)))
     dr, qr = d.copy(), q.copy()
-    tfi.tfi_patch(dr, qr, s, lead=1)
+    oracles.tfi_patch(dr, qr, s, lead=1)
     np.testing.assert_allclose(gq.reshape(na, nb, 4), qr, rtol=0, atol=1e-13)
     np.testing.assert_allclose(np.linalg.norm(gq, axis=1), 1.0, rtol=0, atol=1e-13)
 
@@ -216,7 +217,7 @@ def test_halo_points_gather_mirror_and_mark_missing():
 def test_rigid_part_of_two_bodies_with_different_axes():
     """Two 3-D blocks side by side; the y = 0 face is one body, the y = 1 face another,
     turned about different axes.  The derived interface points get
-    Q = exp(phi_1 v_1 + phi_2 v_2) with phi_b the reference patch TFI (tfi.tfi_patch)
+    Q = exp(phi_1 v_1 + phi_2 v_2) with phi_b the reference patch TFI (oracles.tfi_patch)
     of each body's indicator over the interface, and walls land exactly."""
     grid, _, _, _ = G.box_pair(n=7)
     walls = ["1:jmin", "2:imin", "1:jmax", "2:imax"]
@@ -249,7 +250,7 @@ def test_rigid_part_of_two_bodies_with_different_axes():
         ind = np.zeros(g.shape + (3,))
         ind[..., 0] = np.isin(g, b.gids)
         ind[is_der, 0] = two.phi[der[is_der], k]
-        tfi.tfi_patch(ind, None, pt.s, lead=pt.lead)
+        oracles.tfi_patch(ind, None, pt.s, lead=pt.lead)
         phis.append(ind[..., 0])
     inner = (slice(1, -1), slice(1, -1))
     rv = phis[0][inner][..., None] * v[0] + phis[1][inner][..., None] * v[1]

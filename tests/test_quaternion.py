@@ -469,6 +469,12 @@ def test_array_drivers_match_scipy(qlist, data):
     (lambda: Q.blend(np.ones(4), np.ones(1)), "qs"),
     (lambda: Q.blend(np.ones((2, 4)), [1.0, np.nan]), "weights"),
     (lambda: Q.multiply(np.ones(3), np.ones(4)), "a"),
+    # leading shapes that do not broadcast: a GridValueError naming both, not numpy's ValueError
+    (lambda: Q.multiply(np.ones((2, 4)), np.ones((3, 4))), r"a \(2,\), b \(3,\)"),
+    (lambda: Q.rotate(np.ones((2, 4)), np.ones((3, 3))), r"q \(2,\), v \(3,\)"),
+    (lambda: Q.slerp(np.ones((2, 4)), np.ones((2, 4)), np.ones(3)), r"t \(3,\)"),
+    (lambda: Q.rotate(np.ones(4), "abc"), "v"),
+    (lambda: Q.slerp(np.ones(4), np.ones(4), "abc"), "t"),
 ])
 def test_drivers_reject_bad_input_naming_the_argument(call, name):
     with pytest.raises(GridValueError, match=name):

@@ -14,6 +14,7 @@ from tfi_quat import GridValueError, tfi
 from tfi_quat import quaternion as qa
 from tfi_quat.grid import Block
 
+import oracles
 from conftest import sheared_box
 
 ORDERS = list(itertools.permutations(range(3)))
@@ -82,7 +83,7 @@ def scale(xyz):
 
 
 def ref_update(xyz, s, fd, fq, c, order):
-    D, Q = tfi.tfi_block_fields(fd, fq, s, order)
+    D, Q = oracles.tfi_block_fields(fd, fq, s, order)
     if Q is None:
         return xyz + D, D, Q
     return c + D + rot(Q, xyz - c), D, Q
@@ -358,12 +359,12 @@ def test_tfi_built_grid_and_affine_field_are_reproduced(order):
     g = warped_block(shape, 11, amp=0.08)
     s = tfi.arclength(g)
     # a grid built by Soni TFI from a boundary is reproduced from its own boundary
-    built, _ = tfi.tfi_block_fields(faces_of(g, lambda p: p), None, s, order)
-    again, _ = tfi.tfi_block_fields(faces_of(built, lambda p: p), None, s, order)
+    built, _ = oracles.tfi_block_fields(faces_of(g, lambda p: p), None, s, order)
+    again, _ = oracles.tfi_block_fields(faces_of(built, lambda p: p), None, s, order)
     np.testing.assert_allclose(again, built, rtol=0, atol=1e-14 * scale(g))
     # ... and deforming it to another TFI-built grid lands exactly on that grid
     h = warped_block(shape, 12, amp=0.1) * 1.3 + 0.2
-    target, _ = tfi.tfi_block_fields(faces_of(h, lambda p: p), None, s, order)
+    target, _ = oracles.tfi_block_fields(faces_of(h, lambda p: p), None, s, order)
     fd = [Block(target).face(f) - Block(built).face(f) for f in range(6)]
     out = tfi.deform_block(np.asfortranarray(built), s, fd, None, np.zeros(3), order)
     np.testing.assert_allclose(out, target, rtol=0, atol=1e-14 * scale(h))
@@ -375,7 +376,7 @@ def test_tfi_built_grid_and_affine_field_are_reproduced(order):
     s = tfi.arclength(xyz)
     B = np.array([[0.1, -0.2, 0.05], [0.3, 0.0, 0.1], [-0.1, 0.2, 0.2]])
     field = lambda p: p @ B.T + [0.5, 0.1, -0.3]  # noqa: E731
-    D, _ = tfi.tfi_block_fields(faces_of(xyz, field), None, s, order)
+    D, _ = oracles.tfi_block_fields(faces_of(xyz, field), None, s, order)
     np.testing.assert_allclose(D, field(xyz), rtol=0, atol=1e-14 * scale(xyz))
     fq = [np.broadcast_to(quat([0.1, 0.2, -0.3]), Block(xyz).face(f).shape[:2] + (4,)) for f in range(6)]
     c = np.array([1.0, 0.0, 0.5])
@@ -393,12 +394,11 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
     tables = tfi._tables(dims, order, fdd, fqq, tfi.face_params(s), True)
     lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = tables
     a, b = np.empty_like(xyz), np.empty_like(xyz)
-    tfi._deform3_q(xyz, s, a, 0.1, 0.2, 0.3, *order, *tables)
-    tfi._deform3_q.py_func(xyz, s, b, 0.1, 0.2, 0.3, *order, *tables)
-    np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
-    tfi._deform3_d(xyz, s, a, *order, lineD, gD, hD)
-    tfi._deform3_d.py_func(xyz, s, b, *order, lineD, gD, hD)
-    np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
+    for hasq in (True, False):
+        kern = tfi._volume_kernel(True, hasq, False)
+        kern(xyz, s, a, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD)
+        kern.py_func(xyz, s, b, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
     # the set-up kernel too
     again = [np.empty_like(t) for t in tables]
     L, M, N = order
@@ -533,7 +533,7 @@ def test_deform_block_2d_reproduces_sides_and_equals_reference(shape, order, see
     fq = sides_of(flip_signs(faces_of(xyz, qfun, seed=seed)[:4], seed)) if with_q else None
     c = np.array([0.3, 0.2, 0.0])
     out = tfi.deform_block_2d(xyz, s, fd, fq, c, order)
-    D, Q = tfi.tfi_block_fields(fd, fq, s, order)
+    D, Q = oracles.tfi_block_fields(fd, fq, s, order)
     ref = xyz + D if Q is None else c + D + rot(Q, xyz - c)
     np.testing.assert_allclose(out, ref, rtol=0, atol=1e-14 * scale(xyz))
     sides = [out[0, :, 0], out[-1, :, 0], out[:, 0, 0], out[:, -1, 0]]
@@ -561,13 +561,12 @@ def test_deform_block_2d_rigid_and_uncompiled():
     tables = tfi._tables(dims, (1, 0, 2), tfi._sides_as_faces(fd, dims, 3, "d"),
                          tfi._sides_as_faces(fq, dims, 4, "q"), tfi.face_params(s), False)
     a, b = np.empty_like(xyz), np.empty_like(xyz)
-    tfi._deform2_q(xyz, s, a, 0.5, 0.5, 0.0, 1, 0, *tables)
-    tfi._deform2_q.py_func(xyz, s, b, 0.5, 0.5, 0.0, 1, 0, *tables)
-    np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
     lineD, _, gD, _, hD, _, _, _ = tables
-    tfi._deform2_d(xyz, s, a, 1, 0, lineD, gD, hD)
-    tfi._deform2_d.py_func(xyz, s, b, 1, 0, lineD, gD, hD)
-    np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
+    for hasq in (True, False):
+        kern = tfi._volume_kernel(False, hasq, False)
+        kern(xyz, s, a, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD)
+        kern.py_func(xyz, s, b, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
 
 
 @pytest.mark.parametrize("lead", [0, 1])
@@ -580,9 +579,9 @@ def test_tfi_patch_fills_interior_like_the_block_reference(lead):
     delta0, q0 = delta.copy(), q.copy()
     delta[1:-1, 1:-1] = np.nan
     q[1:-1, 1:-1] = np.nan
-    tfi.tfi_patch(delta, q, s, lead=lead)
+    oracles.tfi_patch(delta, q, s, lead=lead)
     sides = lambda a: [a[0], a[-1], a[:, 0], a[:, -1]]  # noqa: E731
-    D, Q = tfi.tfi_block_fields(sides(delta0), sides(q0), tfi.arclength(xyz), (lead, 1 - lead))
+    D, Q = oracles.tfi_block_fields(sides(delta0), sides(q0), tfi.arclength(xyz), (lead, 1 - lead))
     np.testing.assert_allclose(delta, D[:, :, 0], rtol=0, atol=1e-15)
     np.testing.assert_allclose(q[1:-1, 1:-1], Q[1:-1, 1:-1, 0], rtol=0, atol=1e-15)
     for a, b in zip(sides(delta), sides(delta0)):
@@ -591,7 +590,7 @@ def test_tfi_patch_fills_interior_like_the_block_reference(lead):
     # the leading direction matters on a patch with line-dependent parameters
     other = np.where(np.isnan(delta), 0, delta).copy()
     other[1:-1, 1:-1] = 0.0
-    tfi.tfi_patch(other, None, s, lead=1 - lead)
+    oracles.tfi_patch(other, None, s, lead=1 - lead)
     assert np.max(np.abs(other - delta)) > 1e-6
 
 
@@ -602,16 +601,16 @@ def test_tfi_patch_affine_field_and_validation():
     field = surf @ np.array([[0.3, -0.1, 0.2], [0.0, 0.5, 0.1], [0.2, 0.2, -0.4]]).T + 0.1
     delta = field.copy()
     delta[1:-1, 1:-1] = 0.0
-    tfi.tfi_patch(delta, None, s)
+    oracles.tfi_patch(delta, None, s)
     np.testing.assert_allclose(delta, field, rtol=0, atol=1e-15)
     with pytest.raises(GridValueError, match="delta: expected a writeable float64"):
-        tfi.tfi_patch(delta.astype(np.float32), None, s)
+        oracles.tfi_patch(delta.astype(np.float32), None, s)
     with pytest.raises(GridValueError, match="s: expected"):
-        tfi.tfi_patch(delta, None, s[:, :-1])
+        oracles.tfi_patch(delta, None, s[:, :-1])
     with pytest.raises(GridValueError, match="lead"):
-        tfi.tfi_patch(delta, None, s, lead=2)
+        oracles.tfi_patch(delta, None, s, lead=2)
     with pytest.raises(GridValueError, match="q: expected"):
-        tfi.tfi_patch(delta, np.zeros((5, 5, 4)), s)
+        oracles.tfi_patch(delta, np.zeros((5, 5, 4)), s)
 
 
 # ------------------------------------------------------------- degenerate blends
@@ -627,7 +626,7 @@ def test_near_zero_blend_falls_back_to_rotation_vectors():
     fd, fq = _half_turn_sides(ni, nj, np.zeros(3))
     c = np.zeros(3)
     out = tfi.deform_block_2d(xyz, s, fd, fq, c, (0, 1))
-    D, Q = tfi.tfi_block_fields(fd, fq, s, (0, 1))
+    D, Q = oracles.tfi_block_fields(fd, fq, s, (0, 1))
     assert np.all(np.isfinite(out)) and np.all(np.isfinite(Q))
     np.testing.assert_allclose(np.linalg.norm(Q, axis=-1), 1.0, rtol=0, atol=1e-12)
     np.testing.assert_allclose(out, c + D + rot(Q, xyz - c), rtol=0, atol=1e-14 * scale(xyz))
@@ -678,7 +677,7 @@ def test_fallback_points_of_the_fused_kernels_equal_the_reference(in_place):
     sj = s[1:-1, 2, 0, 1][:, None]
     V = fq[0][0] + (1 - sj) * (fq[2][1:-1] - fq[0][0]) + sj * (fq[3][1:-1] - fq[0][0])
     assert np.linalg.norm(V, axis=-1).max() < tfi.QNORM_MIN
-    D, Q = tfi.tfi_block_fields(fd, fq, s, order)
+    D, Q = oracles.tfi_block_fields(fd, fq, s, order)
     np.testing.assert_allclose(np.linalg.norm(Q, axis=-1), 1.0, rtol=0, atol=1e-12)
     ref = c + D + rot(Q, xyz - c)
     work = xyz.copy(order="F")
@@ -739,10 +738,13 @@ def test_fused_stage_allocates_only_surface_tables(with_q):
 
 
 def test_volume_kernels_are_parallel_and_cached():
-    """cache=True and parallel=True on the kernels of the volume stage (docs/method.md §6), set in _jit."""
+    """cache=True and parallel=True on the kernels of the volume stage (docs/method.md §6), set
+    in _jit; one kernel object per kind, made once."""
     from tfi_quat import _jit
-    for k in (tfi._deform3_q, tfi._deform3_d, tfi._deform2_q, tfi._deform2_d, tfi._arclength_kernel,
-              tfi._prep, tfi._fields2, tfi._gather):
+    kinds = [tfi._volume_kernel(*key) for key in itertools.product((True, False), repeat=3)]
+    assert len({id(k) for k in kinds}) == 8
+    assert tfi._volume_kernel(True, True, False) is tfi._volume_kernel(True, True, False)
+    for k in (*kinds, tfi._arclength_kernel, tfi._prep, tfi._fields2, tfi._gather):
         if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
             assert k.py_func is k
             continue
@@ -785,7 +787,7 @@ def test_deform_block_validates_arguments():
     with pytest.raises(GridValueError, match="nk == 1"):
         tfi.deform_block_2d(xyz, s, fd[:4], None, c, (0, 1))
     with pytest.raises(GridValueError, match="order"):
-        tfi.tfi_block_fields(fd, None, s, (0, 1, 2, 3))
+        oracles.tfi_block_fields(fd, None, s, (0, 1, 2, 3))
 
 
 @pytest.mark.parametrize("lead", [0, 1])
@@ -805,7 +807,7 @@ def test_compiled_patch_kernel_equals_the_reference(lead, with_q):
     d1, d2 = d.copy(), d.copy()
     q1 = None if q is None else q.copy()
     q2 = None if q is None else q.copy()
-    tfi.tfi_patch(d1, q1, s, lead)
+    oracles.tfi_patch(d1, q1, s, lead)
     tfi.tfi_patch_fast(d2, q2, tfi.patch_params(s), lead)
     np.testing.assert_allclose(d2, d1, rtol=0, atol=1e-13)
     assert np.array_equal(d2[0], d[0]) and np.array_equal(d2[:, -1], d[:, -1])
@@ -1066,3 +1068,20 @@ def test_gather_plan_and_deform_block_gathered_validate_arguments():
     with pytest.raises(GridValueError, match="out: expected"):
         tfi.deform_block_gathered(xyz, s, gd, gq, plan, c, out=np.empty(xyz.shape))
     assert "GatherPlan(dims=(4, 3, 2)" in repr(plan)
+
+
+@given(seeds_st)
+def test_fallback_log_is_half_the_quaternion_log(seed):
+    """kernels.rel_log (the fallback's tangent map) is quaternion.log of conj(b) ⊗ q, halved:
+    the package has one quaternion log (tiny angles, both hemispheres, and zero included)."""
+    from tfi_quat import kernels
+    rng = np.random.default_rng(seed)
+    b = quat(rng.normal(size=3))
+    rv = rng.normal(size=3) * rng.choice([1e-200, 1e-40, 1e-9, 1.0, 3.0])
+    q = qa.multiply(b, quat(rv))
+    for qq in (q, -q):
+        got = np.array(kernels.rel_log(*b, *qq))
+        np.testing.assert_allclose(got, 0.5 * qa.log(qa.multiply(qa.conjugate(b), qq)), rtol=0, atol=1e-15)
+        np.testing.assert_allclose(got, 0.5 * qa.log(quat(rv)), rtol=0, atol=1e-14)
+    for bb in (b, -b):
+        assert np.array_equal(np.array(kernels.rel_log(*b, *bb)), np.zeros(3))

@@ -14,9 +14,10 @@ read once when this module is first imported:
     start-up skips compilation).
 
 numba's disk cache is invalidated only by changes to a kernel's own source
-file: kernels that inline helpers from another module (``deform``,
-``blending`` and ``boundary`` inline ``tfi`` and ``quaternion`` helpers) keep
-their cached machine code when only the helper's file changes.  After
+file: kernels that inline helpers from another module (``tfi``, ``deform``,
+``blending`` and ``boundary`` inline the helpers of ``kernels`` and
+``quaternion``) keep their cached machine code when only the helper's file
+changes.  After
 editing such a helper, delete the package's ``__pycache__`` folders (or run
 with ``TFI_QUAT_CACHE=0``); a fresh checkout, as in CI, has no cache.
 

@@ -43,7 +43,8 @@ import numpy as np
 
 from ._jit import jit, pjit, prange
 from .errors import GridValueError
-from .tfi import S_DTYPE, ZERO_LENGTH_RTOL, _arc_line_i, _arc_tile_j, _arc_tile_k, _at, _check_xyz, _dist
+from .kernels import arc_line_i, arc_tile, at, dist, line_point
+from .tfi import S_DTYPE, ZERO_LENGTH_RTOL, check_xyz
 
 __all__ = ["wall_layer_line", "wall_layer_block", "wall_layer_arclength", "AMAX"]
 
@@ -199,7 +200,7 @@ def _layer_dir_i(xyz, s, lam0, lam1, out):
                 continue                        # out already holds s
             length = 0.0
             for i in range(1, ni):
-                length += _dist(xyz, i - 1, j, k, i, j, k)
+                length += dist(xyz, i - 1, j, k, i, j, k)
             for i in range(ni):
                 line[i] = s[i, j, k, 0]
             _layer_line(line, length, l0, l1, res)
@@ -207,95 +208,61 @@ def _layer_dir_i(xyz, s, lam0, lam1, out):
                 out[i, j, k, 0] = res[i]
 
 
-@pjit
-def _layer_dir_j(xyz, s, lam0, lam1, out):
-    """Direction j: one task per k-plane and tile of TILE lines i."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nt = (ni + TILE - 1) // TILE
-    for t in prange(nk * nt):
-        k = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if nj == 1:
+def _make_layer_dir(axis: int):
+    """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_block`: one task
+    per plane of the third direction and tile of TILE lines i (``axis`` is a closure
+    constant: its index arithmetic folds away)."""
+    @pjit
+    def layer_dir(xyz, s, lam0, lam1, out):
+        ni = xyz.shape[0]
+        n = xyz.shape[axis]
+        nt = (ni + TILE - 1) // TILE
+        for t in prange(xyz.shape[3 - axis] * nt):
+            c = t // nt
+            i0 = (t % nt) * TILE
+            nw = min(TILE, ni - i0)
+            u0 = np.uint64(i0)
+            if n == 1:
+                for w in range(nw):
+                    i, j, k = line_point(axis, at(u0, w), 0, c)
+                    out[i, j, k, axis] = 0.0
+                continue
+            l0 = np.empty(nw)
+            l1 = np.empty(nw)
+            act = np.empty(nw, dtype=np.bool_)
+            some = False
             for w in range(nw):
-                out[_at(u0, w), 0, k, 1] = 0.0
-            continue
-        l0 = np.empty(nw)
-        l1 = np.empty(nw)
-        act = np.empty(nw, dtype=np.bool_)
-        some = False
-        for w in range(nw):
-            l0[w] = lam0[_at(u0, w), k]
-            l1[w] = lam1[_at(u0, w), k]
-            act[w] = _needs_layer(l0[w], l1[w])
-            some = some or act[w]
-        if not some:
-            continue                            # out already holds s
-        ln = np.zeros(nw)
-        for j in range(1, nj):
+                l0[w] = lam0[at(u0, w), c]
+                l1[w] = lam1[at(u0, w), c]
+                act[w] = _needs_layer(l0[w], l1[w])
+                some = some or act[w]
+            if not some:
+                continue                            # out already holds s
+            ln = np.zeros(nw)
+            for m in range(1, n):
+                for w in range(nw):
+                    ia, ja, ka = line_point(axis, at(u0, w), m - 1, c)
+                    ib, jb, kb = line_point(axis, at(u0, w), m, c)
+                    ln[w] += dist(xyz, ia, ja, ka, ib, jb, kb)
+            col = np.empty((n, nw))
+            for m in range(n):
+                for w in range(nw):
+                    i, j, k = line_point(axis, at(u0, w), m, c)
+                    col[m, w] = s[i, j, k, axis]
             for w in range(nw):
-                i = _at(u0, w)
-                ln[w] += _dist(xyz, i, j - 1, k, i, j, k)
-        col = np.empty((nj, nw))
-        for j in range(nj):
-            for w in range(nw):
-                col[j, w] = s[_at(u0, w), j, k, 1]
-        for w in range(nw):
-            act[w] = act[w] and ln[w] > 0.0
-        work = np.empty((5, nw))
-        _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
-        for j in range(nj):
-            for w in range(nw):
-                if act[w]:
-                    out[_at(u0, w), j, k, 1] = col[j, w]
+                act[w] = act[w] and ln[w] > 0.0
+            work = np.empty((5, nw))
+            _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
+            for m in range(n):
+                for w in range(nw):
+                    if act[w]:
+                        i, j, k = line_point(axis, at(u0, w), m, c)
+                        out[i, j, k, axis] = col[m, w]
+
+    return layer_dir
 
 
-@pjit
-def _layer_dir_k(xyz, s, lam0, lam1, out):
-    """Direction k: one task per j-slab and tile of TILE lines i."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nt = (ni + TILE - 1) // TILE
-    for t in prange(nj * nt):
-        j = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if nk == 1:
-            for w in range(nw):
-                out[_at(u0, w), j, 0, 2] = 0.0
-            continue
-        l0 = np.empty(nw)
-        l1 = np.empty(nw)
-        act = np.empty(nw, dtype=np.bool_)
-        some = False
-        for w in range(nw):
-            l0[w] = lam0[_at(u0, w), j]
-            l1[w] = lam1[_at(u0, w), j]
-            act[w] = _needs_layer(l0[w], l1[w])
-            some = some or act[w]
-        if not some:
-            continue                            # out already holds s
-        ln = np.zeros(nw)
-        for k in range(1, nk):
-            for w in range(nw):
-                i = _at(u0, w)
-                ln[w] += _dist(xyz, i, j, k - 1, i, j, k)
-        col = np.empty((nk, nw))
-        for k in range(nk):
-            for w in range(nw):
-                col[k, w] = s[_at(u0, w), j, k, 2]
-        for w in range(nw):
-            act[w] = act[w] and ln[w] > 0.0
-        work = np.empty((5, nw))
-        _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
-        for k in range(nk):
-            for w in range(nw):
-                if act[w]:
-                    out[_at(u0, w), j, k, 2] = col[k, w]
-
-
-_LAYER_DIR = (_layer_dir_i, _layer_dir_j, _layer_dir_k)
+_LAYER_DIR = (_layer_dir_i, _make_layer_dir(1), _make_layer_dir(2))
 
 
 @jit(inline="always")
@@ -310,7 +277,7 @@ def _arc_tile_norm(col, cum, den, w):
 @jit(inline="always")
 def _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c):
     """Parameters of a tile of :func:`wall_layer_arclength` into ``col`` (n, nw): lines ``i = u0 + w``
-    with arclength ``cum / den`` and length ``ln`` (:func:`tfi._arc_tile_j`), thicknesses
+    with arclength ``cum / den`` and length ``ln`` (:func:`tfi_quat.kernels.arc_tile`), thicknesses
     ``lam0[i, c]`` and ``lam1[i, c]``."""
     n = col.shape[0]
     for m in range(n - 1):
@@ -324,8 +291,8 @@ def _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c):
     act = np.empty(nw, dtype=np.bool_)
     some = False
     for w in range(nw):
-        l0[w] = lam0[_at(u0, w), c]
-        l1[w] = lam1[_at(u0, w), c]
+        l0[w] = lam0[at(u0, w), c]
+        l1[w] = lam1[at(u0, w), c]
         need[w] = _needs_layer(l0[w], l1[w])
         act[w] = need[w] and ln[w] > 0.0
         some = some or act[w]
@@ -353,7 +320,7 @@ def _arc_layer_i(xyz, rtol, lam0, lam1, out):
             if ni == 1:
                 out[0, j, k, 0] = 0.0
                 continue
-            length, a = _arc_line_i(xyz, rtol, j, k, buf)
+            length, a = arc_line_i(xyz, rtol, j, k, buf)
             l0 = lam0[j, k]
             l1 = lam1[j, k]
             if _needs_layer(l0, l1):
@@ -369,57 +336,39 @@ def _arc_layer_i(xyz, rtol, lam0, lam1, out):
                 out[ni - 1, j, k, 0] = 1.0
 
 
-@pjit
-def _arc_layer_j(xyz, rtol, lam0, lam1, out):
-    """Direction j of :func:`wall_layer_arclength`: one task per k-plane and tile of TILE lines i."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nt = (ni + TILE - 1) // TILE
-    for t in prange(nk * nt):
-        k = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if nj == 1:
-            for w in range(nw):
-                out[_at(u0, w), 0, k, 1] = 0.0
-            continue
-        cum = np.empty((nj, nw))
-        col = np.empty((nj, nw))
-        ln = np.empty(nw)
-        den = np.empty(nw)
-        _arc_tile_j(xyz, rtol, u0, nw, k, cum, ln, den)
-        _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, k)
-        for j in range(nj):
-            for w in range(nw):
-                out[_at(u0, w), j, k, 1] = col[j, w]
+def _make_arc_layer(axis: int):
+    """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_arclength`: one
+    task per plane of the third direction and tile of TILE lines i."""
+    @pjit
+    def arc_layer(xyz, rtol, lam0, lam1, out):
+        ni = xyz.shape[0]
+        n = xyz.shape[axis]
+        nt = (ni + TILE - 1) // TILE
+        for t in prange(xyz.shape[3 - axis] * nt):
+            c = t // nt
+            i0 = (t % nt) * TILE
+            nw = min(TILE, ni - i0)
+            u0 = np.uint64(i0)
+            if n == 1:
+                for w in range(nw):
+                    i, j, k = line_point(axis, at(u0, w), 0, c)
+                    out[i, j, k, axis] = 0.0
+                continue
+            cum = np.empty((n, nw))
+            col = np.empty((n, nw))
+            ln = np.empty(nw)
+            den = np.empty(nw)
+            arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
+            _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c)
+            for m in range(n):
+                for w in range(nw):
+                    i, j, k = line_point(axis, at(u0, w), m, c)
+                    out[i, j, k, axis] = col[m, w]
+
+    return arc_layer
 
 
-@pjit
-def _arc_layer_k(xyz, rtol, lam0, lam1, out):
-    """Direction k of :func:`wall_layer_arclength`: one task per j-slab and tile of TILE lines i."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nt = (ni + TILE - 1) // TILE
-    for t in prange(nj * nt):
-        j = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if nk == 1:
-            for w in range(nw):
-                out[_at(u0, w), j, 0, 2] = 0.0
-            continue
-        cum = np.empty((nk, nw))
-        col = np.empty((nk, nw))
-        ln = np.empty(nw)
-        den = np.empty(nw)
-        _arc_tile_k(xyz, rtol, u0, nw, j, cum, ln, den)
-        _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, j)
-        for k in range(nk):
-            for w in range(nw):
-                out[_at(u0, w), j, k, 2] = col[k, w]
-
-
-_ARC_LAYER_DIR = (_arc_layer_i, _arc_layer_j, _arc_layer_k)
+_ARC_LAYER_DIR = (_arc_layer_i, _make_arc_layer(1), _make_arc_layer(2))
 
 
 def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
@@ -460,6 +409,9 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
         out[...] = s
     dims = xyz.shape[:3]
     for d in range(ndim):
+        if dims[d] == 1:                        # no lines to walk: compile nothing for them
+            out[..., d] = 0.0
+            continue
         others = tuple(dims[m] for m in range(3) if m != d)
         l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)
         l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
@@ -493,7 +445,7 @@ def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_R
     -------
     ndarray, shape (ni, nj, nk, 3), float64, Fortran order
     """
-    _check_xyz(xyz, "xyz")
+    check_xyz(xyz, "xyz")
     if len(lam) != 2 * ndim:
         raise GridValueError(f"lam: expected {2 * ndim} face arrays, got {len(lam)}")
     if out is None:
@@ -502,6 +454,9 @@ def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_R
         raise GridValueError(f"out: expected a float64 Fortran-order array of shape {xyz.shape}")
     dims = xyz.shape[:3]
     for d in range(3):
+        if dims[d] == 1:                        # one point per line: the parameter is 0, and
+            out[..., d] = 0.0                   # a 2-D run compiles no kernel for it
+            continue
         others = tuple(dims[m] for m in range(3) if m != d)
         if d < ndim:
             l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)

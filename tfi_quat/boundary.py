@@ -1,4 +1,4 @@
-"""Boundary quaternions: the rotation and translation of every wall point (DESIGN 3.1).
+"""Boundary quaternions: the rotation and translation of every wall point (docs/method.md §3.1).
 
 For each point of a structured wall patch, with undeformed position ``r_u``
 and deformed position ``r_d``:
@@ -33,9 +33,9 @@ import numpy as np
 
 from ._jit import jit, pjit, prange
 from .errors import DeformationError, GridValueError
-from .quaternion import _from_two_units_s, _mul_s, kblend
+from .quaternion import from_two_units_s, mul_s, kblend
 
-__all__ = ["boundary_motion", "surface_normals"]
+__all__ = ["boundary_motion", "surface_normals", "motion_padded"]
 
 #: a normal is undefined where |t_a x t_b| <= DEGENERATE * |t_a| |t_b|, or where
 #: one tangent is shorter than DEGENERATE times the other (collapsed edge)
@@ -225,7 +225,7 @@ def _point_quaternion(Pu, Pd, ii, jj, curve, e):
         sh = math.sin(h)
         a0, a1, a2, a3 = math.cos(h), e[0] * sh, e[1] * sh, e[2] * sh
     else:
-        a0, a1, a2, a3 = _from_two_units_s(ux, uy, uz, dx, dy, dz)
+        a0, a1, a2, a3 = from_two_units_s(ux, uy, uz, dx, dy, dz)
     # tangent-plane bases: t1 along the first tangent (normal to n_u by construction)
     inv = 1.0 / math.sqrt(aux * aux + auy * auy + auz * auz)
     t1x = aux * inv
@@ -268,7 +268,7 @@ def _point_quaternion(Pu, Pd, ii, jj, curve, e):
     else:
         hw = 1.0
         hs = 0.0
-    w, x, y, z = _mul_s(hw, dx * hs, dy * hs, dz * hs, a0, a1, a2, a3)
+    w, x, y, z = mul_s(hw, dx * hs, dy * hs, dz * hs, a0, a1, a2, a3)
     return w, x, y, z, True
 
 
@@ -360,7 +360,7 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     dx *= inv
     dy *= inv
     dz *= inv
-    # Q1 for n_u . n_d >= 0: [1 + c, n_u x n_d] normalised (as _from_two_units_s)
+    # Q1 for n_u . n_d >= 0: [1 + c, n_u x n_d] normalised (as from_two_units_s)
     c = ux * dx + uy * dy + uz * dz
     good &= c >= 0.0
     vx = uy * dz - uz * dy
@@ -404,7 +404,7 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     inv = _inv_sqrt(hn)
     hw *= inv
     hs *= inv
-    w, x, y, z = _mul_s(hw, dx * hs, dy * hs, dz * hs, a0, a1, a2, a3)
+    w, x, y, z = mul_s(hw, dx * hs, dy * hs, dz * hs, a0, a1, a2, a3)
     return w, x, y, z, good
 
 
@@ -691,7 +691,7 @@ def _prepare(ru, rd, plane_normal, halo_u, halo_d, names=("ru", "rd")):
 
 
 def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo_d=None):
-    """Boundary quaternions and translations of one structured wall patch (DESIGN 3.1).
+    """Boundary quaternions and translations of one structured wall patch (docs/method.md §3.1).
 
     Parameters
     ----------
@@ -702,7 +702,7 @@ def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo
     centre : array_like, shape (3,), optional
         Rotation centre ``c``.  Default: the centroid of ``ru``.  Pass one
         centre for all walls of a grid (e.g. the centroid of all walls), so
-        that the field moves with the problem (DESIGN 3.6).
+        that the field moves with the problem (docs/method.md §3.6).
     plane_normal : array_like, shape (3,), optional
         For a curve: the normal of the grid plane, e.g. ``(0, 0, 1)``; the
         curve normal is ``t x plane_normal`` with ``t`` along increasing index.
@@ -744,13 +744,22 @@ def boundary_motion(ru, rd, centre=None, *, plane_normal=None, halo_u=None, halo
         c = _vector3(centre, "centre")
     na = shape[0]
     nb = 1 if curve else shape[1]
-    q, delta = _motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb)
+    q, delta = motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb)
     return q.reshape(shape + (4,)), delta.reshape(shape + (3,))
 
 
-def _motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb):
-    """:func:`boundary_motion` on validated input (as :func:`_prepare` returns it): ``q``
-    (na, nb, 4) and ``delta`` (na, nb, 3).  The Deformer calls it with halos it builds once."""
+def motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb):
+    """:func:`boundary_motion` on validated, halo-padded input; nothing is checked.
+
+    The building block for a caller that pads a patch once and calls every
+    step (the Deformer).  ``Pu``/``Pd``: the undeformed and deformed points
+    with their halos, float64, C order, as ``_prepare`` builds them; ``oi``,
+    ``oj``: the halo widths (offset of point (0, 0)); ``curve``: a 2-D
+    boundary curve (``nb == 1``) in the plane of normal ``e`` (3,); ``c``
+    (3,): the rotation centre; ``na``, ``nb``: the patch's point counts.
+
+    Returns ``q`` (na, nb, 4) and ``delta`` (na, nb, 3), float64.
+    """
     q = np.empty((na, nb, 4))
     delta = np.empty((na, nb, 3))
     ok = np.empty((na, nb), dtype=np.uint8)

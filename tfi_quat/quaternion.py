@@ -10,9 +10,13 @@ Kernel contract
   The rotation of a vector ``v`` is ``q [0, v] q*``.
 * The composition "first ``a``, then ``b``" is ``b ⊗ a`` (:func:`kmul` (b, a, out)).
 
-* Scalar helpers (``_s`` suffix) take and return tuples of floats; the
-  array kernels are thin wrappers over them, and composite kernels
-  (:func:`kblend`) use them so that no scratch array is ever needed.
+* Scalar helpers (``_s`` suffix: :func:`mul_s`, :func:`log_s`,
+  :func:`exp_s`, :func:`from_two_units_s`, :func:`from_two_vectors_s`)
+  take and return tuples of floats; the array kernels are thin wrappers over
+  them, and composite kernels (:func:`kblend`, and those of
+  :mod:`tfi_quat.kernels` and :mod:`tfi_quat.boundary`) use them so that no
+  scratch array is ever needed.  :func:`log_s` is the package's one
+  quaternion log.
 
 Conventions
 -----------
@@ -22,14 +26,18 @@ Conventions
 * Axis-angle (:func:`kto_axis_angle`): unit axis and angle in ``[0, pi]``.
 
 Array drivers (no leading ``k``) take arrays of any leading shape
-``(..., 4)`` / ``(..., 3)`` / ``(..., 3, 3)``, validate them (raising
-:class:`tfi_quat.errors.GridValueError` that names the argument) and return
-new float64 arrays.
+``(..., 4)`` / ``(..., 3)`` / ``(..., 3, 3)``, broadcast against each other,
+validate them (raising :class:`tfi_quat.errors.GridValueError` that names the
+argument, also when leading shapes do not broadcast) and return new float64
+arrays.  Each runs its kernel over the flattened arrays in a compiled loop
+made by :func:`_many` (one template per number of inputs), through one
+Python helper, :func:`_drive`.
 """
 
 from __future__ import annotations
 
 import math
+import types
 
 import numpy as np
 
@@ -41,6 +49,8 @@ __all__ = [
     "kmul", "kconj", "knormalize", "krotate", "kslerp", "kdot",
     "kfrom_axis_angle", "kto_axis_angle", "kfrom_matrix", "kto_matrix",
     "kfrom_two_vectors", "klog", "kexp", "kblend",
+    # scalar helpers (building blocks of other kernels)
+    "mul_s", "log_s", "exp_s", "from_two_units_s", "from_two_vectors_s",
     # drivers
     "multiply", "conjugate", "normalize", "rotate", "slerp",
     "from_axis_angle", "to_axis_angle", "from_matrix", "to_matrix",
@@ -196,7 +206,7 @@ def kslerp(a, b, t, out):
 
 # ------------------------------------------------------- scalar helpers
 @jit(inline="always")
-def _mul_s(a0, a1, a2, a3, b0, b1, b2, b3):
+def mul_s(a0, a1, a2, a3, b0, b1, b2, b3):
     """Hamilton product of two quaternions given as scalars; returns a 4-tuple."""
     return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
             a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
@@ -205,7 +215,7 @@ def _mul_s(a0, a1, a2, a3, b0, b1, b2, b3):
 
 
 @jit(inline="always")
-def _log_s(w, x, y, z):
+def log_s(w, x, y, z):
     """Shortest rotation vector ``angle * axis`` of a (not necessarily unit) quaternion.
 
     The angle is ``2 atan2(|v|, |w|)`` (accurate near 0 and near pi); the
@@ -229,7 +239,7 @@ def _log_s(w, x, y, z):
 
 
 @jit(inline="always")
-def _exp_s(x, y, z):
+def exp_s(x, y, z):
     """Unit quaternion of the rotation vector ``(x, y, z)``; returns a 4-tuple."""
     t = math.sqrt(x * x + y * y + z * z)
     h = 0.5 * t
@@ -238,7 +248,7 @@ def _exp_s(x, y, z):
 
 
 @jit(inline="always")
-def _from_two_units_s(ax, ay, az, bx, by, bz):
+def from_two_units_s(ax, ay, az, bx, by, bz):
     """Minimal rotation taking unit vector ``a`` to unit vector ``b``; returns a 4-tuple.
 
     For ``c = a . b >= 0`` the quaternion ``[1 + c, a x b]`` is normalised
@@ -289,13 +299,13 @@ def _from_two_units_s(ax, ay, az, bx, by, bz):
 
 
 @jit(inline="always")
-def _from_two_vectors_s(ax, ay, az, bx, by, bz):
-    """:func:`_from_two_units_s` after normalising ``a`` and ``b``; a zero input gives the identity."""
+def from_two_vectors_s(ax, ay, az, bx, by, bz):
+    """:func:`from_two_units_s` after normalising ``a`` and ``b``; a zero input gives the identity."""
     na = math.sqrt(ax * ax + ay * ay + az * az)
     nb = math.sqrt(bx * bx + by * by + bz * bz)
     if not (na > 0.0 and nb > 0.0):
         return 1.0, 0.0, 0.0, 0.0
-    return _from_two_units_s(ax / na, ay / na, az / na, bx / nb, by / nb, bz / nb)
+    return from_two_units_s(ax / na, ay / na, az / na, bx / nb, by / nb, bz / nb)
 
 
 # ------------------------------------------------------- more kernels
@@ -430,12 +440,12 @@ def kfrom_matrix(m, out):
 def kfrom_two_vectors(a, b, out):
     """Minimal rotation taking direction ``a`` (3,) to direction ``b`` (3,).
 
-    Axis ``a x b / |a x b|`` (normalised, DESIGN 3.8), angle
+    Axis ``a x b / |a x b|`` (normalised, docs/method.md §3.8), angle
     ``atan2(|a x b|, a . b)``; parallel inputs give the identity, exactly
     antiparallel ones a rotation by pi about a perpendicular axis.  Inputs
     are normalised here; a zero input gives the identity.  ``w >= 0``.
     """
-    w, x, y, z = _from_two_vectors_s(a[0], a[1], a[2], b[0], b[1], b[2])
+    w, x, y, z = from_two_vectors_s(a[0], a[1], a[2], b[0], b[1], b[2])
     out[0] = w
     out[1] = x
     out[2] = y
@@ -445,7 +455,7 @@ def kfrom_two_vectors(a, b, out):
 @jit(inline="always")
 def klog(q, out3):
     """Rotation vector ``angle * axis`` of ``q`` into ``out3`` (3,), shortest (``|v| <= pi``)."""
-    x, y, z = _log_s(q[0], q[1], q[2], q[3])
+    x, y, z = log_s(q[0], q[1], q[2], q[3])
     out3[0] = x
     out3[1] = y
     out3[2] = z
@@ -454,7 +464,7 @@ def klog(q, out3):
 @jit(inline="always")
 def kexp(v3, out):
     """Unit quaternion of the rotation vector ``v3`` (3,) (inverse of :func:`klog`)."""
-    w, x, y, z = _exp_s(v3[0], v3[1], v3[2])
+    w, x, y, z = exp_s(v3[0], v3[1], v3[2])
     out[0] = w
     out[1] = x
     out[2] = y
@@ -542,13 +552,13 @@ def kblend(qs, w, out):
     v2 = 0.0
     for i in range(m):
         # ref* ⊗ q_i (log ignores the norm of q_i)
-        d0, d1, d2, d3 = _mul_s(r0, -r1, -r2, -r3, qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3])
-        l0, l1, l2 = _log_s(d0, d1, d2, d3)
+        d0, d1, d2, d3 = mul_s(r0, -r1, -r2, -r3, qs[i, 0], qs[i, 1], qs[i, 2], qs[i, 3])
+        l0, l1, l2 = log_s(d0, d1, d2, d3)
         v0 += w[i] * l0
         v1 += w[i] * l1
         v2 += w[i] * l2
-    e0, e1, e2, e3 = _exp_s(v0 / den, v1 / den, v2 / den)
-    b0, b1, b2, b3 = _mul_s(r0, r1, r2, r3, e0, e1, e2, e3)
+    e0, e1, e2, e3 = exp_s(v0 / den, v1 / den, v2 / den)
+    b0, b1, b2, b3 = mul_s(r0, r1, r2, r3, e0, e1, e2, e3)
     inv = 1.0 / math.sqrt(b0 * b0 + b1 * b1 + b2 * b2 + b3 * b3)
     out[0] = b0 * inv
     out[1] = b1 * inv
@@ -557,76 +567,57 @@ def kblend(qs, w, out):
 
 
 # ------------------------------------------------------------------ drivers
-@jit
-def _mul_many(a, b, out):
+# Loop templates: KERNEL is a global of each copy made by _many (not a closure
+# variable: numba keys its disk cache on the pickled closure, and a pickled
+# dispatcher differs between processes).
+def _loop1(a, out):
     for n in range(out.shape[0]):
-        kmul(a[n], b[n], out[n])
+        KERNEL(a[n], out[n])  # noqa: F821
 
 
-@jit
-def _rotate_many(q, v, out):
+def _loop2(a, b, out):
     for n in range(out.shape[0]):
-        krotate(q[n], v[n], out[n])
+        KERNEL(a[n], b[n], out[n])  # noqa: F821
 
 
-@jit
-def _slerp_many(a, b, t, out):
+def _loop3(a, b, c, out):
     for n in range(out.shape[0]):
-        kslerp(a[n], b[n], t[n], out[n])
+        KERNEL(a[n], b[n], c[n], out[n])  # noqa: F821
 
 
-@jit
-def _normalize_many(a, out):
-    for n in range(out.shape[0]):
-        knormalize(a[n], out[n])
+def _many(kernel, name: str):
+    """Compiled loop ``out[n] = kernel(inputs[n]...)`` over flattened arrays.
+
+    A copy of the template for the kernel's number of inputs, with the kernel
+    bound as its global ``KERNEL`` and its own name (numba's cache files are
+    named after it, so each loop keeps its own cache entry).
+    """
+    nin = kernel.py_func.__code__.co_argcount - 1
+    template = (_loop1, _loop2, _loop3)[nin - 1]
+    fn = types.FunctionType(template.__code__, dict(globals(), KERNEL=kernel), name)
+    fn.__qualname__ = name
+    fn.__doc__ = f"``{kernel.__name__}`` over the rows of flattened arrays."
+    return jit(fn)
 
 
-@jit
-def _from_axis_angle_many(axis, angle, out):
-    for n in range(out.shape[0]):
-        kfrom_axis_angle(axis[n], angle[n], out[n])
+@jit(inline="always")
+def _kaxis_angle(q, out):
+    """:func:`kto_axis_angle` packed as ``(axis, angle)`` into ``out`` (4,)."""
+    out[3] = kto_axis_angle(q, out[:3])
 
 
-@jit
-def _to_axis_angle_many(q, axis, angle):
-    for n in range(q.shape[0]):
-        angle[n] = kto_axis_angle(q[n], axis[n])
-
-
-@jit
-def _from_matrix_many(m, out):
-    for n in range(out.shape[0]):
-        kfrom_matrix(m[n], out[n])
-
-
-@jit
-def _to_matrix_many(q, out):
-    for n in range(q.shape[0]):
-        kto_matrix(q[n], out[n])
-
-
-@jit
-def _from_two_vectors_many(a, b, out):
-    for n in range(out.shape[0]):
-        kfrom_two_vectors(a[n], b[n], out[n])
-
-
-@jit
-def _log_many(q, out):
-    for n in range(q.shape[0]):
-        klog(q[n], out[n])
-
-
-@jit
-def _exp_many(v, out):
-    for n in range(out.shape[0]):
-        kexp(v[n], out[n])
-
-
-@jit
-def _blend_many(qs, w, out):
-    for n in range(out.shape[0]):
-        kblend(qs[n], w[n], out[n])
+_mul_many = _many(kmul, "_mul_many")
+_rotate_many = _many(krotate, "_rotate_many")
+_slerp_many = _many(kslerp, "_slerp_many")
+_normalize_many = _many(knormalize, "_normalize_many")
+_from_axis_angle_many = _many(kfrom_axis_angle, "_from_axis_angle_many")
+_axis_angle_many = _many(_kaxis_angle, "_axis_angle_many")
+_from_matrix_many = _many(kfrom_matrix, "_from_matrix_many")
+_to_matrix_many = _many(kto_matrix, "_to_matrix_many")
+_from_two_vectors_many = _many(kfrom_two_vectors, "_from_two_vectors_many")
+_log_many = _many(klog, "_log_many")
+_exp_many = _many(kexp, "_exp_many")
+_blend_many = _many(kblend, "_blend_many")
 
 
 def _float(a, name: str) -> np.ndarray:
@@ -664,13 +655,19 @@ def _bshape(*pairs) -> tuple:
         raise GridValueError(f"leading shapes do not broadcast: {desc}") from None
 
 
+def _drive(loop, out_tail: tuple, *inputs) -> np.ndarray:
+    """Run ``loop`` over validated inputs ``(name, array, tail)``, broadcast over their
+    leading shapes (a :class:`GridValueError` naming them if they do not broadcast);
+    returns the output, of shape ``leading + out_tail``."""
+    shape = _bshape(*((n, a.shape[:a.ndim - len(t)]) for n, a, t in inputs))
+    out = np.empty((int(np.prod(shape, dtype=np.int64)),) + out_tail)
+    loop(*(_flat(a, shape, t) for _, a, t in inputs), out)
+    return out.reshape(shape + out_tail)
+
+
 def multiply(a, b) -> np.ndarray:
     """Hamilton product ``a ⊗ b`` of quaternion arrays ``(..., 4)`` (broadcast)."""
-    a, b = np.broadcast_arrays(_q(a, "a"), _q(b, "b"))
-    shape = a.shape
-    out = np.empty((int(np.prod(shape[:-1], dtype=np.int64)), 4))
-    _mul_many(np.ascontiguousarray(a).reshape(-1, 4), np.ascontiguousarray(b).reshape(-1, 4), out)
-    return out.reshape(shape)
+    return _drive(_mul_many, (4,), ("a", _q(a, "a"), (4,)), ("b", _q(b, "b"), (4,)))
 
 
 def conjugate(q) -> np.ndarray:
@@ -683,34 +680,18 @@ def conjugate(q) -> np.ndarray:
 
 def normalize(q) -> np.ndarray:
     """Unit quaternions ``q / |q|``; zero quaternions become the identity."""
-    q = _q(q, "q")
-    out = np.empty((int(np.prod(q.shape[:-1], dtype=np.int64)), 4))
-    _normalize_many(np.ascontiguousarray(q).reshape(-1, 4), out)
-    return out.reshape(q.shape)
+    return _drive(_normalize_many, (4,), ("q", _q(q, "q"), (4,)))
 
 
 def rotate(q, v) -> np.ndarray:
     """Rotate vectors ``v (..., 3)`` by unit quaternions ``q (..., 4)`` (broadcast)."""
-    q, v = _q(q, "q"), _v(v, "v")
-    shape = np.broadcast_shapes(q.shape[:-1], v.shape[:-1])
-    qb = np.ascontiguousarray(np.broadcast_to(q, shape + (4,))).reshape(-1, 4)
-    vb = np.ascontiguousarray(np.broadcast_to(v, shape + (3,))).reshape(-1, 3)
-    out = np.empty_like(vb)
-    _rotate_many(qb, vb, out)
-    return out.reshape(shape + (3,))
+    return _drive(_rotate_many, (3,), ("q", _q(q, "q"), (4,)), ("v", _v(v, "v"), (3,)))
 
 
 def slerp(a, b, t) -> np.ndarray:
     """Shortest-arc spherical interpolation between unit quaternions (broadcast over ``t``)."""
-    a, b = _q(a, "a"), _q(b, "b")
-    t = np.asarray(t, dtype=np.float64)
-    shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1], t.shape)
-    ab = np.ascontiguousarray(np.broadcast_to(a, shape + (4,))).reshape(-1, 4)
-    bb = np.ascontiguousarray(np.broadcast_to(b, shape + (4,))).reshape(-1, 4)
-    tb = np.ascontiguousarray(np.broadcast_to(t, shape)).reshape(-1)
-    out = np.empty_like(ab)
-    _slerp_many(ab, bb, tb, out)
-    return out.reshape(shape + (4,))
+    return _drive(_slerp_many, (4,), ("a", _q(a, "a"), (4,)), ("b", _q(b, "b"), (4,)),
+                  ("t", _float(t, "t"), ()))
 
 
 def from_axis_angle(axis, angle) -> np.ndarray:
@@ -727,12 +708,8 @@ def from_axis_angle(axis, angle) -> np.ndarray:
     -------
     q : ndarray, shape (..., 4), float64
     """
-    axis = _v(axis, "axis")
-    angle = _float(angle, "angle")
-    shape = _bshape(("axis", axis.shape[:-1]), ("angle", angle.shape))
-    out = np.empty((int(np.prod(shape, dtype=np.int64)), 4))
-    _from_axis_angle_many(_flat(axis, shape, (3,)), _flat(angle, shape, ()), out)
-    return out.reshape(shape + (4,))
+    return _drive(_from_axis_angle_many, (4,), ("axis", _v(axis, "axis"), (3,)),
+                  ("angle", _float(angle, "angle"), ()))
 
 
 def to_axis_angle(q):
@@ -744,13 +721,8 @@ def to_axis_angle(q):
         Unit axes; ``(1, 0, 0)`` for the identity.
     angle : ndarray, shape (...), float64
     """
-    q = _q(q, "q")
-    shape = q.shape[:-1]
-    qf = _flat(q, shape, (4,))
-    axis = np.empty((qf.shape[0], 3))
-    angle = np.empty(qf.shape[0])
-    _to_axis_angle_many(qf, axis, angle)
-    return axis.reshape(shape + (3,)), angle.reshape(shape)
+    packed = _drive(_axis_angle_many, (4,), ("q", _q(q, "q"), (4,)))
+    return np.ascontiguousarray(packed[..., :3]), np.ascontiguousarray(packed[..., 3])
 
 
 def from_matrix(m) -> np.ndarray:
@@ -764,20 +736,12 @@ def from_matrix(m) -> np.ndarray:
         raise GridValueError(f"m: rotation matrices need trailing shape (3, 3), got shape {m.shape}")
     if not np.all(np.isfinite(m)):
         raise GridValueError("m: rotation matrices hold NaN or infinite values")
-    shape = m.shape[:-2]
-    out = np.empty((int(np.prod(shape, dtype=np.int64)), 4))
-    _from_matrix_many(_flat(m, shape, (3, 3)), out)
-    return out.reshape(shape + (4,))
+    return _drive(_from_matrix_many, (4,), ("m", m, (3, 3)))
 
 
 def to_matrix(q) -> np.ndarray:
     """Rotation matrices ``(..., 3, 3)`` of quaternions ``q (..., 4)``: ``R @ v == rot(q, v)``."""
-    q = _q(q, "q")
-    shape = q.shape[:-1]
-    qf = _flat(q, shape, (4,))
-    out = np.empty((qf.shape[0], 3, 3))
-    _to_matrix_many(qf, out)
-    return out.reshape(shape + (3, 3))
+    return _drive(_to_matrix_many, (3, 3), ("q", _q(q, "q"), (4,)))
 
 
 def from_two_vectors(a, b) -> np.ndarray:
@@ -790,31 +754,17 @@ def from_two_vectors(a, b) -> np.ndarray:
     -------
     q : ndarray, shape (..., 4), float64, ``w >= 0``
     """
-    a, b = _v(a, "a"), _v(b, "b")
-    shape = _bshape(("a", a.shape[:-1]), ("b", b.shape[:-1]))
-    out = np.empty((int(np.prod(shape, dtype=np.int64)), 4))
-    _from_two_vectors_many(_flat(a, shape, (3,)), _flat(b, shape, (3,)), out)
-    return out.reshape(shape + (4,))
+    return _drive(_from_two_vectors_many, (4,), ("a", _v(a, "a"), (3,)), ("b", _v(b, "b"), (3,)))
 
 
 def log(q) -> np.ndarray:
     """Rotation vectors ``angle * axis`` (shortest, ``|v| <= pi``) of quaternions ``q (..., 4)``."""
-    q = _q(q, "q")
-    shape = q.shape[:-1]
-    qf = _flat(q, shape, (4,))
-    out = np.empty((qf.shape[0], 3))
-    _log_many(qf, out)
-    return out.reshape(shape + (3,))
+    return _drive(_log_many, (3,), ("q", _q(q, "q"), (4,)))
 
 
 def exp(v) -> np.ndarray:
     """Unit quaternions of rotation vectors ``v (..., 3)`` (inverse of :func:`log`)."""
-    v = _v(v, "v")
-    shape = v.shape[:-1]
-    vf = _flat(v, shape, (3,))
-    out = np.empty((vf.shape[0], 4))
-    _exp_many(vf, out)
-    return out.reshape(shape + (4,))
+    return _drive(_exp_many, (4,), ("v", _v(v, "v"), (3,)))
 
 
 def blend(qs, weights) -> np.ndarray:
@@ -843,7 +793,4 @@ def blend(qs, weights) -> np.ndarray:
                              f"got shape {weights.shape}")
     if not (np.all(np.isfinite(qs)) and np.all(np.isfinite(weights))):
         raise GridValueError("qs/weights: NaN or infinite values")
-    shape = _bshape(("qs", qs.shape[:-2]), ("weights", weights.shape[:-1]))
-    out = np.empty((int(np.prod(shape, dtype=np.int64)), 4))
-    _blend_many(_flat(qs, shape, (m, 4)), _flat(weights, shape, (m,)), out)
-    return out.reshape(shape + (4,))
+    return _drive(_blend_many, (4,), ("qs", qs, (m, 4)), ("weights", weights, (m,)))

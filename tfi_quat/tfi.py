@@ -1,6 +1,6 @@
 """Arclength parameters and Soni transfinite interpolation (TFI) kernels.
 
-DESIGN 3.2, 3.4, 3.5 and 6.  Every interpolated field is a pair (Δ, Q): a
+docs/method.md §3.2, §3.4, §3.5 and §6.  Every interpolated field is a pair (Δ, Q): a
 translation (3 components, blended linearly) and a unit quaternion
 (``(w, x, y, z)``, slerp in the leading direction, hemisphere-aligned linear
 corrections, normalised at the end).  The blending parameters are the
@@ -26,8 +26,10 @@ Public functions
     values on the six faces, also set up once, for the fused kernels.
 :func:`lead_order`
     direction order from the prescribed point counts of the faces.
-:func:`interp_segment`, :func:`tfi_patch`, :func:`tfi_block_fields`
-    1-D, 2-D and unfused 3-D interpolation of (Δ, Q) fields.
+:func:`interp_segment`
+    1-D interpolation of (Δ, Q) along a segment.
+:func:`patch_params`, :func:`tfi_patch_fast`
+    2-D interpolation of (Δ, Q) fields on a patch, filled from its sides.
 :func:`deform_block`, :func:`deform_block_2d`
     the fused volume stage ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``, computed
     point by point from O(surface) precomputed data, with no full-size Δ or Q
@@ -36,6 +38,16 @@ Public functions
     the same stage for a caller whose face values are rows of global arrays
     (the Deformer): the faces are gathered inside the compiled set-up,
     straight into the tables, which a :class:`GatherPlan` keeps between calls.
+:func:`check_xyz`
+    the validation of block coordinates every driver here (and in
+    :mod:`tfi_quat.blending`) applies.
+
+The per-point formulas, slerp weights and arclength walkers these kernels
+inline live in :mod:`tfi_quat.kernels` (shared with :mod:`tfi_quat.blending`
+and :mod:`tfi_quat.deform`).  One definition makes every fused volume kernel
+(:func:`_volume_kernel`, specialised by 2-D/3-D, quaternion or baseline,
+based or not) and one dispatcher runs them (:func:`_run_volume`).  A plain
+numpy reference of the same TFI, for tests, is ``tests/oracles.py``.
 
 Fused kernel layout
 -------------------
@@ -62,15 +74,13 @@ import numpy as np
 from ._jit import jit, pjit, prange
 from .errors import GridValueError
 from .grid import FACES
-from .quaternion import multiply as _qmul_np
-from .quaternion import rotate as _qrot_np
-from .quaternion import slerp as _qslerp_np
+from .kernels import (QNORM_MIN, arc_line_i, arc_tile, at, face_coords, face_point, fallback_q,
+                      line_point, slerp_angle, slerp_weights, u_d, u_q, v_d, v_q, w_d, w_q)
 
 __all__ = [
-    "S_DTYPE", "QNORM_MIN",
-    "arclength", "arclength_curve", "arclength_surface",
-    "face_params", "lead_order", "interp_segment", "tfi_patch", "patch_params", "tfi_patch_fast",
-    "tfi_block_fields",
+    "S_DTYPE", "QNORM_MIN", "ZERO_LENGTH_RTOL",
+    "arclength", "arclength_curve", "arclength_surface", "check_xyz",
+    "face_params", "lead_order", "interp_segment", "patch_params", "tfi_patch_fast",
     "deform_block", "deform_block_2d",
     "GatherPlan", "gather_plan", "deform_block_gathered",
 ]
@@ -85,214 +95,9 @@ __all__ = [
 #: therefore take float64 only (one compiled specialisation each).
 S_DTYPE = np.float64
 
-#: a blended quaternion with a smaller norm falls back to the rotation-vector blend
-QNORM_MIN = 1e-3
-
 #: a line shorter than this times its end points' largest coordinate
 #: magnitude counts as zero-length (parameters become index-uniform)
 ZERO_LENGTH_RTOL = 1e-12
-
-# Taylor coefficients of sin(x)/x in x**2 (terms up to x**20 / 21!): on
-# 0 <= x <= pi/2 the truncation error is below 2e-16.
-_S1 = -1.0 / 6.0
-_S2 = 1.0 / 120.0
-_S3 = -1.0 / 5040.0
-_S4 = 1.0 / 362880.0
-_S5 = -1.0 / 39916800.0
-_S6 = 1.0 / 6227020800.0
-_S7 = -1.0 / 1307674368000.0
-_S8 = 1.0 / 355687428096000.0
-_S9 = -1.0 / 121645100408832000.0
-_S10 = 1.0 / 51090942171709440000.0
-
-
-# =================================================================== scalar helpers
-@jit(inline="always")
-def _sinc2(x2):
-    """``sin(x)/x`` as a function of ``x2 = x**2``, for ``0 <= x <= pi/2``."""
-    return 1.0 + x2 * (_S1 + x2 * (_S2 + x2 * (_S3 + x2 * (_S4 + x2 * (
-        _S5 + x2 * (_S6 + x2 * (_S7 + x2 * (_S8 + x2 * (_S9 + x2 * _S10)))))))))
-
-
-@jit(inline="always")
-def _slerp_angle(a0, a1, a2, a3, b0, b1, b2, b3):
-    """Angle between two unit quaternions (as 4-vectors, ``b`` already aligned): ``(ω², sinc(ω))``."""
-    d0 = a0 - b0
-    d1 = a1 - b1
-    d2 = a2 - b2
-    d3 = a3 - b3
-    p0 = a0 + b0
-    p1 = a1 + b1
-    p2 = a2 + b2
-    p3 = a3 + b3
-    om = 2.0 * math.atan2(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3),
-                          math.sqrt(p0 * p0 + p1 * p1 + p2 * p2 + p3 * p3))
-    w2 = om * om
-    return w2, _sinc2(w2)
-
-
-@jit(inline="always")
-def _slerp_weights(t, w2, sw):
-    """Slerp weights ``sin((1-t)ω)/sin ω`` and ``sin(tω)/sin ω``; exactly (1, 0) at t=0, (0, 1) at t=1."""
-    u = 1.0 - t
-    return u * _sinc2(u * u * w2) / sw, t * _sinc2(t * t * w2) / sw
-
-
-@jit(inline="always")
-def _rel_log(bw, bx, by, bz, qw, qx, qy, qz):
-    """Rotation half-vector ``log(conj(b) ⊗ q)`` (q taken in b's hemisphere)."""
-    w = bw * qw + bx * qx + by * qy + bz * qz
-    x = bw * qx - qw * bx - (by * qz - bz * qy)
-    y = bw * qy - qw * by - (bz * qx - bx * qz)
-    z = bw * qz - qw * bz - (bx * qy - by * qx)
-    if w < 0.0:
-        w = -w
-        x = -x
-        y = -y
-        z = -z
-    n = math.sqrt(x * x + y * y + z * z)
-    if n > 1e-30:
-        f = math.atan2(n, w) / n
-    elif w > 0.0:
-        f = 1.0 / w
-    else:
-        f = 0.0
-    return x * f, y * f, z * f
-
-
-@jit(inline="always")
-def _exp_times(bw, bx, by, bz, rx, ry, rz):
-    """``b ⊗ exp(r)`` for a rotation half-vector ``r``."""
-    th = math.sqrt(rx * rx + ry * ry + rz * rz)
-    c = math.cos(th)
-    if th > 1e-8:
-        f = math.sin(th) / th
-    else:
-        f = 1.0 - th * th / 6.0
-    ew = c
-    ex = rx * f
-    ey = ry * f
-    ez = rz * f
-    w = bw * ew - bx * ex - by * ey - bz * ez
-    x = bw * ex + bx * ew + by * ez - bz * ey
-    y = bw * ey - bx * ez + by * ew + bz * ex
-    z = bw * ez + bx * ey - by * ex + bz * ew
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return w / n, x / n, y / n, z / n
-
-
-@jit(inline="always")
-def _fc(i, j, k, d):
-    """Face coordinates of block point (i, j, k) on a face normal to direction ``d``."""
-    if d == 0:
-        return j, k
-    if d == 1:
-        return i, k
-    return i, j
-
-
-@jit(inline="always")
-def _bidx(d, idx, a, b):
-    """Block point of face coordinates (a, b) on the face ``index_d = idx``."""
-    if d == 0:
-        return idx, a, b
-    if d == 1:
-        return a, idx, b
-    return a, b, idx
-
-
-# ------------------------------------------------------------- per-point formulas
-@jit(inline="always")
-def _u_d(lineD, la, lb, t):
-    u = 1.0 - t
-    return (u * lineD[la, lb, 0] + t * lineD[la, lb, 3],
-            u * lineD[la, lb, 1] + t * lineD[la, lb, 4],
-            u * lineD[la, lb, 2] + t * lineD[la, lb, 5])
-
-
-@jit(inline="always")
-def _v_d(lineD, la, lb, t, gD, ma, mb, sm):
-    x, y, z = _u_d(lineD, la, lb, t)
-    um = 1.0 - sm
-    return (x + um * gD[ma, mb, 0] + sm * gD[ma, mb, 3],
-            y + um * gD[ma, mb, 1] + sm * gD[ma, mb, 4],
-            z + um * gD[ma, mb, 2] + sm * gD[ma, mb, 5])
-
-
-@jit(inline="always")
-def _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn):
-    x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
-    un = 1.0 - sn
-    return (x + un * hD[na, nb, 0] + sn * hD[na, nb, 3],
-            y + un * hD[na, nb, 1] + sn * hD[na, nb, 4],
-            z + un * hD[na, nb, 2] + sn * hD[na, nb, 5])
-
-
-@jit(inline="always")
-def _u_q(lineQ, la, lb, t):
-    wa, wb = _slerp_weights(t, lineQ[la, lb, 8], lineQ[la, lb, 9])
-    return (wa * lineQ[la, lb, 0] + wb * lineQ[la, lb, 4],
-            wa * lineQ[la, lb, 1] + wb * lineQ[la, lb, 5],
-            wa * lineQ[la, lb, 2] + wb * lineQ[la, lb, 6],
-            wa * lineQ[la, lb, 3] + wb * lineQ[la, lb, 7])
-
-
-@jit(inline="always")
-def _v_q(lineQ, la, lb, t, gQ, ma, mb, sm):
-    w, x, y, z = _u_q(lineQ, la, lb, t)
-    um = 1.0 - sm
-    return (w + um * gQ[ma, mb, 0] + sm * gQ[ma, mb, 4],
-            x + um * gQ[ma, mb, 1] + sm * gQ[ma, mb, 5],
-            y + um * gQ[ma, mb, 2] + sm * gQ[ma, mb, 6],
-            z + um * gQ[ma, mb, 3] + sm * gQ[ma, mb, 7])
-
-
-@jit(inline="always")
-def _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn):
-    w, x, y, z = _v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
-    un = 1.0 - sn
-    return (w + un * hQ[na, nb, 0] + sn * hQ[na, nb, 4],
-            x + un * hQ[na, nb, 1] + sn * hQ[na, nb, 5],
-            y + un * hQ[na, nb, 2] + sn * hQ[na, nb, 6],
-            z + un * hQ[na, nb, 3] + sn * hQ[na, nb, 7])
-
-
-@jit
-def _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn):
-    """Boolean sum of rotation vectors in the tangent space at the slerp value U.
-
-    ``fbM[ma, mb]`` holds ``(U|M0, F'_M0, U|M1, F'_M1)`` and ``fbN[na, nb]``
-    ``(V̂|N0, F'_N0, V̂|N1, F'_N1)``, all unit.  Returns a unit quaternion.
-    """
-    w, x, y, z = _u_q(lineQ, la, lb, t)
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    w /= n
-    x /= n
-    y /= n
-    z /= n
-    rx = 0.0
-    ry = 0.0
-    rz = 0.0
-    for side in range(2):
-        wt = (1.0 - sm) if side == 0 else sm
-        o = 8 * side
-        fx, fy, fz = _rel_log(w, x, y, z, fbM[ma, mb, o + 4], fbM[ma, mb, o + 5],
-                              fbM[ma, mb, o + 6], fbM[ma, mb, o + 7])
-        ux, uy, uz = _rel_log(w, x, y, z, fbM[ma, mb, o], fbM[ma, mb, o + 1],
-                              fbM[ma, mb, o + 2], fbM[ma, mb, o + 3])
-        rx += wt * (fx - ux)
-        ry += wt * (fy - uy)
-        rz += wt * (fz - uz)
-        if hasn:
-            wt = (1.0 - sn) if side == 0 else sn
-            fx, fy, fz = _rel_log(w, x, y, z, fbN[na, nb, o + 4], fbN[na, nb, o + 5],
-                                  fbN[na, nb, o + 6], fbN[na, nb, o + 7])
-            ux, uy, uz = _rel_log(w, x, y, z, fbN[na, nb, o], fbN[na, nb, o + 1],
-                                  fbN[na, nb, o + 2], fbN[na, nb, o + 3])
-            rx += wt * (fx - ux)
-            ry += wt * (fy - uy)
-            rz += wt * (fz - uz)
-    return _exp_times(w, x, y, z, rx, ry, rz)
 
 
 @jit(inline="always")
@@ -332,47 +137,6 @@ def _store_g_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz
     out[i, j, k, 2] = z0 + g * dz + g * (qw * tz + (qx * ty - qy * tx))
 
 
-@jit(inline="always")
-def _store_g(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz, g):
-    """:func:`_store_g_at` with the base point ``R_u = xyz[i, j, k]``."""
-    _store_g_at(out, i, j, k, xyz[i, j, k, 0], xyz[i, j, k, 1], xyz[i, j, k, 2], cx, cy, cz,
-                dx, dy, dz, qw, qx, qy, qz, g)
-
-
-@jit(inline="always")
-def _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-             lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb):
-    """Fused update of one point; returns 1 when the blended Q needs the fallback.
-
-    A point that needs the fallback is stored as ``R_u`` itself (the change
-    scaled by 0, without a branch), so that :func:`_fix_row` still finds
-    ``R_u`` there when ``out`` is ``xyz`` (in-place update).  (A select of
-    Q = 1 and Δ = 0 instead cost 12 % of the loop's speed.)
-    """
-    t = np.float64(s[i, j, k, L])
-    sm = np.float64(s[i, j, k, M])
-    sn = np.float64(s[i, j, k, N])
-    dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
-    qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
-    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    inv = 1.0 / max(n, QNORM_MIN)
-    g = 1.0 if n >= QNORM_MIN else 0.0
-    _store_g(xyz, out, i, j, k, cx, cy, cz, dx, dy, dz, qw * inv, qx * inv, qy * inv, qz * inv, g)
-    return 1 if n < QNORM_MIN else 0
-
-
-@jit(inline="always")
-def _point_d(xyz, s, out, i, j, k, L, M, N, lineD, la, lb, gD, ma, mb, hD, na, nb):
-    """Fused baseline update of one point (Q ≡ 1): ``out = R_u + Δ``."""
-    t = np.float64(s[i, j, k, L])
-    sm = np.float64(s[i, j, k, M])
-    sn = np.float64(s[i, j, k, N])
-    dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
-    out[i, j, k, 0] = xyz[i, j, k, 0] + dx
-    out[i, j, k, 1] = xyz[i, j, k, 1] + dy
-    out[i, j, k, 2] = xyz[i, j, k, 2] + dz
-
-
 @jit
 def _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
              fbM, fbN, hasn, hasb, lineB, gB, hB):
@@ -381,19 +145,19 @@ def _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, h
     ``hasb``: about the based kernels' base point ``R_u + TFI(B)`` (tables ``lineB``,
     ``gB``, ``hB``; any tables of the right rank, never read, otherwise)."""
     for i in range(xyz.shape[0]):
-        la, lb = _fc(i, j, k, L)
-        ma, mb = _fc(i, j, k, M)
+        la, lb = face_coords(i, j, k, L)
+        ma, mb = face_coords(i, j, k, M)
         if hasn:
-            na, nb = _fc(i, j, k, N)
+            na, nb = face_coords(i, j, k, N)
         else:
             na, nb = 0, 0
         t = np.float64(s[i, j, k, L])
         sm = np.float64(s[i, j, k, M])
         sn = np.float64(s[i, j, k, N])
-        qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+        qw, qx, qy, qz = w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
         if math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) < QNORM_MIN:
-            dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
-            qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn)
+            dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+            qw, qx, qy, qz = fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn)
             if hasb:
                 x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb,
                                       sn)
@@ -437,7 +201,7 @@ def _prep_line(b, hasq, FL, QL, lineD, lineQ):
             for c in range(4):
                 lineQ[a, b, c] = QL[a, b, c, 0]
                 lineQ[a, b, 4 + c] = sg * QL[a, b, c, 1]
-            w2, sw = _slerp_angle(lineQ[a, b, 0], lineQ[a, b, 1], lineQ[a, b, 2], lineQ[a, b, 3],
+            w2, sw = slerp_angle(lineQ[a, b, 0], lineQ[a, b, 1], lineQ[a, b, 2], lineQ[a, b, 3],
                                   lineQ[a, b, 4], lineQ[a, b, 5], lineQ[a, b, 6], lineQ[a, b, 7])
             lineQ[a, b, 8] = w2
             lineQ[a, b, 9] = sw
@@ -447,15 +211,15 @@ def _prep_line(b, hasq, FL, QL, lineD, lineQ):
 def _prep_m(b, side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
     """Residuals ``F - U`` on column ``b`` of the M face ``side`` (index ``im``)."""
     for a in range(FM.shape[0]):
-        i, j, k = _bidx(M, im, a, b)
-        la, lb = _fc(i, j, k, L)
+        i, j, k = face_point(M, im, a, b)
+        la, lb = face_coords(i, j, k, L)
         t = SM[a, b, L, side]
-        x, y, z = _u_d(lineD, la, lb, t)
+        x, y, z = u_d(lineD, la, lb, t)
         gD[a, b, 3 * side] = FM[a, b, 0, side] - x
         gD[a, b, 3 * side + 1] = FM[a, b, 1, side] - y
         gD[a, b, 3 * side + 2] = FM[a, b, 2, side] - z
         if hasq:
-            qw, qx, qy, qz = _u_q(lineQ, la, lb, t)
+            qw, qx, qy, qz = u_q(lineQ, la, lb, t)
             d = qw * QM[a, b, 0, side] + qx * QM[a, b, 1, side] + qy * QM[a, b, 2, side] + qz * QM[a, b, 3, side]
             sg = -1.0 if d < 0.0 else 1.0
             o = 4 * side
@@ -477,17 +241,17 @@ def _prep_m(b, side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
 def _prep_n(b, side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, hD, hQ, fbN):
     """Residuals ``F - V`` on column ``b`` of the N face ``side`` (index ``im``)."""
     for a in range(FN.shape[0]):
-        i, j, k = _bidx(N, im, a, b)
-        la, lb = _fc(i, j, k, L)
-        ma, mb = _fc(i, j, k, M)
+        i, j, k = face_point(N, im, a, b)
+        la, lb = face_coords(i, j, k, L)
+        ma, mb = face_coords(i, j, k, M)
         t = SN[a, b, L, side]
         sm = SN[a, b, M, side]
-        x, y, z = _v_d(lineD, la, lb, t, gD, ma, mb, sm)
+        x, y, z = v_d(lineD, la, lb, t, gD, ma, mb, sm)
         hD[a, b, 3 * side] = FN[a, b, 0, side] - x
         hD[a, b, 3 * side + 1] = FN[a, b, 1, side] - y
         hD[a, b, 3 * side + 2] = FN[a, b, 2, side] - z
         if hasq:
-            qw, qx, qy, qz = _v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
+            qw, qx, qy, qz = v_q(lineQ, la, lb, t, gQ, ma, mb, sm)
             d = qw * QN[a, b, 0, side] + qx * QN[a, b, 1, side] + qy * QN[a, b, 2, side] + qz * QN[a, b, 3, side]
             sg = -1.0 if d < 0.0 else 1.0
             o = 4 * side
@@ -502,7 +266,7 @@ def _prep_n(b, side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, h
                 qy /= n
                 qz /= n
             else:
-                qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm,
+                qw, qx, qy, qz = fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm,
                                              fbN, 0, 0, 0.0, False)
             o = 8 * side
             fbN[a, b, o] = qw
@@ -580,143 +344,50 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
     if hasq:
         _coherent(QL[:, :, :, 0])
 
-
 # =================================================================== volume kernels
-@jit(forceinline=True)
-def _row3_q(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
-    """Fused quaternion update of the row (j, k) of a 3-D block, i innermost.
-
-    The role whose direction is 0 (i) reads its table at a fixed (j, k); the
-    two others read a contiguous run along i.
-    """
-    ni = xyz.shape[0]
-    nbad = 0
-    if L == 0:
-        cm = k if M == 1 else j
-        cn = k if N == 1 else j
-        for i in range(ni):
-            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                             lineD, lineQ, j, k, gD, gQ, i, cm, hD, hQ, i, cn)
-    elif M == 0:
-        cl = k if L == 1 else j
-        cn = k if N == 1 else j
-        for i in range(ni):
-            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                             lineD, lineQ, i, cl, gD, gQ, j, k, hD, hQ, i, cn)
-    else:
-        cl = k if L == 1 else j
-        cm = k if M == 1 else j
-        for i in range(ni):
-            nbad += _point_q(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                             lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k)
-    if nbad > 0:
-        _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                 fbM, fbN, True, False, lineD, gD, hD)
-
-
-@jit(forceinline=True)
-def _row3_d(xyz, s, out, j, k, L, M, N, lineD, gD, hD):
-    """Fused baseline update of the row (j, k) of a 3-D block."""
-    ni = xyz.shape[0]
-    if L == 0:
-        cm = k if M == 1 else j
-        cn = k if N == 1 else j
-        for i in range(ni):
-            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, j, k, gD, i, cm, hD, i, cn)
-    elif M == 0:
-        cl = k if L == 1 else j
-        cn = k if N == 1 else j
-        for i in range(ni):
-            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, j, k, hD, i, cn)
-    else:
-        cl = k if L == 1 else j
-        cm = k if M == 1 else j
-        for i in range(ni):
-            _point_d(xyz, s, out, i, j, k, L, M, N, lineD, i, cl, gD, i, cm, hD, j, k)
-
-
-@jit(forceinline=True)
-def _row2_q(xyz, s, out, j, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
-    """Fused quaternion update of the row j of a 2-D block (``hD``/``hQ``: zero dummies)."""
-    ni = xyz.shape[0]
-    nbad = 0
-    if L == 0:
-        for i in range(ni):
-            nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
-                             lineD, lineQ, j, 0, gD, gQ, i, 0, hD, hQ, 0, 0)
-    else:
-        for i in range(ni):
-            nbad += _point_q(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
-                             lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0)
-    if nbad > 0:
-        _fix_row(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
-                 fbM, fbN, False, False, lineD, gD, hD)
-
-
-@jit(forceinline=True)
-def _row2_d(xyz, s, out, j, L, M, lineD, gD, hD):
-    """Fused baseline update of the row j of a 2-D block."""
-    ni = xyz.shape[0]
-    if L == 0:
-        for i in range(ni):
-            _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, j, 0, gD, i, 0, hD, 0, 0)
-    else:
-        for i in range(ni):
-            _point_d(xyz, s, out, i, j, 0, L, M, 2, lineD, i, 0, gD, j, 0, hD, 0, 0)
-
-
-@pjit
-def _deform3_q(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
-    """Fused 3-D quaternion update, parallel over k-planes (the row kernel does the work)."""
-    nj, nk = xyz.shape[1], xyz.shape[2]
-    for kp in prange(nk):
-        k = np.int64(kp)
-        for j in range(nj):
-            _row3_q(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
-
-
-@pjit
-def _deform3_d(xyz, s, out, L, M, N, lineD, gD, hD):
-    """Fused 3-D baseline update (Q ≡ 1), parallel over k-planes."""
-    nj, nk = xyz.shape[1], xyz.shape[2]
-    for kp in prange(nk):
-        k = np.int64(kp)
-        for j in range(nj):
-            _row3_d(xyz, s, out, j, k, L, M, N, lineD, gD, hD)
-
-
-@pjit
-def _deform2_q(xyz, s, out, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
-    """Fused 2-D quaternion update (nk = 1), parallel over rows."""
-    for jp in prange(xyz.shape[1]):
-        _row2_q(xyz, s, out, np.int64(jp), cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
-
-
-@pjit
-def _deform2_d(xyz, s, out, L, M, lineD, gD, hD):
-    """Fused 2-D baseline update (nk = 1), parallel over rows."""
-    for jp in prange(xyz.shape[1]):
-        _row2_d(xyz, s, out, np.int64(jp), L, M, lineD, gD, hD)
-
+# One definition for the fused volume stage, specialised at compile time by
+# three flags (2-D or 3-D, quaternion or displacement only, based or not):
+# :func:`_point` and :func:`_row` take them as arguments, and each kernel made
+# by :func:`_volume_kernel` passes its own as closure constants, so numba/LLVM
+# fold the dead branches away (the row is compiled once per argument types
+# and inlined into every kernel, where the constants fold).
 
 @jit(inline="always")
 def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
     """The base point ``R_u + TFI(B)`` of the based kernels (``B``'s baseline TFI, the
-    sums :func:`_point_d` makes)."""
-    bx, by, bz = _w_d(lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
+    sums the displacement-only update makes)."""
+    bx, by, bz = w_d(lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
     return xyz[i, j, k, 0] + bx, xyz[i, j, k, 1] + by, xyz[i, j, k, 2] + bz
 
 
 @jit(inline="always")
-def _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-              lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb, lineB, gB, hB):
-    """:func:`_point_q` about the base point ``R_u + TFI(B)`` instead of ``R_u``."""
+def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, gQ, ma, mb,
+           hD, hQ, na, nb, lineB, gB, hB, hasq, based):
+    """Fused update of one point; returns 1 when the blended Q needs the fallback.
+
+    ``hasq`` False: the baseline, ``out = R_u + Δ`` (Q ≡ 1).  Otherwise
+    ``out = R + Δ + (rot(Q, R - c) - (R - c))`` about the base point ``R``:
+    ``R_u``, or with ``based`` ``R_u + TFI(B)`` (tables ``lineB``, ``gB``,
+    ``hB``).  A point that needs the fallback is stored as ``R`` itself (the
+    change scaled by 0, without a branch), so that :func:`_fix_row` still
+    finds ``R_u`` there when ``out`` is ``xyz`` (in-place update).  (A select
+    of Q = 1 and Δ = 0 instead cost 12 % of the loop's speed.)
+    """
     t = np.float64(s[i, j, k, L])
     sm = np.float64(s[i, j, k, M])
     sn = np.float64(s[i, j, k, N])
-    x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
-    dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
-    qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+    if not hasq:
+        dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+        out[i, j, k, 0] = xyz[i, j, k, 0] + dx
+        out[i, j, k, 1] = xyz[i, j, k, 1] + dy
+        out[i, j, k, 2] = xyz[i, j, k, 2] + dz
+        return 0
+    if based:
+        x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
+    else:
+        x0, y0, z0 = xyz[i, j, k, 0], xyz[i, j, k, 1], xyz[i, j, k, 2]
+    dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+    qw, qx, qy, qz = w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
     n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
     inv = 1.0 / max(n, QNORM_MIN)
     g = 1.0 if n >= QNORM_MIN else 0.0
@@ -726,72 +397,104 @@ def _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
 
 
 @jit(forceinline=True)
-def _row3_qb(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-             lineB, gB, hB):
-    """The based twin of the quaternion row kernel (base point ``R_u + TFI(B)``)."""
+def _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+         lineB, gB, hB, hasn, hasq, based):
+    """Fused update of the row (j, k), i innermost (2-D: ``hasn`` False, k = 0, N = 2,
+    ``hD``/``hQ`` zero dummies read at (0, 0)).
+
+    The role whose direction is 0 (i) reads its table at a fixed (j, k); the
+    others read a contiguous run along i.  Points whose blended Q needs the
+    fallback are redone by :func:`_fix_row`.
+    """
     ni = xyz.shape[0]
     nbad = 0
-    if L == 0:
-        cm = k if M == 1 else j
-        cn = k if N == 1 else j
+    if hasn:
+        if L == 0:
+            cm = k if M == 1 else j
+            cn = k if N == 1 else j
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, j, k,
+                               gD, gQ, i, cm, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
+        elif M == 0:
+            cl = k if L == 1 else j
+            cn = k if N == 1 else j
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
+                               gD, gQ, j, k, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
+        else:
+            cl = k if L == 1 else j
+            cm = k if M == 1 else j
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
+                               gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB, hasq, based)
+    elif L == 0:
         for i in range(ni):
-            nbad += _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                              lineD, lineQ, j, k, gD, gQ, i, cm, hD, hQ, i, cn, lineB, gB, hB)
-    elif M == 0:
-        cl = k if L == 1 else j
-        cn = k if N == 1 else j
-        for i in range(ni):
-            nbad += _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                              lineD, lineQ, i, cl, gD, gQ, j, k, hD, hQ, i, cn, lineB, gB, hB)
+            nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, j, 0,
+                           gD, gQ, i, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
     else:
-        cl = k if L == 1 else j
-        cm = k if M == 1 else j
         for i in range(ni):
-            nbad += _point_qb(xyz, s, out, i, j, k, cx, cy, cz, L, M, N,
-                              lineD, lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB)
-    if nbad > 0:
+            nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, i, 0,
+                           gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
+    if hasq and nbad > 0:
         _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                 fbM, fbN, True, True, lineB, gB, hB)
+                 fbM, fbN, hasn, based, lineB, gB, hB)
 
 
-@jit(forceinline=True)
-def _row2_qb(xyz, s, out, j, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-             lineB, gB, hB):
-    """The based twin of the quaternion row kernel (base point ``R_u + TFI(B)``)."""
-    ni = xyz.shape[0]
-    nbad = 0
-    if L == 0:
-        for i in range(ni):
-            nbad += _point_qb(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
-                              lineD, lineQ, j, 0, gD, gQ, i, 0, hD, hQ, 0, 0, lineB, gB, hB)
-    else:
-        for i in range(ni):
-            nbad += _point_qb(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2,
-                              lineD, lineQ, i, 0, gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB)
-    if nbad > 0:
-        _fix_row(xyz, s, out, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, gD, gQ, hD, hQ,
-                 fbM, fbN, False, True, lineB, gB, hB)
+def _volume_kernel(hasn: bool, hasq: bool, based: bool):
+    """The fused volume kernel of one kind (made on first use, then kept).
+
+    Signature of every kind: ``(xyz, s, out, cx, cy, cz, L, M, N, lineD,
+    lineQ, gD, gQ, hD, hQ, fbM, fbN, lineB, gB, hB)``; 2-D (``hasn`` False):
+    ``N = 2``, parallel over rows; 3-D: parallel over k-planes.  Tables a
+    kind does not read are any tables of the right rank (the dummies of
+    :func:`_work_tables`; ``lineD, gD, hD`` for ``lineB, gB, hB``).
+    """
+    key = (bool(hasn), bool(hasq), bool(based))
+    kern = _VOLUME.get(key)
+    if kern is None:
+        with _VOLUME_LOCK:
+            kern = _VOLUME.get(key)
+            if kern is None:
+                kern = _VOLUME[key] = _make_volume_kernel(*key)
+    return kern
 
 
-@pjit
-def _deform3_qb(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-                lineB, gB, hB):
-    """The based twin of the fused quaternion update (base point ``R_u + TFI(B)``)."""
-    nj, nk = xyz.shape[1], xyz.shape[2]
-    for kp in prange(nk):
-        k = np.int64(kp)
-        for j in range(nj):
-            _row3_qb(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-                     lineB, gB, hB)
+def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
+    # the flags are closure constants (numba keys its disk cache on them)
+    @pjit
+    def volume(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+               lineB, gB, hB):
+        nj, nk = xyz.shape[1], xyz.shape[2]
+        nouter = nk if hasn else nj
+        ninner = nj if hasn else 1
+        for p in prange(nouter):
+            pp = np.int64(p)
+            for q in range(ninner):
+                j = q if hasn else pp
+                k = pp if hasn else 0
+                _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+                     fbM, fbN, lineB, gB, hB, hasn, hasq, based)
+
+    volume.__doc__ = (f"Fused {'3' if hasn else '2'}-D {'quaternion' if hasq else 'baseline'} "
+                      f"update{' about R_u + TFI(B)' if based else ''} (:func:`_volume_kernel`).")
+    return volume
 
 
-@pjit
-def _deform2_qb(xyz, s, out, cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-                lineB, gB, hB):
-    """The based twin of the fused quaternion update (base point ``R_u + TFI(B)``)."""
-    for jp in prange(xyz.shape[1]):
-        _row2_qb(xyz, s, out, np.int64(jp), cx, cy, cz, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-                 lineB, gB, hB)
+_VOLUME: dict = {}
+_VOLUME_LOCK = threading.Lock()
+
+
+def _run_volume(xyz, s, out, c, order, tables, hasq: bool, base=None) -> None:
+    """The one dispatcher of the fused volume stage: pick the kernel for the block's
+    dimension (``len(order)``), ``hasq`` and ``base`` (tables ``(lineB, gB, hB)``) and
+    run it on the 8 tables of :func:`_tables` / :meth:`GatherPlan._fill`."""
+    hasn = len(order) == 3
+    L, M, N = order if hasn else (order[0], order[1], 2)
+    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = tables
+    lineB, gB, hB = (lineD, gD, hD) if base is None else base
+    _volume_kernel(hasn, hasq, base is not None)(
+        xyz, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+        lineB, gB, hB)
 
 
 @pjit
@@ -807,15 +510,15 @@ def _fields2(s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
                 la, lb, ma, mb = i, 0, j, 0
             t = np.float64(s[i, j, 0, L])
             sm = np.float64(s[i, j, 0, M])
-            dx, dy, dz = _w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, 0, 0, 0.0)
+            dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, 0, 0, 0.0)
             outD[i, j, 0] = dx
             outD[i, j, 1] = dy
             outD[i, j, 2] = dz
             if hasq:
-                qw, qx, qy, qz = _w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, 0, 0, 0.0)
+                qw, qx, qy, qz = w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, 0, 0, 0.0)
                 n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
                 if n < QNORM_MIN:
-                    qw, qx, qy, qz = _fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, 0, 0, 0.0,
+                    qw, qx, qy, qz = fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, 0, 0, 0.0,
                                                  False)
                     n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
                 outQ[i, j, 0] = qw / n
@@ -825,20 +528,6 @@ def _fields2(s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
 
 
 # =================================================================== arclength kernels
-@jit(inline="always")
-def _dist(xyz, i0, j0, k0, i1, j1, k1):
-    dx = xyz[i1, j1, k1, 0] - xyz[i0, j0, k0, 0]
-    dy = xyz[i1, j1, k1, 1] - xyz[i0, j0, k0, 1]
-    dz = xyz[i1, j1, k1, 2] - xyz[i0, j0, k0, 2]
-    return math.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-@jit(inline="always")
-def _mag(xyz, i0, j0, k0, i1, j1, k1):
-    return max(abs(xyz[i0, j0, k0, 0]), abs(xyz[i0, j0, k0, 1]), abs(xyz[i0, j0, k0, 2]),
-               abs(xyz[i1, j1, k1, 0]), abs(xyz[i1, j1, k1, 1]), abs(xyz[i1, j1, k1, 2]))
-
-
 #: lines per task of the direction-i pass of the arclength kernels, and lines
 #: i per tile of the direction-j and -k passes (a tile's lines are summed
 #: together, i innermost, so memory is read along i as it lies)
@@ -847,82 +536,31 @@ ARC_TILE = 128
 
 
 @jit(inline="always")
-def _at(u0, w):
-    """Index ``u0 + w`` as an unsigned integer: numba then adds no negative-index
-    wrap-around, and a loop over ``w`` reads memory as one contiguous stream
-    (with the signed ``i0 + w`` the direction-j sums took 5 times as long)."""
-    return u0 + np.uint64(w)
-
-
-@jit(inline="always")
-def _arc_line_i(xyz, rtol, j, k, buf):
-    """Cumulative arclength of line (j, k) of direction i (ni >= 2) into ``buf``.
-
-    Returns the line's length and the divisor that normalises ``buf``: the
-    length, or ``ni - 1`` where the line counts as zero-length (``buf`` then
-    holds the indices).
-    """
+def _arc_tile_task(xyz, s, rtol, axis, t, nt):
+    """Task ``t`` of the direction-``axis`` pass (1: j, one task per k-plane and tile of
+    ARC_TILE lines i; 2: k, per j-slab and tile): the tile's parameters into ``s``."""
     ni = xyz.shape[0]
-    a = 0.0
-    buf[0] = 0.0
-    for i in range(1, ni):
-        a += _dist(xyz, i - 1, j, k, i, j, k)
-        buf[i] = a
-    length = a
-    if not a > rtol * _mag(xyz, 0, j, k, ni - 1, j, k):
-        for i in range(ni):
-            buf[i] = i
-        a = ni - 1.0
-    return length, a
-
-
-@jit(inline="always")
-def _arc_tile_j(xyz, rtol, u0, nw, k, cum, ln, den):
-    """Cumulative arclength of lines ``i = u0 + w`` (w < nw) of direction j (nj >= 2) in plane k.
-
-    ``cum[j, w]`` receives the arclength up to point j, ``ln[w]`` the line's
-    length and ``den[w]`` the divisor that normalises ``cum[:, w]`` (as
-    :func:`_arc_line_i`).
-    """
-    nj = xyz.shape[1]
-    for w in range(nw):
-        cum[0, w] = 0.0
-        ln[w] = 0.0
-    for j in range(1, nj):
+    n = xyz.shape[axis]
+    c = t // nt
+    i0 = (t % nt) * ARC_TILE
+    nw = min(ARC_TILE, ni - i0)
+    u0 = np.uint64(i0)
+    if n == 1:
         for w in range(nw):
-            i = _at(u0, w)
-            ln[w] += _dist(xyz, i, j - 1, k, i, j, k)
-            cum[j, w] = ln[w]
-    for w in range(nw):
-        i = _at(u0, w)
-        if not ln[w] > rtol * _mag(xyz, i, 0, k, i, nj - 1, k):
-            for j in range(nj):
-                cum[j, w] = j
-            den[w] = nj - 1.0
-        else:
-            den[w] = ln[w]
-
-
-@jit(inline="always")
-def _arc_tile_k(xyz, rtol, u0, nw, j, cum, ln, den):
-    """As :func:`_arc_tile_j` for direction k (nk >= 2) in slab j: ``cum[k, w]``."""
-    nk = xyz.shape[2]
-    for w in range(nw):
-        cum[0, w] = 0.0
-        ln[w] = 0.0
-    for k in range(1, nk):
+            i, j, k = line_point(axis, at(u0, w), 0, c)
+            s[i, j, k, axis] = 0.0
+        return
+    cum = np.empty((n, nw))
+    ln = np.empty(nw)
+    den = np.empty(nw)
+    arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
+    for m in range(n - 1):
         for w in range(nw):
-            i = _at(u0, w)
-            ln[w] += _dist(xyz, i, j, k - 1, i, j, k)
-            cum[k, w] = ln[w]
+            i, j, k = line_point(axis, at(u0, w), m, c)
+            s[i, j, k, axis] = cum[m, w] / den[w]
     for w in range(nw):
-        i = _at(u0, w)
-        if not ln[w] > rtol * _mag(xyz, i, j, 0, i, j, nk - 1):
-            for k in range(nk):
-                cum[k, w] = k
-            den[w] = nk - 1.0
-        else:
-            den[w] = ln[w]
+        i, j, k = line_point(axis, at(u0, w), n - 1, c)
+        s[i, j, k, axis] = 1.0
 
 
 @pjit
@@ -939,49 +577,16 @@ def _arclength_kernel(xyz, s, rtol):
             if ni == 1:
                 s[0, j, k, 0] = 0.0
                 continue
-            _, a = _arc_line_i(xyz, rtol, j, k, buf)
+            _, a = arc_line_i(xyz, rtol, j, k, buf)
             for i in range(ni - 1):
                 s[i, j, k, 0] = buf[i] / a
             s[ni - 1, j, k, 0] = 1.0
-    # direction j: one task per k-plane and tile of ARC_TILE lines i
+    # directions j and k: tiles of ARC_TILE lines i
     nt = (ni + ARC_TILE - 1) // ARC_TILE
     for t in prange(nk * nt):
-        k = t // nt
-        i0 = (t % nt) * ARC_TILE
-        nw = min(ARC_TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if nj == 1:
-            for w in range(nw):
-                s[_at(u0, w), 0, k, 1] = 0.0
-            continue
-        cum = np.empty((nj, nw))
-        ln = np.empty(nw)
-        den = np.empty(nw)
-        _arc_tile_j(xyz, rtol, u0, nw, k, cum, ln, den)
-        for j in range(nj - 1):
-            for w in range(nw):
-                s[_at(u0, w), j, k, 1] = cum[j, w] / den[w]
-        for w in range(nw):
-            s[_at(u0, w), nj - 1, k, 1] = 1.0
-    # direction k: one task per j-slab and tile of ARC_TILE lines i
+        _arc_tile_task(xyz, s, rtol, 1, t, nt)
     for t in prange(nj * nt):
-        j = t // nt
-        i0 = (t % nt) * ARC_TILE
-        nw = min(ARC_TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if nk == 1:
-            for w in range(nw):
-                s[_at(u0, w), j, 0, 2] = 0.0
-            continue
-        cum = np.empty((nk, nw))
-        ln = np.empty(nw)
-        den = np.empty(nw)
-        _arc_tile_k(xyz, rtol, u0, nw, j, cum, ln, den)
-        for k in range(nk - 1):
-            for w in range(nw):
-                s[_at(u0, w), j, k, 2] = cum[k, w] / den[w]
-        for w in range(nw):
-            s[_at(u0, w), j, nk - 1, 2] = 1.0
+        _arc_tile_task(xyz, s, rtol, 2, t, nt)
 
 
 @jit
@@ -993,7 +598,7 @@ def _segment_q(q0, q1, s, out):
     b1 = sg * q1[1]
     b2 = sg * q1[2]
     b3 = sg * q1[3]
-    w2, sw = _slerp_angle(q0[0], q0[1], q0[2], q0[3], b0, b1, b2, b3)
+    w2, sw = slerp_angle(q0[0], q0[1], q0[2], q0[3], b0, b1, b2, b3)
     for m in range(s.shape[0]):
         t = np.float64(s[m])
         if t == 0.0:
@@ -1005,7 +610,7 @@ def _segment_q(q0, q1, s, out):
             out[m, 2] = b2
             out[m, 3] = b3
         else:
-            wa, wb = _slerp_weights(t, w2, sw)
+            wa, wb = slerp_weights(t, w2, sw)
             w = wa * q0[0] + wb * b0
             x = wa * q0[1] + wb * b1
             y = wa * q0[2] + wb * b2
@@ -1022,7 +627,9 @@ def _fail(msg: str):
     raise GridValueError(msg)
 
 
-def _check_xyz(xyz, name: str) -> np.ndarray:
+def check_xyz(xyz, name: str) -> np.ndarray:
+    """Block coordinates as the kernels take them, else a :class:`GridValueError` naming ``name``:
+    a float64 Fortran-ordered ``(ni, nj, nk, 3)`` array (``Block.xyz``); returned as is."""
     if not isinstance(xyz, np.ndarray):
         _fail(f"{name}: expected a numpy array of shape (ni, nj, nk, 3), got {type(xyz).__name__}")
     if xyz.ndim != 4 or xyz.shape[-1] != 3 or min(xyz.shape[:3]) < 1:
@@ -1168,7 +775,7 @@ def arclength(xyz, *, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
     GridValueError
         Wrong shape, dtype or memory order of ``xyz``.
     """
-    _check_xyz(xyz, "xyz")
+    check_xyz(xyz, "xyz")
     s = np.empty(xyz.shape, dtype=S_DTYPE, order="F")
     _arclength_kernel(xyz, s, float(rtol))
     return s
@@ -1325,95 +932,6 @@ def interp_segment(delta0, q0, delta1, q1, s):
     return delta, q
 
 
-# ------------------------------------------------------------------ reference (unfused)
-def _np_rel_log(base, q):
-    """log(conj(base) ⊗ q), q in base's hemisphere; (..., 4) -> (..., 3)."""
-    p = _qmul_np(base * np.array([1.0, -1.0, -1.0, -1.0]), q)
-    p = np.where(p[..., :1] < 0.0, -p, p)
-    n = np.linalg.norm(p[..., 1:], axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        f = np.where(n > 1e-30, np.arctan2(n, p[..., 0]) / np.where(n > 1e-30, n, 1.0),
-                     np.where(p[..., 0] > 0.0, 1.0 / np.where(p[..., 0] > 0.0, p[..., 0], 1.0), 0.0))
-    return p[..., 1:] * f[..., None]
-
-
-def _np_exp_times(base, r):
-    th = np.linalg.norm(r, axis=-1)
-    e = np.empty(r.shape[:-1] + (4,))
-    e[..., 0] = np.cos(th)
-    e[..., 1:] = r * np.sinc(th / np.pi)[..., None]
-    out = _qmul_np(base, e)
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
-
-
-def _np_normalize_or_fallback(W, base, terms):
-    """Normalise W (..., 4); where |W| < QNORM_MIN use the rotation-vector Boolean sum."""
-    n = np.linalg.norm(W, axis=-1)
-    out = W / np.maximum(n, QNORM_MIN)[..., None]
-    bad = n < QNORM_MIN
-    if np.any(bad):
-        b = base[bad]
-        b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-        r = np.zeros(b.shape[:-1] + (3,))
-        for w, F, U in terms:
-            wb = np.broadcast_to(w, bad.shape)[bad]
-            Fb = np.broadcast_to(F, bad.shape + (4,))[bad]
-            Ub = np.broadcast_to(U, bad.shape + (4,))[bad]
-            r += wb[:, None] * (_np_rel_log(b, Fb) - _np_rel_log(b, Ub))
-        out[bad] = _np_exp_times(b, r)
-    return out
-
-
-def _fields_ref(fd, fq, s, order):
-    """Plain numpy Boolean-sum TFI on a block; fd/fq face arrays (normal d removed), s (..., 3)."""
-    dims = s.shape[:3]
-    nd = len(order)
-
-    def bcf(face, d):
-        if nd == 2:            # 2-D faces are (n, 1, c): insert the missing direction
-            face = face[:, 0, :]
-            return np.expand_dims(np.expand_dims(face, d), 2)
-        return np.expand_dims(face, d)
-
-    sl = [np.asarray(s[..., d], dtype=np.float64)[..., None] for d in range(3)]
-    L = order[0]
-    D = (1.0 - sl[L]) * bcf(fd[2 * L], L) + sl[L] * bcf(fd[2 * L + 1], L)
-    Q = None
-    if fq is not None:
-        q0 = np.array(fq[2 * L], order="F", copy=True)
-        _coherent(q0)
-        a = np.broadcast_to(bcf(q0, L), dims + (4,))
-        b = np.broadcast_to(bcf(fq[2 * L + 1], L), dims + (4,))
-        Q = _qslerp_np(a, b, np.broadcast_to(sl[L][..., 0], dims))
-        base = Q.copy()
-        terms = []
-    for step, d in enumerate(order[1:]):
-        w = sl[d]
-        lo = [slice(None)] * 3
-        hi = [slice(None)] * 3
-        lo[d] = slice(0, 1)
-        hi[d] = slice(dims[d] - 1, dims[d])
-        D0, D1 = D[tuple(lo)], D[tuple(hi)]
-        D = D + (1.0 - w) * (bcf(fd[2 * d], d) - D0) + w * (bcf(fd[2 * d + 1], d) - D1)
-        if Q is not None:
-            Q0, Q1 = Q[tuple(lo)], Q[tuple(hi)]
-            F0, F1 = bcf(fq[2 * d], d), bcf(fq[2 * d + 1], d)
-            F0 = F0 * np.where(np.sum(F0 * Q0, axis=-1) < 0.0, -1.0, 1.0)[..., None]
-            F1 = F1 * np.where(np.sum(F1 * Q1, axis=-1) < 0.0, -1.0, 1.0)[..., None]
-            if step == 0:
-                U0 = Q0 / np.linalg.norm(Q0, axis=-1, keepdims=True)
-                U1 = Q1 / np.linalg.norm(Q1, axis=-1, keepdims=True)
-            else:
-                U0, U1 = Vhat[tuple(lo)], Vhat[tuple(hi)]
-            Q = Q + (1.0 - w) * (F0 - Q0) + w * (F1 - Q1)
-            terms += [(1.0 - w[..., 0], F0, U0), (w[..., 0], F1, U1)]
-            if step == 0 and nd == 3:
-                Vhat = _np_normalize_or_fallback(Q, base, terms)
-    if Q is not None:
-        Q = _np_normalize_or_fallback(Q, base, terms)
-    return D, Q
-
-
 def _sides_as_faces(sides, dims, ncomp: int, name: str) -> tuple:
     """2-D sides imin, imax (nj, c), jmin, jmax (ni, c) -> (n, 1, c) face arrays."""
     if sides is None or isinstance(sides, np.ndarray) or len(sides) != 4:
@@ -1425,101 +943,6 @@ def _sides_as_faces(sides, dims, ncomp: int, name: str) -> tuple:
         a = _check_field(sides[f], (n,), ncomp, f"{name}[{f}] ({FACES[f]})")
         out.append(np.asfortranarray(a[:, None, :]))
     return tuple(out)
-
-
-def tfi_block_fields(face_delta, face_q, s, order):
-    """Unfused Soni TFI of (Δ, Q) over a block (reference implementation; allocates full size).
-
-    Parameters
-    ----------
-    face_delta : sequence of 6 arrays
-        Δ on faces imin, imax, jmin, jmax, kmin, kmax, each of shape
-        ``Block.face(f).shape[:2] + (3,)``; consistent on shared edges.  For a
-        2-D block (``len(order) == 2``): 4 sides imin, imax ``(nj, 3)``, jmin,
-        jmax ``(ni, 3)``.
-    face_q : sequence of 6 (or 4) arrays (..., 4) of unit quaternions, or None
-        Q on the same faces; None for the baseline (Q ≡ 1).
-    s : ndarray, shape (ni, nj, nk, 3), float64
-        The block's arclength parameters (:func:`arclength`).
-    order : sequence of int
-        ``(L, M, N)`` (``(L, M)`` in 2-D), e.g. from :func:`lead_order`.
-
-    Returns
-    -------
-    delta : ndarray, shape (ni, nj, nk, 3), float64
-    q : ndarray, shape (ni, nj, nk, 4), float64, or None
-        Unit quaternions (to 1e-12).
-    """
-    if not isinstance(s, np.ndarray) or s.ndim != 4:
-        _fail(f"s: expected an array of shape (ni, nj, nk, 3), got {getattr(s, 'shape', type(s))}")
-    dims = s.shape[:3]
-    _check_s(s, dims)
-    nd = len(order) if hasattr(order, "__len__") else 0
-    if nd not in (2, 3):
-        _fail(f"order: expected (L, M, N) or (L, M), got {order!r}")
-    o = _check_order(order, nd)
-    if nd == 2:
-        if dims[2] != 1:
-            _fail(f"s: a 2-D order needs nk == 1, got shape {s.shape}")
-        fd = _sides_as_faces(face_delta, dims, 3, "face_delta")
-        fq = None if face_q is None else _sides_as_faces(face_q, dims, 4, "face_q")
-    else:
-        fd = _faces(face_delta, dims, 3, "face_delta")
-        fq = None if face_q is None else _faces(face_q, dims, 4, "face_q")
-    D, Q = _fields_ref(fd, fq, s, o)
-    D = np.asfortranarray(np.broadcast_to(D, dims + (3,)))
-    if Q is not None:
-        Q = np.asfortranarray(np.broadcast_to(Q, dims + (4,)))
-    return D, Q
-
-
-def tfi_patch(delta, q, s, lead: int = 0) -> None:
-    """2-D Soni TFI on a patch, in place: fill the interior from the four sides.
-
-    Parameters
-    ----------
-    delta : ndarray, shape (na, nb, 3), float64, writeable
-        Δ; the sides ``a = 0``, ``a = na - 1``, ``b = 0``, ``b = nb - 1`` hold
-        the known values (consistent at the corners); the interior is
-        overwritten.
-    q : ndarray, shape (na, nb, 4), float64, writeable, or None
-        Unit quaternions, same layout (None: baseline, Q ≡ 1).  The interior
-        is overwritten with unit quaternions.
-    s : array_like, shape (na, nb, 2)
-        The patch's arclength parameters from the **undeformed** surface
-        (:func:`arclength_surface`).
-    lead : {0, 1}
-        Leading direction (0: along ``a``, slerp between the sides a = 0 and
-        a = na - 1).
-    """
-    for arr, nm, nc in ((delta, "delta", 3), (q, "q", 4)):
-        if arr is None and nm == "q":
-            continue
-        if not isinstance(arr, np.ndarray) or arr.ndim != 3 or arr.shape[-1] != nc or \
-                arr.dtype != np.float64 or not arr.flags.writeable:
-            _fail(f"{nm}: expected a writeable float64 array of shape (na, nb, {nc}), got "
-                  f"{getattr(arr, 'shape', type(arr).__name__)} {getattr(arr, 'dtype', '')}")
-    na, nb = delta.shape[:2]
-    if q is not None and q.shape[:2] != (na, nb):
-        _fail(f"q: expected shape {(na, nb, 4)} like delta, got {q.shape}")
-    sa = np.asarray(s)
-    if sa.shape != (na, nb, 2) or sa.dtype.kind != "f":
-        _fail(f"s: expected a float array of shape {(na, nb, 2)}, got {sa.shape} {sa.dtype}")
-    if lead not in (0, 1):
-        _fail(f"lead: expected 0 or 1, got {lead!r}")
-    if na <= 2 or nb <= 2:
-        return
-    sb = np.zeros((na, nb, 1, 3), order="F")
-    sb[:, :, 0, :2] = sa
-    sides_d = [delta[0], delta[-1], delta[:, 0], delta[:, -1]]
-    fd = _sides_as_faces(sides_d, (na, nb, 1), 3, "delta")
-    fq = None
-    if q is not None:
-        fq = _sides_as_faces([q[0], q[-1], q[:, 0], q[:, -1]], (na, nb, 1), 4, "q")
-    D, Q = _fields_ref(fd, fq, sb, (lead, 1 - lead))
-    delta[1:-1, 1:-1] = D[1:-1, 1:-1, 0]
-    if q is not None:
-        q[1:-1, 1:-1] = Q[1:-1, 1:-1, 0]
 
 
 def patch_params(s) -> tuple:
@@ -1534,11 +957,16 @@ def patch_params(s) -> tuple:
 
 
 def tfi_patch_fast(delta, q, params, lead: int = 0) -> None:
-    """:func:`tfi_patch` through a compiled kernel (same result to round-off).
+    """2-D Soni TFI of (Δ, Q) on a patch, in place: fill the interior from the four sides.
 
-    ``params`` is :func:`patch_params` of the patch's arclength parameters,
-    computed once; ``delta`` (na, nb, 3) and ``q`` (na, nb, 4) or None are
-    filled in place from their four sides (the sides are left as they are).
+    ``params`` is :func:`patch_params` of the patch's arclength parameters
+    (from the **undeformed** surface, :func:`arclength_surface`), computed
+    once; ``delta`` (na, nb, 3) and ``q`` (na, nb, 4) of unit quaternions, or
+    None for the baseline, are filled in place from their four sides
+    ``a = 0``, ``a = na - 1``, ``b = 0``, ``b = nb - 1`` (consistent at the
+    corners; left as they are).  ``lead`` 0: slerp between the sides a = 0
+    and a = na - 1; 1: between b = 0 and b = nb - 1.  The numpy reference it
+    is tested against is ``tests/oracles.py``.
     """
     s4, fs = params
     na, nb = s4.shape[:2]
@@ -1632,7 +1060,7 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
                  face_s=None, check: bool = True) -> np.ndarray:
     """Fused volume stage of one 3-D block: ``R_d = c + Δ(x) + rot(Q(x), R_u - c)``.
 
-    (Δ, Q) is the Soni TFI of the six faces' values (DESIGN 3.4), evaluated
+    (Δ, Q) is the Soni TFI of the six faces' values (docs/method.md §3.4), evaluated
     point by point inside the update: no full-size Δ or Q array is formed.
     Parallel over k-planes; i innermost.
 
@@ -1677,7 +1105,7 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
         on a shared edge.
     """
     if check:
-        _check_xyz(xyz_u, "xyz_u")
+        check_xyz(xyz_u, "xyz_u")
         dims = xyz_u.shape[:3]
         _check_s(s, dims)
         o = _check_order(order, 3)
@@ -1690,12 +1118,7 @@ def deform_block(xyz_u, s, face_delta, face_q, centre, order, out=None, *,
     else:
         dims = xyz_u.shape[:3]
         o, fd, fq, c, fs = tuple(order), face_delta, face_q, np.asarray(centre, dtype=np.float64), face_s
-    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, o, fd, fq, fs, True)
-    L, M, N = o
-    if fq is None:
-        _deform3_d(xyz_u, s, out, L, M, N, lineD, gD, hD)
-    else:
-        _deform3_q(xyz_u, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    _run_volume(xyz_u, s, out, c, o, _tables(dims, o, fd, fq, fs, True), fq is not None)
     return out
 
 
@@ -1730,7 +1153,7 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
     -------
     xyz_d : ndarray, shape (ni, nj, 1, 3), float64, Fortran order
     """
-    _check_xyz(xyz_u, "xyz_u")
+    check_xyz(xyz_u, "xyz_u")
     dims = xyz_u.shape[:3]
     if check:
         if dims[2] != 1:
@@ -1746,11 +1169,7 @@ def deform_block_2d(xyz_u, s, side_delta, side_q, centre, order, out=None, *,
     else:
         o, fd, fq, c, fs = tuple(order), side_delta, side_q, np.asarray(centre, dtype=np.float64), face_s
     L, M = o
-    lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, (L, M, 2), fd, fq, fs, False)
-    if fq is None:
-        _deform2_d(xyz_u, s, out, L, M, lineD, gD, hD)
-    else:
-        _deform2_q(xyz_u, s, out, c[0], c[1], c[2], L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    _run_volume(xyz_u, s, out, c, (L, M), _tables(dims, (L, M, 2), fd, fq, fs, False), fq is not None)
     return out
 
 
@@ -2061,7 +1480,7 @@ def deform_block_gathered(xyz_u, s, g_delta, g_q, plan, centre, out=None, *,
     if not isinstance(plan, GatherPlan):
         _fail(f"plan: expected a GatherPlan from gather_plan(), got {type(plan).__name__}")
     dims = plan.dims
-    _check_xyz(xyz_u, "xyz_u")
+    check_xyz(xyz_u, "xyz_u")
     if xyz_u.shape[:3] != dims:
         _fail(f"xyz_u: the plan is for a block of {dims} points, got shape {xyz_u.shape}")
     _check_s(s, dims)
@@ -2078,29 +1497,5 @@ def deform_block_gathered(xyz_u, s, g_delta, g_q, plan, centre, out=None, *,
         if lineB.shape[:2] != _padded(dims, plan.order[0]) or lineB.shape[2] != 6:
             _fail(f"base: tables of another block (line table {lineB.shape})")
     with plan._lock:
-        lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = plan._fill(gd, gq)
-        if base is not None:
-            if plan.ndim == 3:
-                L, M, N = plan.order
-                _deform3_qb(xyz_u, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD,
-                            hQ, fbM, fbN, lineB, gB, hB)
-            else:
-                L, M = plan.order
-                _deform2_qb(xyz_u, s, out, c[0], c[1], c[2], L, M, lineD, lineQ, gD, gQ, hD, hQ,
-                            fbM, fbN, lineB, gB, hB)
-            return out
-        if plan.ndim == 3:
-            L, M, N = plan.order
-            if gq is None:
-                _deform3_d(xyz_u, s, out, L, M, N, lineD, gD, hD)
-            else:
-                _deform3_q(xyz_u, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                           fbM, fbN)
-        else:
-            L, M = plan.order
-            if gq is None:
-                _deform2_d(xyz_u, s, out, L, M, lineD, gD, hD)
-            else:
-                _deform2_q(xyz_u, s, out, c[0], c[1], c[2], L, M, lineD, lineQ, gD, gQ, hD, hQ,
-                           fbM, fbN)
+        _run_volume(xyz_u, s, out, c, plan.order, plan._fill(gd, gq), gq is not None, base)
     return out

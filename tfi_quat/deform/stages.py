@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 from .. import quaternion as qa
-from .. import tfi
+from .. import kernels, tfi
 from .._jit import jit, pjit, prange, serial_below
 
 @pjit
@@ -52,8 +52,8 @@ def fade_and_rebase(q, f, shift, k, one, tmp2, r):
     elif f < 1.0:
         # slerp(1, q, f) along the short arc, with the volume kernels' polynomial weights
         sg = -1.0 if q[0] < 0.0 else 1.0
-        w2, sw = tfi._slerp_angle(1.0, 0.0, 0.0, 0.0, sg * q[0], sg * q[1], sg * q[2], sg * q[3])
-        wa, wb = tfi._slerp_weights(f, w2, sw)
+        w2, sw = kernels.slerp_angle(1.0, 0.0, 0.0, 0.0, sg * q[0], sg * q[1], sg * q[2], sg * q[3])
+        wa, wb = kernels.slerp_weights(f, w2, sw)
         wb *= sg
         q[0] = wa + wb * q[0]
         for c in range(1, 4):
@@ -225,7 +225,7 @@ def patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD, lineQ, r
             sg = -1.0 if d < 0.0 else 1.0
             for c in range(4):
                 lq[4 + c] = sg * gq[g1, c]
-            w2, sw = tfi._slerp_angle(lq[0], lq[1], lq[2], lq[3], lq[4], lq[5], lq[6], lq[7])
+            w2, sw = kernels.slerp_angle(lq[0], lq[1], lq[2], lq[3], lq[4], lq[5], lq[6], lq[7])
             lq[8] = w2
             lq[9] = sw
     for side in range(2):
@@ -234,13 +234,13 @@ def patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD, lineQ, r
             f = off + lm_flat(lead, nb, l, m)
             g = gidf[f]
             t = sf[f, lead]
-            x, y, z = tfi._u_d(lineD, m, 0, t)
+            x, y, z = kernels.u_d(lineD, m, 0, t)
             rd = resD[l, 0]
             rd[3 * side] = gd[g, 0] - x
             rd[3 * side + 1] = gd[g, 1] - y
             rd[3 * side + 2] = gd[g, 2] - z
             if use_q:
-                qw, qx, qy, qz = tfi._u_q(lineQ, m, 0, t)
+                qw, qx, qy, qz = kernels.u_q(lineQ, m, 0, t)
                 d = qw * gq[g, 0] + qx * gq[g, 1] + qy * gq[g, 2] + qz * gq[g, 3]
                 sg = -1.0 if d < 0.0 else 1.0
                 rq = resQ[l, 0]
@@ -308,16 +308,16 @@ def patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
             g = gidf[f]
             t = sf[f, lead]
             sm = sf[f, 1 - lead]
-            dx, dy, dz = tfi._v_d(lD, m, 0, t, rD, l, 0, sm)
+            dx, dy, dz = kernels.v_d(lD, m, 0, t, rD, l, 0, sm)
             gd[g, 0] = dx
             gd[g, 1] = dy
             gd[g, 2] = dz
             if not use_q:
                 continue
-            qw, qx, qy, qz = tfi._v_q(lQ, m, 0, t, rQ, l, 0, sm)
+            qw, qx, qy, qz = kernels.v_q(lQ, m, 0, t, rQ, l, 0, sm)
             n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             if n < qmin:
-                qw, qx, qy, qz = tfi._fallback_q(lQ, m, 0, t, fbp, l, 0, sm, nofb, 0, 0, 0.0, False)
+                qw, qx, qy, qz = kernels.fallback_q(lQ, m, 0, t, fbp, l, 0, sm, nofb, 0, 0, 0.0, False)
                 n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             q[0] = qw / n
             q[1] = qx / n
@@ -529,7 +529,7 @@ def wall_quaternions(sk, rd: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 def _wall_quaternions(sk, rd, centre):
-    from ..boundary import _motion_padded
+    from ..boundary import motion_padded
     nw = sk.points.wall.size
     acc = np.zeros((nw, 4))
     count = np.zeros(nw, dtype=np.int64)
@@ -541,7 +541,7 @@ def _wall_quaternions(sk, rd, centre):
                     pd.reshape(-1, 3))
         na = pd.shape[0] - 2
         nb = 1 if curve else pd.shape[1] - 2
-        q, _ = _motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, centre, na, nb)
+        q, _ = motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, centre, na, nb)
         merge_quaternions(lid, q.reshape(-1, 4), acc, count)
     acc /= np.linalg.norm(acc, axis=1, keepdims=True)
     return acc
