@@ -86,7 +86,7 @@ __all__ = [
 ]
 
 #: storage type of the arclength parameters returned by :func:`arclength`.
-#: float64, chosen by measurement (docs/performance.md, "TFI kernels"):
+#: float64, chosen by measurement (benchmarks/results/2026-12-01-tfi.md):
 #: float32 saves 12 of 72 bytes per point of the volume stage; on a quiet
 #: machine that sped the quaternion loop up by 2 % (it is compute-bound) and
 #: the baseline loop by 20 % (memory-bound, already 2.6x its target), while it
