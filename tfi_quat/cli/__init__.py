@@ -27,11 +27,15 @@ from ..errors import TfiQuatError
 __all__ = ["main", "SUBCOMMANDS", "EXIT_CHECK", "EXIT_INPUT", "EXIT_INTERNAL", "EXIT_INTERRUPTED",
            "EXIT_TERMINATED"]
 
-#: exit statuses (docs/cli.md)
+#: exit status: the command ran but its result failed a check (a folded grid, not written)
 EXIT_CHECK = 1
+#: exit status: bad input or usage (one line on stderr)
 EXIT_INPUT = 2
+#: exit status: an internal error (a bug; ``--debug`` shows the traceback)
 EXIT_INTERNAL = 70
+#: exit status: interrupted by Ctrl-C (SIGINT); temporary files removed
 EXIT_INTERRUPTED = 130
+#: exit status: terminated by SIGTERM; temporary files removed
 EXIT_TERMINATED = 128 + signal.SIGTERM
 
 #: subcommand name -> module (relative to this package)

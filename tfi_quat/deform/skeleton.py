@@ -46,8 +46,15 @@ __all__ = ["WALL", "FIXED", "SYMMETRY", "DERIVED", "BLENDINGS", "ArclengthParams
            "WallPatch", "Walls", "Rect", "Vertices", "Segments", "Patch", "Patches", "Symmetry",
            "BlockPlan", "Skeleton", "boundary_points", "build_skeleton"]
 
-#: point kinds, in the order they win where patches meet
-WALL, FIXED, SYMMETRY, DERIVED = 3, 2, 1, 0
+# point kinds, in the order they win where patches meet
+#: kind of a wall point (its motion is prescribed by the walls)
+WALL = 3
+#: kind of a fixed point (it stays where it is)
+FIXED = 2
+#: kind of a symmetry point (it slides on its plane)
+SYMMETRY = 1
+#: kind of a derived point (interpolated from the levels below)
+DERIVED = 0
 _KIND_CODE = {"wall": WALL, "fixed": FIXED, "symmetry": SYMMETRY}
 
 #: blending functions of the normalised arclength (``"samareh"`` and ``"tfi"``)
