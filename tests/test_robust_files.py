@@ -353,6 +353,7 @@ def test_vectors_of_any_magnitude_mean_their_direction(name, exponent, direction
     ("bend = nan", "motion.bend: expected a finite number"),
     ("rotate = true", "motion.rotate: expected a number, got True"),
     ("rotate = " + "9" * 400, "motion.rotate: expected a finite number"),
+    ("translate = [0.0, 0.01, " + "1" * 400 + "]", r"motion.translate: expected 3 finite numbers"),
     ('deformation = "bend"\namplitude = nan', "motion.amplitude: expected a finite number"),
     ("bend = 0.1\ndirection = [0, 1e-200, 0]", "motion.direction: must not be parallel"),
 ])

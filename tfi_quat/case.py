@@ -60,10 +60,10 @@ def _vec3(value, what: str) -> tuple[float, float, float]:
     if not isinstance(value, (list, tuple)) or len(value) != 3 or any(
             isinstance(c, bool) or not isinstance(c, (int, float)) for c in value):
         raise CaseError(f"{what}: expected 3 numbers [x, y, z], got {_show(value)}")
-    v = tuple(float(c) for c in value)
-    if not all(math.isfinite(c) for c in v):
-        raise CaseError(f"{what}: expected 3 finite numbers, got {_show(value)}")
-    return v  # type: ignore[return-value]
+    try:
+        return tuple(_num(c, what) for c in value)  # type: ignore[return-value]
+    except CaseError:
+        raise CaseError(f"{what}: expected 3 finite numbers, got {_show(value)}") from None
 
 
 def _show(value) -> str:
