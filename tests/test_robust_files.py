@@ -188,6 +188,7 @@ def _set(doc, path, value):
     (("interfaces", 0, "face"), 4, r"interface 1: 'face' must be a string, got 4"),
     (("patches", 1, "plane", "origin", 0), math.nan, r"patch 2: 'plane\.origin' must be 3 finite numbers"),
     (("patches", 1, "plane", "normal", 2), math.inf, r"patch 2: 'plane\.normal' must be 3 finite numbers"),
+    (("patches", 1, "plane", "origin", 1), 10 ** 400, r"patch 2: 'plane\.origin' must be 3 finite numbers"),
     (("patches", 1, "plane", "normal"), [0, 0, 0], r"patch 2: 'plane\.normal' must not be the zero vector"),
     (("patches", 1, "plane"), [0, 0, 1], r"patch 2: 'plane' must be"),
     (("patches", 0, "collapsed"), 1, r"patch 1: 'collapsed' must be true or false, got 1"),
@@ -209,7 +210,7 @@ def test_loose_values_are_refused_naming_the_field(path, value, match):
 
 
 _JSON_VALUES = st.recursive(
-    st.none() | st.booleans() | st.integers(-2**70, 2**70) | st.floats(allow_nan=True, allow_infinity=True)
+    st.none() | st.booleans() | st.integers(-2**70, 2**70) | st.integers(10**308, 10**400) | st.floats(allow_nan=True, allow_infinity=True)
     | st.text(max_size=5),
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=5), inner, max_size=3),
     max_leaves=8)

@@ -148,13 +148,22 @@ def _plane(value, where: str) -> tuple:
     out = []
     for key in ("origin", "normal"):
         v = value[key]
-        if not (isinstance(v, list) and len(v) == 3 and all(
-                isinstance(c, (int, float)) and not isinstance(c, bool) and math.isfinite(c) for c in v)):
+        if not (isinstance(v, list) and len(v) == 3 and all(_finite_number(c) for c in v)):
             raise ConnectivityError(f"{where}: 'plane.{key}' must be 3 finite numbers, got {_show(v)}")
         out.append(tuple(float(c) for c in v))
     if not any(out[1]):
         raise ConnectivityError(f"{where}: 'plane.normal' must not be the zero vector")
     return tuple(out)
+
+
+def _finite_number(c) -> bool:
+    """Whether a JSON value is a number (not a boolean) with a finite float value."""
+    if isinstance(c, bool) or not isinstance(c, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(c))
+    except OverflowError:               # an integer beyond the float range
+        return False
 
 
 def _entry_lines(text: str, key: str) -> list[int]:
