@@ -923,5 +923,8 @@ def table(counts: dict[str, dict[str, int]]) -> str:
 
 
 if __name__ == "__main__" and sys.argv[1:2] == ["--worker"]:
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    # the checkout's package first, as pytest's pythonpath = "." gives the tests (an older
+    # installed copy must not be the code under test)
+    _here = os.path.dirname(os.path.abspath(__file__))
+    sys.path[:0] = [os.path.dirname(_here), _here]
     worker_main()
