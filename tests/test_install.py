@@ -67,10 +67,12 @@ def test_demo_runs_from_an_empty_folder_in_a_fresh_venv(wheel, tmp_path):
                      cwd=tmp_path).stdout.strip())
     # the running interpreter's site folders, after the fresh environment's own (numpy & co.,
     # and pip to install the wheel with); .pth files inside them are not run, so an
-    # editable install of this checkout there stays invisible
+    # editable install of this checkout there stays invisible; a regular install there (as CI
+    # makes) is ignored by pip, so the wheel lands in the fresh environment, which comes first
     here = [p for p in sys.path if p.endswith(("site-packages", "dist-packages")) and Path(p).is_dir()]
     (site / "_tfi_quat_test_deps.pth").write_text("\n".join(here) + "\n")
-    _run([str(python), "-m", "pip", "install", "-q", "--no-deps", str(wheel)], cwd=tmp_path)
+    _run([str(python), "-m", "pip", "install", "-q", "--no-deps", "--ignore-installed", str(wheel)],
+         cwd=tmp_path)
 
     work = tmp_path / "work"
     work.mkdir()
