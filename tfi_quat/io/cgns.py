@@ -798,6 +798,10 @@ def _zone_names(grid: Grid) -> list[str]:
     return names
 
 
+#: the type written for a kind when no more specific one is known
+_PLAIN = {"wall": "BCWall", "symmetry": "BCSymmetryPlane", "fixed": "BCFarfield"}
+
+
 def _bc_type(p: Patch) -> str | None:
     """The BCType written for a patch (None: not written, see :func:`write`)."""
     name = p.name or ""
@@ -841,9 +845,13 @@ def _write_records(w: _Writer, base_g, zone_groups, names, conn: Connectivity, f
         if fam is not None:
             if fam in names:
                 raise GridValueError(f"families: family {fam!r} has the name of a zone")
-            if fam_types.setdefault(fam, bctype) != bctype:
-                raise GridValueError(f"families: family {fam!r} holds patches of types "
-                                     f"{fam_types[fam]} and {bctype}")
+            have = fam_types.setdefault(fam, bctype)
+            if have != bctype:
+                if bc_kind(have) != bc_kind(bctype):
+                    raise GridValueError(f"families: family {fam!r} holds patches of kinds "
+                                         f"{bc_kind(have)} ({have}) and {bc_kind(bctype)} ({bctype})")
+                # one type per family: the plain type of the kind
+                fam_types[fam] = _PLAIN[bc_kind(bctype)]
         bc_rows[p.spec.block].append((p, bctype, fam))
     for fam, bctype in fam_types.items():
         if fam in base_g:  # a family of the copied file: kept as it is
@@ -916,7 +924,7 @@ def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
     w = _Writer()
     ndim = grid.ndim
     names = _zone_names(grid)
-    with h5py.File(path, "x", libver=("v108", "v108")) as f:
+    with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
         _root(w, f)
         w.node(f, "CGNSLibraryVersion", "CGNSLibraryVersion_t", np.array([LIBRARY_VERSION], dtype=np.float32))
         bg = w.node(f, base, "CGNSBase_t", np.array([ndim, ndim], dtype=np.int32))
@@ -959,7 +967,7 @@ def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families)
         if b.ndim != grid.ndim:
             raise GridValueError(f"like={src_path}: base {fmt.base!r} is {b.ndim}-D, the grid {grid.ndim}-D")
         zone_keys = {z.group.name: n for n, z in enumerate(b.zones)}
-        with h5py.File(path, "x", libver=("v108", "v108")) as f:
+        with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
             for a in src.attrs:
                 w._str_attr(f.id, a.encode(), _text(src.attrs[a]), w.s3 if a == "type" else w.s33,
                             3 if a == "type" else 33)
@@ -973,7 +981,6 @@ def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families)
                     continue
                 bsrc = src[key]
                 bdst = _copy_attrs_node(w, bsrc, f, key)
-                bsrc.copy(" data", bdst, name=" data")
                 zgs = []
                 for ck in bsrc:
                     clink = bsrc.get(ck, getlink=True)
