@@ -65,6 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
 
+    load_before = os.getloadavg()
     grid = make_grid(int(args.points), args.blocks)
     grid.connectivity = boundary(grid)
     nbytes = sum(b.xyz.nbytes for b in grid)
@@ -116,7 +117,8 @@ def main(argv=None) -> int:
         doc = {"date": datetime.date.today().isoformat(), "points": grid.npoints, "blocks": grid.nblocks,
                "bytes": nbytes, "repeat": args.repeat, "seconds": t, "ratios": ratios, "file_bytes": sizes,
                "machine": {"python": platform.python_version(), "cpus": os.cpu_count(),
-                           "platform": platform.platform()}}
+                           "platform": platform.platform(),
+                           "load_average": {"before": load_before[0], "after": os.getloadavg()[0]}}}
         Path(args.json).write_text(json.dumps(doc, indent=2) + "\n")
     return 0
 
