@@ -64,6 +64,7 @@ from __future__ import annotations
 import datetime as _dt
 import functools
 import json
+import mmap
 import os
 import select
 import signal
@@ -230,11 +231,23 @@ def _walk_metadata(source, report) -> None:
     with h5py.File(source, "r") as f:
         eof = f.id.get_filesize()
 
-        def attrs(obj, where):
+        def attrs(oid, where):
+            # h5py's low-level calls: the walk of a CGNS tree (hundreds of small
+            # groups, four attributes each) takes a third of the high-level time
             report(f"the attribute list of {where}")
-            for name in obj.attrs:
-                report(f"attribute {name!r} of {where}")
-                obj.attrs[name]
+            names = []
+            h5py.h5a.iterate(oid, lambda name, *_: names.append(name))
+            for name in names:
+                report(f"attribute {name.decode('utf-8', 'replace')!r} of {where}")
+                aid = h5py.h5a.open(oid, name)
+                if aid.shape is None:  # an empty (null) dataspace holds no value
+                    continue
+                try:
+                    value = np.empty(aid.shape, dtype=aid.dtype)
+                except TypeError:  # a type numpy cannot hold: read it as h5py would
+                    f[where].attrs[name.decode("utf-8", "replace")]
+                    continue
+                aid.read(value)
 
         def dataset(ds, where):
             report(f"the header of dataset {where}")
@@ -260,22 +273,24 @@ def _walk_metadata(source, report) -> None:
                                      f"byte {c.byte_offset} does not fit (file of {eof} bytes, "
                                      f"chunk of at most {bound} bytes)")
 
-        def visit(name, obj):
-            where = "/" + name
-            attrs(obj, where)
-            if isinstance(obj, h5py.Group):
-                report(f"the links of group {where}")
-                for key in obj:
-                    obj.get(key, getlink=True)
-            elif isinstance(obj, h5py.Dataset):
-                dataset(obj, where)
+        def links(gid, where):
+            report(f"the links of group {where}")
+            gid.links.iterate(lambda name, info: None, info=True)
 
-        attrs(f, "the root group")
+        def visit(name, info):
+            where = "/" + name.decode("utf-8", "replace")
+            oid = h5py.h5o.open(f.id, name)
+            attrs(oid, where)
+            if info.type == h5py.h5o.TYPE_GROUP:
+                links(oid, where)
+            elif info.type == h5py.h5o.TYPE_DATASET:
+                dataset(h5py.Dataset(oid), where)
+
+        attrs(f.id, "the root group")
         report("the links of the root group")
-        for key in f:
-            f.get(key, getlink=True)
+        f.id.links.iterate(lambda name, info: None, info=True)
         report("the object tree")
-        f.visititems(visit)
+        h5py.h5o.visit(f.id, visit, info=True)
 
 
 def _limit_child() -> None:
@@ -299,8 +314,19 @@ def _limit_child() -> None:
             resource.setrlimit(resource.RLIMIT_AS, (cap, hard))
 
 
-def _guard_child(source, size: int, wfd) -> None:
-    """Body of the guard's child: walk, write the outcome to ``wfd``, ``os._exit``."""
+#: bytes of the shared page in which the guard's child records its step count and current step
+_PROGRESS_BYTES = 4096
+_WHERE_MAX = _PROGRESS_BYTES - 16
+
+
+def _guard_child(source, size: int, wfd, progress) -> None:
+    """Body of the guard's child: walk, write the outcome to ``wfd``, ``os._exit``.
+
+    Before each step the child writes the step count and what it is about to
+    read into ``progress`` (a page shared with the parent): no system call and
+    no wake-up of the parent per step, and the parent still knows where a
+    crash or an overrun happened.
+    """
     import resource
 
     status = 3
@@ -321,7 +347,10 @@ def _guard_child(source, size: int, wfd) -> None:
             if cpu_hard != resource.RLIM_INFINITY:
                 soft = min(soft, cpu_hard)
             resource.setrlimit(resource.RLIMIT_CPU, (soft, cpu_hard))
-            os.write(wfd, b"@" + where.encode("utf-8", "replace") + b"\n")
+            text = where.encode("utf-8", "replace")[:_WHERE_MAX]
+            progress[16:16 + len(text)] = text
+            progress[8:16] = len(text).to_bytes(8, "little")
+            progress[0:8] = steps.to_bytes(8, "little")
 
         try:
             _limit_child()
@@ -366,6 +395,7 @@ def guard(source, name: str) -> None:
         key, size = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns), st.st_size
         if key in _PASSED:
             return
+    progress = mmap.mmap(-1, _PROGRESS_BYTES)  # anonymous and shared with the child
     rfd, wfd = os.pipe()
     try:
         with warnings.catch_warnings():
@@ -376,30 +406,34 @@ def guard(source, name: str) -> None:
     except BaseException:
         os.close(rfd)
         os.close(wfd)
+        progress.close()
         raise
     if pid == 0:  # pragma: no cover  (the child; coverage cannot follow it)
         os.close(rfd)
-        _guard_child(source, size, wfd)
+        _guard_child(source, size, wfd, progress)
     os.close(wfd)
-    where, outcome, overrun, pending = b"opening the file", None, False, b""
+    outcome, overrun, pending, seen = None, False, b"", 0
     deadline = time.monotonic() + GUARD_WALL_SECONDS
     try:
         while True:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([rfd], [], [], left)[0]:
+            # the child writes to the pipe only at the end; meanwhile look at its
+            # step count a few times a second to tell a slow walk from a stuck one
+            now = time.monotonic()
+            steps = int.from_bytes(progress[0:8], "little")
+            if steps != seen:
+                seen, deadline = steps, now + GUARD_WALL_SECONDS
+            left = deadline - now
+            if left <= 0:
                 overrun = True
                 break
+            if not select.select([rfd], [], [], min(left, 0.25))[0]:
+                continue
             chunk = os.read(rfd, 1 << 16)
             if not chunk:
                 break
-            *lines, pending = (pending + chunk).split(b"\n")
-            if lines:
-                deadline = time.monotonic() + GUARD_WALL_SECONDS  # the child made progress
-            for line in lines:
-                if line[:1] == b"@":
-                    where = line[1:]
-                else:
-                    outcome = line
+            pending += chunk
+        if pending:
+            outcome = pending.split(b"\n")[0]
     finally:
         os.close(rfd)
         if outcome is None:
@@ -411,6 +445,10 @@ def guard(source, name: str) -> None:
             status = os.waitpid(pid, 0)[1]
         except ChildProcessError:  # SIGCHLD ignored by the application: reaped already
             status = None
+        n = int.from_bytes(progress[8:16], "little")
+        where = bytes(progress[16:16 + min(n, _WHERE_MAX)]) if progress[0:8] != bytes(8) \
+            else b"opening the file"
+        progress.close()
     where = where.decode("utf-8", "replace")
     if outcome == b"=":
         if key is not None:
