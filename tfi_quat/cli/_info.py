@@ -2,7 +2,8 @@
 
 Prints the detected file variant, ndim, the blocks with their dimensions and
 point counts, the total number of points, the bounding box, the shortest and
-longest cell edge, and whether the grid has IBLANK; ``--json`` prints the same
+longest cell edge, and whether the grid has IBLANK (CGNS: also the bases,
+boundary conditions and connectivity records); ``--json`` prints the same
 as one JSON object.
 
 Also home of the input options shared with ``convert`` (:func:`add_input_args`,
@@ -32,7 +33,9 @@ Describe a grid file: the detected variant (Plot3D: encoding, byte order,
 precision, ndim, single/multi-block, IBLANK, record layout, integer size;
 HDF5: layout version and compression), ndim, each block's dimensions and
 points, the total points, the bounding box, the shortest and longest cell
-edge, and IBLANK yes/no.  Plot3D files whose variant cannot be detected
+edge, and IBLANK yes/no.  CGNS files also list their bases (marking the one
+read), boundary conditions (name, type, kind, zone, face, range), 1-to-1
+records and other connectivity records (kept on rewriting, not used).  Plot3D files whose variant cannot be detected
 unambiguously can be described with the variant options below."""
 
 
@@ -76,8 +79,10 @@ def add_input_args(parser: argparse.ArgumentParser, prefix: str = "") -> None:
     g = parser.add_argument_group(
         "input", "the format is taken from the file contents (HDF5 signature) or extension; "
         "Plot3D variant options override automatic detection")
-    g.add_argument(f"{p}format", dest="in_format", choices=("plot3d", "hdf5"),
+    g.add_argument(f"{p}format", dest="in_format", choices=("plot3d", "hdf5", "cgns"),
                    help="input file format")
+    g.add_argument(f"{p}base", dest="in_base", metavar="NAME",
+                   help="CGNS: the base to read (default the first; info lists them)")
     g.add_argument(f"{p}encoding", dest="in_encoding", choices=("ascii", "binary", "fortran"),
                    help="Plot3D: ASCII, C-stream binary or Fortran unformatted")
     g.add_argument(f"{p}endian", dest="in_endian", choices=("big", "little"),
@@ -137,7 +142,11 @@ def input_format(path, explicit: str | None) -> str | None:
     from ..io import format_for
     from ..io.hdf5 import is_hdf5
     if is_hdf5(path):
-        return "hdf5"
+        try:
+            by_name = format_for(path).name
+        except GridFormatError:
+            by_name = None
+        return "cgns" if by_name == "cgns" else "hdf5"
     try:
         return format_for(path).name
     except GridFormatError:
@@ -155,6 +164,11 @@ def read_input(args, path, prefix: str = "") -> Grid:
                          if getattr(args, dest, None) is not None)
         what = {"hdf5": "an HDF5"}.get(fmt, f"a {fmt}")
         raise GridFormatError(f"{path}: is {what} file; the Plot3D input option(s) {opts} do not apply")
+    base = getattr(args, "in_base", None)
+    if base is not None:
+        if fmt != "cgns":
+            raise GridFormatError(f"{path}: is not a CGNS file; --{prefix}base applies to CGNS files only")
+        overrides["base"] = base
     if args.allow_nonfinite:
         overrides["allow_nonfinite"] = True
     return read(path, format=fmt, **overrides)
@@ -350,6 +364,49 @@ def summary(grid: Grid, path, also_fits=()) -> dict:
     } | ({"also_fits": list(also_fits)} if also_fits else {})
 
 
+def cgns_summary(path, base: str | None) -> dict:
+    """The CGNS part of ``info``: bases, zones, BCs, 1-to-1 and other connectivity records."""
+    from ..io.cgns import info as cgns_info
+    i = cgns_info(path, base=base)
+    return {
+        "base": i.base,
+        "bases": [{"name": n, "cell_dim": c, "phys_dim": p, "zones": z, "read": n == i.base}
+                  for n, c, p, z in i.bases],
+        "bcs": i.bcs,
+        "one_to_one": i.one_to_one,
+        "other_connectivity": i.other_connectivity,
+    }
+
+
+def _rng(r) -> str:
+    return "[" + ", ".join("(" + ",".join(map(str, c)) + ")" for c in r) + "]"
+
+
+def _cgns_text(c: dict) -> list[str]:
+    lines = ["  bases"]
+    for b in c["bases"]:
+        mark = " (read)" if b["read"] else ""
+        lines.append(f"    {b['name']}{mark}  cell dim {b['cell_dim']}, physical dim {b['phys_dim']}, "
+                     f"{len(b['zones'])} zone(s): {', '.join(b['zones'])}")
+    lines.append(f"  BCs         {len(c['bcs'])}" + (" (name, type, kind, zone, face, range 1-based)"
+                                                     if c["bcs"] else ""))
+    for b in c["bcs"]:
+        t = b["type"]
+        if b["family"]:
+            t = f"{t} -> {b['family']} -> {b['resolved']}"
+        lines.append(f"    {b['name']}  {t}  {b['kind']}  {b['zone']} {b['face']} {_rng(b['range'])}")
+    lines.append(f"  1-to-1      {len(c['one_to_one'])} record(s)" +
+                 (" (name, zone range -> donor range, Transform)" if c["one_to_one"] else ""))
+    for r in c["one_to_one"]:
+        lines.append(f"    {r['name']}  {r['zone']} {_rng(r['range'])} -> {r['donor']} "
+                     f"{_rng(r['donor_range'])}  [{', '.join(map(str, r['transform']))}]")
+    if c["other_connectivity"]:
+        lines.append(f"  other connectivity  {len(c['other_connectivity'])} record(s), kept, not used")
+        for r in c["other_connectivity"]:
+            lines.append(f"    {r['name']}  {r['type']}  {r['zone']} -> {r['donor']}")
+    return lines
+
+
 def _g(v) -> str:
     return "nan" if v is None else f"{v:.6g}"
 
@@ -378,13 +435,15 @@ def format_text(s: dict) -> str:
     lines.append("  cell edge   " + ("n/a (single-point blocks)" if e is None else
                                      f"min {_g(e['min'])}  max {_g(e['max'])}"))
     lines.append(f"  iblank      {'yes' if s['iblank'] else 'no'}")
+    if "cgns" in s:
+        lines += _cgns_text(s["cgns"])
     return "\n".join(lines)
 
 
 # ----------------------------------------------------------------------------- subcommand
 
 def add_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("grid", metavar="GRID", help="grid file (Plot3D or HDF5)")
+    parser.add_argument("grid", metavar="GRID", help="grid file (Plot3D, HDF5 or CGNS)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     add_input_args(parser)
 
@@ -393,5 +452,7 @@ def run(args) -> int:
     with one_line_errors():
         grid = read_input(args, args.grid)
         s = summary(grid, args.grid, other_variants(args, args.grid, grid))
+        if format_name(grid.source_format) == "cgns":
+            s["cgns"] = cgns_summary(args.grid, args.in_base)
     print(json.dumps(s, indent=2) if args.json else format_text(s))
     return 0

@@ -10,6 +10,7 @@ format       extensions
 ===========  ===============================================
 ``plot3d``   ``.x .xyz .g .grd .p3d .p2dfmt .p3dfmt .fmt .bin .xyzb``
 ``hdf5``     ``.h5 .hdf5 .hdf``
+``cgns``     ``.cgns`` (CGNS/HDF5)
 ===========  ===============================================
 """
 
@@ -48,7 +49,7 @@ def register(name, extensions, reader, writer, variant_type=None) -> None:
 def _ensure_loaded() -> None:
     # every format module registers itself on import; importing is idempotent, and a
     # module imported directly (e.g. tfi_quat.io.hdf5) must not hide the others
-    from . import hdf5, plot3d  # noqa: F401
+    from . import cgns, hdf5, plot3d  # noqa: F401
 
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -83,7 +84,7 @@ def format_for(path=None, format: str | None = None, like=None) -> _Format:
         if _has_hdf5_signature(path):
             return FORMATS["hdf5"]
         raise GridFormatError(
-            f"{path}: unknown file extension; give format= ('plot3d' or 'hdf5'), "
+            f"{path}: unknown file extension; give format= ('plot3d', 'hdf5' or 'cgns'), "
             f"known extensions: {', '.join(e for f in FORMATS.values() for e in f.extensions)}")
     raise GridFormatError("no format given and no path or reference grid to infer it from")
 
@@ -106,7 +107,7 @@ def read(path, format: str | None = None, **kw):
     Parameters
     ----------
     path : str or path-like
-    format : {"plot3d", "hdf5"}, optional
+    format : {"plot3d", "hdf5", "cgns"}, optional
         Default: from the extension.
     **kw
         Passed on to the format's reader (e.g. Plot3D variant overrides,
@@ -140,7 +141,7 @@ def write(path, grid, format: str | None = None, *, like=None, overwrite: bool =
         Target file; written to a temporary file in the same folder and
         renamed into place.
     grid : Grid
-    format : {"plot3d", "hdf5"}, optional
+    format : {"plot3d", "hdf5", "cgns"}, optional
         Default: the format of ``like``, else the extension.
     like : Grid or variant, optional
         Write the same variant as this grid was read in (its

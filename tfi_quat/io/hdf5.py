@@ -42,7 +42,7 @@ piece of metadata is checksummed; readers accept any string form.
 
 **Damaged and hostile files.**  Before this process opens a file, a forked
 child walks all its metadata under CPU, time and memory limits
-(:func:`_guard`); gzip chunks are inflated here, never beyond their
+(:func:`guard`); gzip chunks are inflated here, never beyond their
 declared size; the declared grid is checked against ``max_points`` or the
 memory available before anything is allocated.  See docs/formats.md.
 
@@ -82,7 +82,8 @@ from ._atomic import atomic_output, check_target
 from ._limits import check_points
 
 __all__ = ["HDF5Format", "HDF5Info", "read", "write", "read_block", "read_face", "info",
-           "read_extra", "is_hdf5", "FORMAT_NAME", "LAYOUT_VERSION"]
+           "read_extra", "is_hdf5", "guard", "check_finite", "alloc", "damaged_file_errors",
+           "FORMAT_NAME", "LAYOUT_VERSION"]
 
 #: value of the root attribute ``format``
 FORMAT_NAME = "tfi_quat-grid"
@@ -336,7 +337,7 @@ def _guard_child(source, size: int, wfd) -> None:
         os._exit(status)
 
 
-def _guard(source, name: str) -> None:
+def guard(source, name: str) -> None:
     """Walk the HDF5 metadata of ``source`` in a forked child before this process touches it.
 
     libhdf5 can crash, loop forever or allocate gigabytes on damaged metadata
@@ -475,7 +476,7 @@ def _as_int(value, what: str, path) -> int:
     return int(arr.reshape(()))
 
 
-def _alloc(shape, dtype, path, where, order="F") -> np.ndarray:
+def alloc(shape, dtype, path, where, order="F") -> np.ndarray:
     """``np.empty(shape, dtype, order)``; a refused allocation is a GridFormatError."""
     try:
         return np.empty(shape, dtype=dtype, order=order)
@@ -491,7 +492,7 @@ _INT32 = np.iinfo(np.int32)
 class _Reader:
     """An open HDF5 grid file, checked at the root; checks blocks on demand.
 
-    The file's metadata is walked in a guarded child process (:func:`_guard`)
+    The file's metadata is walked in a guarded child process (:func:`guard`)
     before this process opens it.
     """
 
@@ -506,7 +507,7 @@ class _Reader:
                 raise GridFormatError(f"{p}: empty file, not an HDF5 grid")
             if not is_hdf5(p):
                 raise GridFormatError(f"{p}: not an HDF5 file (no HDF5 signature)")
-        _guard(path, str(path))
+        guard(path, str(path))
         try:
             self.f = h5py.File(path, "r")
         except OSError as exc:
@@ -724,18 +725,18 @@ class _Reader:
     def block(self, n: int, allow_nonfinite: bool, meta=None) -> Block:
         name, dims, xyz_ds, ib_ds = self.meta(n) if meta is None else meta
         where = f"block {n + 1}"
-        xyz = _alloc(dims + (3,), np.float64, self.path, where)
+        xyz = alloc(dims + (3,), np.float64, self.path, where)
         self.read_into(xyz_ds, xyz.T, where)
         if not allow_nonfinite:
-            _check_finite(xyz, self.path, where, xyz_ds.name)
+            check_finite(xyz, self.path, where, xyz_ds.name)
         ib = None
         if ib_ds is not None:
-            ib = _alloc(dims, np.int32, self.path, where)
+            ib = alloc(dims, np.int32, self.path, where)
             if np.can_cast(ib_ds.dtype, np.int32):
                 self.read_into(ib_ds, ib.T, where)
             else:
                 # read as stored: HDF5 would clamp values beyond int32 without a word
-                wide = _alloc(ib_ds.shape, ib_ds.dtype.newbyteorder("="), self.path, where, "C")
+                wide = alloc(ib_ds.shape, ib_ds.dtype.newbyteorder("="), self.path, where, "C")
                 self.read_into(ib_ds, wide, where)
                 _check_int32(wide, self.path, where, ib_ds.name)
                 ib.T[...] = wide
@@ -798,7 +799,7 @@ def _check_int32(arr: np.ndarray, path, where: str, dataset: str) -> None:
         f"first {int(arr[k, j, i])} at point ({i + 1}, {j + 1}, {k + 1}) (1-based)")
 
 
-def _check_finite(arr: np.ndarray, path, where: str, dataset: str, face=None) -> None:
+def check_finite(arr: np.ndarray, path, where: str, dataset: str, face=None) -> None:
     """Raise GridFormatError at the first NaN/inf of ``arr``, shape (ni, nj, nk, 3).
 
     For a face array ``(na, nb, 3)``, ``face = (d, pos)`` puts back the fixed
@@ -827,7 +828,7 @@ def _check_finite(arr: np.ndarray, path, where: str, dataset: str, face=None) ->
 
 # ----------------------------------------------------------------------------- reading
 
-def _damaged_file_errors(fn):
+def damaged_file_errors(fn):
     """Turn h5py's errors on a damaged file (KeyError, RuntimeError, ...) into GridFormatError."""
     @functools.wraps(fn)
     def wrapper(path, *args, **kwargs):
@@ -841,7 +842,7 @@ def _damaged_file_errors(fn):
     return wrapper
 
 
-@_damaged_file_errors
+@damaged_file_errors
 def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None) -> Grid:
     """Read an HDF5 grid file (layout :data:`LAYOUT_VERSION` or older).
 
@@ -865,7 +866,7 @@ def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None) 
     ------
     GridFormatError
         Not an HDF5 file, damaged metadata (libhdf5 crashing, looping or
-        allocating while reading it, see :func:`_guard`), missing or extra
+        allocating while reading it, see :func:`guard`), missing or extra
         groups/attributes/datasets (named), an unsupported layout version, a
         dataset whose shape or dtype does not match its block's dims, an
         incomplete dataset, a gzip chunk inflating beyond its size, IBLANK
@@ -886,7 +887,7 @@ def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None) 
             raise GridFormatError(f"{path}: {exc}") from None
 
 
-@_damaged_file_errors
+@damaged_file_errors
 def read_block(path, b, *, allow_nonfinite: bool = False, max_points: int | None = None) -> Block:
     """Read one block, and nothing else, from an HDF5 grid file.
 
@@ -912,7 +913,7 @@ def read_block(path, b, *, allow_nonfinite: bool = False, max_points: int | None
         return r.block(n, allow_nonfinite, meta)
 
 
-@_damaged_file_errors
+@damaged_file_errors
 def read_face(path, b, face, *, allow_nonfinite: bool = False,
               max_points: int | None = None) -> np.ndarray:
     """Read the points of one face of one block (a hyperslab), and nothing else.
@@ -945,7 +946,7 @@ def read_face(path, b, face, *, allow_nonfinite: bool = False,
         where = f"block {n + 1} face {FACES[f]}"
         check_points(f"{path}: {where}", run[0] * run[1], max_points=max_points,
                      bytes_per_point=3 * 8)
-        out = _alloc((run[0], run[1], 3), np.float64, path, where)
+        out = alloc((run[0], run[1], 3), np.float64, path, where)
         # dataset axes are (c, k, j, i): block axis a is dataset axis 3 - a
         sel = [slice(None)] * 4
         sel[3 - d] = slice(pos, pos + 1)
@@ -953,11 +954,11 @@ def read_face(path, b, face, *, allow_nonfinite: bool = False,
                                    enumerate((3, dims[2], dims[1], dims[0]))))
         r.read_into(xyz_ds, view, where, np.s_[tuple(sel)])
         if not allow_nonfinite:
-            _check_finite(out, path, where, xyz_ds.name, face=(d, pos))
+            check_finite(out, path, where, xyz_ds.name, face=(d, pos))
         return out
 
 
-@_damaged_file_errors
+@damaged_file_errors
 def info(path) -> HDF5Info:
     """Describe an HDF5 grid file from its metadata only (no coordinates are read).
 
@@ -986,7 +987,7 @@ def info(path) -> HDF5Info:
         )
 
 
-@_damaged_file_errors
+@damaged_file_errors
 def read_extra(path) -> dict | None:
     """Return the JSON object stored in ``/extra``, or None when the file has none.
 

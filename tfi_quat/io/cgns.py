@@ -1,0 +1,1140 @@
+"""CGNS files (CGNS/HDF5): structured zones, boundary conditions, 1-to-1 connectivity.
+
+What is read
+------------
+A CGNS/HDF5 file is a tree of HDF5 groups, one per CGNS node, each with the
+attributes ``name`` and ``label`` (33-byte strings), ``type`` (3 bytes:
+``MT I4 I8 R4 R8 C1 LK``) and ``flags``, and its value, if any, in a dataset
+named ``" data"`` (a leading space) stored in Fortran order, so that h5py
+sees the dimensions reversed.  The reader takes one ``CGNSBase_t`` (``base=``
+by name, default the first) of cell dimension 3 or 2, and from it:
+
+* every ``Zone_t`` (``ZoneType`` ``Structured``; an unstructured zone is an
+  error naming it), its name as the block name;
+* ``GridCoordinates/CoordinateX, CoordinateY[, CoordinateZ]`` (``R4`` or
+  ``R8``, converted to float64).  A component's ``" data"`` dataset is, in
+  HDF5's C order, ``(nk, nj, ni)`` (2-D: ``(nj, ni)``): the transpose of the
+  block's ``xyz[..., c]``, which HDF5 fills in place (no copy);
+* ``ZoneBC/BC_t`` with ``PointRange`` (or a ``PointList`` covering a whole
+  rectangle), the type given directly or ``FamilySpecified`` through the
+  base's ``Family_t/FamilyBC_t``; kinds by :func:`bc_kind`;
+* ``ZoneGridConnectivity/GridConnectivity1to1_t`` (``PointRange``,
+  ``PointRangeDonor``, ``Transform``; ranges may run backwards, a zone may
+  abut itself), the two records of an interface merged into one
+  :class:`~tfi_quat.topology.Interface` whose points are checked to coincide.
+
+The grid gets ``source_format`` a :class:`CGNSFormat` (the base, the
+coordinate precision, the file) and ``connectivity`` a
+:class:`~tfi_quat.topology.Connectivity` (None when the file has neither
+boundary conditions nor 1-to-1 records).  Other ``GridConnectivity_t``
+records (overset, mismatched abutting) are not used; :func:`info` lists them
+and writing ``like`` the file keeps them.
+
+What is written
+---------------
+:func:`write` writes a new tree (``CGNSLibraryVersion``, one base, its zones
+with ``ZoneType``, coordinates, ``ZoneBC`` and both records of each 1-to-1
+interface, families on request), or, ``like`` a grid read from a CGNS file,
+a copy of that file's tree in which only the coordinates of the base read are
+replaced: flow solutions, families, descriptors, reference states, other
+bases and connectivity records are kept.
+
+Robustness
+----------
+Before h5py opens a file, its metadata is walked in a guarded child process
+(:func:`tfi_quat.io.hdf5.guard`); declared sizes are checked against
+``max_points`` or the available memory before anything is allocated; every
+error is a :class:`~tfi_quat.errors.GridFormatError` naming the file and the
+node (e.g. ``/wing/inner/ZoneBC/wall1/PointRange``).  ADF-format CGNS files
+(the pre-3.0 default) are refused with a message naming ``adf2hdf``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import ConnectivityError, GridFormatError, GridValueError, TfiQuatError
+from ..grid import Block, Grid, face_axes, face_index
+from ..spec import PatchSpec
+from ..topology.model import MAX_DIM, Connectivity, Interface, Patch
+from ._atomic import atomic_output, check_target
+from ._limits import check_points
+from .hdf5 import alloc, check_finite, damaged_file_errors, guard, is_hdf5
+
+__all__ = ["CGNSFormat", "CGNSInfo", "read", "write", "info", "bc_kind", "BC_TYPES", "is_adf"]
+
+#: every BCType_t value of the CGNS standard (SIDS 9.3), as the files spell them
+BC_TYPES = (
+    "Null", "UserDefined", "BCAxisymmetricWedge", "BCDegenerateLine", "BCDegeneratePoint",
+    "BCDirichlet", "BCExtrapolate", "BCFarfield", "BCGeneral", "BCInflow", "BCInflowSubsonic",
+    "BCInflowSupersonic", "BCNeumann", "BCOutflow", "BCOutflowSubsonic", "BCOutflowSupersonic",
+    "BCSymmetryPlane", "BCSymmetryPolar", "BCTunnelInflow", "BCTunnelOutflow", "BCWall",
+    "BCWallInviscid", "BCWallViscous", "BCWallViscousHeatFlux", "BCWallViscousIsothermal",
+    "FamilySpecified")
+
+#: other spellings of BCType_t values met in files (the names of the C enumeration)
+_BC_ALIASES = {"BCTypeNull": "Null", "BCTypeUserDefined": "UserDefined"}
+
+#: CGNS library version written in ``CGNSLibraryVersion`` (the layout of CGNS 3.4)
+LIBRARY_VERSION = 3.4
+_NAME_LEN = 32
+_LABEL_TRANSFORM = '"int[IndexDimension]"'
+_ADF_MARK = b"ADF Database"
+
+
+def bc_kind(bctype: str) -> str:
+    """The patch kind of a CGNS ``BCType``.
+
+    ``BCWall*`` -> ``"wall"``; ``BCSymmetryPlane`` -> ``"symmetry"``; every
+    other type (``BCFarfield``, ``BCInflow*``, ``BCOutflow*``,
+    ``BCExtrapolate``, ``BCDirichlet``, ``BCTunnel*``, user-defined, ...)
+    -> ``"fixed"``.
+    """
+    if bctype.startswith("BCWall"):
+        return "wall"
+    if bctype == "BCSymmetryPlane":
+        return "symmetry"
+    return "fixed"
+
+
+@dataclass(frozen=True)
+class CGNSFormat:
+    """The variant of a CGNS file (kept in ``Grid.source_format``).
+
+    Attributes
+    ----------
+    base : str
+        Name of the ``CGNSBase_t`` read (and written).
+    single : bool
+        Coordinates stored as ``R4`` (float32) rather than ``R8``.
+    source : str or None
+        The file read: writing ``like`` this variant copies that file's tree
+        and replaces only the coordinates of ``base``.
+    """
+
+    base: str = "Base"
+    single: bool = False
+    source: str | None = None
+
+    def replace(self, **changes) -> "CGNSFormat":
+        from dataclasses import replace
+        return replace(self, **changes)
+
+    def describe(self) -> str:
+        """One line for people, e.g. ``CGNS/HDF5, base 'wing', float64 coordinates``."""
+        return f"CGNS/HDF5, base {self.base!r}, {'float32' if self.single else 'float64'} coordinates"
+
+
+@dataclass(frozen=True)
+class CGNSInfo:
+    """What :func:`info` finds in a CGNS file without reading coordinates.
+
+    Attributes
+    ----------
+    path : str
+    bases : list of (name, cell_dim, phys_dim, zone names)
+        Every ``CGNSBase_t`` in file order.
+    base : str
+        The base read (``base=`` or the first).
+    zones : list of (name, (ni, nj, nk), datatype)
+        Zones of that base; datatype ``"R4"``/``"R8"`` of CoordinateX.
+    bcs : list of dict
+        ``zone``, ``name``, ``type`` (BCType or ``FamilySpecified``),
+        ``family`` (or None), ``resolved`` (the BCType after the family),
+        ``kind``, ``face``, ``range`` (1-based ``[[i1,j1,k1],[i2,j2,k2]]``), ``node``.
+    one_to_one : list of dict
+        ``zone``, ``name``, ``donor``, ``range``, ``donor_range``, ``transform``, ``node``.
+    other_connectivity : list of dict
+        ``zone``, ``name``, ``type`` (``Overset``, ``Abutting``, ...), ``donor``,
+        ``node``: kept on rewriting, not used.
+    """
+
+    path: str
+    bases: list = field(default_factory=list)
+    base: str = ""
+    zones: list = field(default_factory=list)
+    bcs: list = field(default_factory=list)
+    one_to_one: list = field(default_factory=list)
+    other_connectivity: list = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- file checks
+
+def is_adf(path) -> bool:
+    """Whether ``path`` starts like an ADF-format CGNS file."""
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            return _ADF_MARK in fh.read(32)
+    except OSError:
+        return False
+
+
+def _open(path) -> h5py.File:
+    """Check the file kind, walk its metadata in the guard, open it with h5py."""
+    p = Path(os.fspath(path))
+    with open(p, "rb") as fh:  # the OS's own FileNotFoundError / IsADirectoryError / PermissionError
+        size = os.fstat(fh.fileno()).st_size
+        head = fh.read(32)
+    if size == 0:
+        raise GridFormatError(f"{p}: empty file, not a CGNS file")
+    if _ADF_MARK in head:
+        raise GridFormatError(f"{p}: an ADF-format CGNS file; tfi_quat reads CGNS/HDF5 files: convert it "
+                              f"with 'adf2hdf {p.name} NEW.cgns' from the CGNS tools (cgns-convert)")
+    if not is_hdf5(p):
+        raise GridFormatError(f"{p}: not a CGNS/HDF5 file (no HDF5 signature)")
+    guard(p, str(p))
+    try:
+        return h5py.File(p, "r")
+    except OSError as exc:
+        raise GridFormatError(f"{p}: cannot open as HDF5: {exc}") from None
+
+
+def _text(value) -> str:
+    if isinstance(value, np.ndarray):
+        value = value.tobytes() if value.dtype.kind in "iuS" else value[()]
+    if isinstance(value, (bytes, np.bytes_)):
+        return bytes(value).split(b"\0", 1)[0].decode("utf-8", "replace").rstrip()
+    return str(value)
+
+
+class _Tree:
+    """Checked access to the CGNS nodes of an open file; errors name the file and node."""
+
+    def __init__(self, path, f: h5py.File):
+        self.path = path
+        self.f = f
+
+    def fail(self, node: str, msg: str):
+        raise GridFormatError(f"{self.path}: {node}: {msg}")
+
+    def attr(self, g, key: str, node: str) -> str:
+        if key not in g.attrs:
+            self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
+        try:
+            return _text(g.attrs[key])
+        except (OSError, TypeError, ValueError) as exc:
+            self.fail(node, f"cannot read attribute {key!r}: {exc}")
+
+    def label(self, g, node: str) -> str:
+        return self.attr(g, "label", node)
+
+    def children(self, g, node: str, label: str | None = None):
+        """``(name, group, path)`` of the child nodes (hard-linked groups) with ``label``.
+
+        Links (CGNS ``LK`` nodes, soft or external HDF5 links) are not followed: the
+        guard vouches for this file only.
+        """
+        out = []
+        for key in g:
+            if key.startswith(" "):
+                continue
+            link = g.get(key, getlink=True)
+            sub = f"{node.rstrip('/')}/{key}"
+            if not isinstance(link, h5py.HardLink):
+                if label is None:
+                    continue
+                self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
+            obj = g[key]
+            if not isinstance(obj, h5py.Group):
+                continue
+            if label is None or self.label(obj, sub) == label:
+                out.append((key, obj, sub))
+        return out
+
+    def child(self, g, key: str, node: str, label: str | None = None, required: bool = True):
+        sub = f"{node.rstrip('/')}/{key}"
+        link = g.get(key, getlink=True)
+        if link is None:
+            if required:
+                self.fail(sub, "is missing")
+            return None, sub
+        if not isinstance(link, h5py.HardLink):
+            self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
+        obj = g[key]
+        if not isinstance(obj, h5py.Group):
+            self.fail(sub, "is not a CGNS node (not an HDF5 group)")
+        if label is not None and self.label(obj, sub) != label:
+            self.fail(sub, f"has label {self.label(obj, sub)!r}, expected {label!r}")
+        return obj, sub
+
+    def dataset(self, g, node: str) -> h5py.Dataset:
+        link = g.get(" data", getlink=True)
+        if link is None:
+            self.fail(node, "has no data")
+        if not isinstance(link, h5py.HardLink) or not isinstance(g[" data"], h5py.Dataset):
+            self.fail(node, "its ' data' is not a dataset")
+        return g[" data"]
+
+    def data(self, g, node: str, max_values: int = 1 << 16) -> np.ndarray:
+        """The node's value, at most ``max_values`` values (metadata, not coordinates)."""
+        ds = self.dataset(g, node)
+        if ds.size > max_values:
+            self.fail(node, f"holds {ds.size:,} values, more than the {max_values:,} expected")
+        if ds.dtype.kind not in "iuf":
+            self.fail(node, f"data of type {ds.dtype} is not numbers or characters")
+        try:
+            return ds[()]
+        except (OSError, TypeError, ValueError) as exc:
+            self.fail(node, f"cannot read its data: {exc}")
+
+    def string(self, g, node: str) -> str:
+        arr = self.data(g, node, 4096)
+        if arr.dtype.kind not in "iu" or arr.dtype.itemsize != 1:
+            self.fail(node, f"expected a character (C1) value, got {arr.dtype}")
+        return _text(np.ascontiguousarray(arr).reshape(-1))
+
+    def ints(self, g, node: str, shape: tuple, max_values: int = 1 << 16) -> np.ndarray:
+        arr = self.data(g, node, max_values)
+        if arr.dtype.kind not in "iu" or arr.dtype.itemsize < 4:
+            self.fail(node, f"expected integers (I4 or I8), got {arr.dtype}")
+        if arr.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, arr.shape)):
+            want = " x ".join("n" if s is None else str(s) for s in reversed(shape))
+            got = " x ".join(map(str, arr.shape[::-1])) or "a scalar"
+            self.fail(node, f"has shape {got} (Fortran order), expected {want}")
+        return arr.astype(np.int64)
+
+
+# ----------------------------------------------------------------------------- the base
+
+@dataclass
+class _Zone:
+    name: str
+    node: str
+    group: object
+    dims: tuple
+    coords: list        # (name, dataset) for X, Y[, Z]
+
+
+class _Base:
+    """One base of an open CGNS file: zones, families, BC and connectivity records."""
+
+    def __init__(self, tree: _Tree, base: str | None):
+        self.tree = tree
+        t = tree
+        bases = []
+        for name, g, node in t.children(t.f, "", "CGNSBase_t"):
+            dims = t.ints(g, node, (2,))
+            bases.append((name, g, node, int(dims[0]), int(dims[1])))
+        if not bases:
+            raise GridFormatError(f"{t.path}: no CGNSBase_t node: not a CGNS file")
+        self.all = bases
+        if base is None:
+            chosen = bases[0]
+        else:
+            named = [b for b in bases if b[0] == base]
+            if not named:
+                raise GridFormatError(f"{t.path}: no base named {base!r}; the file holds "
+                                      f"{', '.join(repr(b[0]) for b in bases)}")
+            chosen = named[0]
+        self.name, self.group, self.node, self.cell_dim, self.phys_dim = chosen
+        if self.cell_dim not in (2, 3):
+            t.fail(self.node, f"cell dimension {self.cell_dim}: tfi_quat reads bases of cell dimension 2 or 3")
+        if not self.cell_dim <= self.phys_dim <= 3:
+            t.fail(self.node, f"physical dimension {self.phys_dim} with cell dimension {self.cell_dim}")
+        self.idim = self.cell_dim
+        self.zones = [self._zone(name, g, node) for name, g, node in t.children(self.group, self.node, "Zone_t")]
+        if not self.zones:
+            t.fail(self.node, "has no Zone_t node")
+        self.index = {z.name: n for n, z in enumerate(self.zones)}
+        self.families = {}
+        for name, g, node in t.children(self.group, self.node, "Family_t"):
+            fbc = t.children(g, node, "FamilyBC_t")
+            self.families[name] = t.string(fbc[0][1], fbc[0][2]) if fbc else None
+
+    @property
+    def ndim(self) -> int:
+        return self.cell_dim
+
+    def _zone(self, name, g, node) -> _Zone:
+        t = self.tree
+        zt, ztnode = t.child(g, "ZoneType", node, "ZoneType_t", required=False)
+        if zt is not None:
+            kind = t.string(zt, ztnode)
+            if kind != "Structured":
+                t.fail(node, f"zone {name!r} is {kind}: tfi_quat reads structured zones only")
+        size = t.ints(g, node, (3, self.idim))
+        vert = [int(v) for v in size[0]]
+        if min(vert) < 1 or max(vert) > MAX_DIM:
+            t.fail(node, f"zone {name!r}: vertex sizes {vert} must be from 1 to {MAX_DIM}")
+        dims = tuple(vert + [1] * (3 - self.idim))
+        gc, gcnode = t.child(g, "GridCoordinates", node, "GridCoordinates_t")
+        comps = ("CoordinateX", "CoordinateY", "CoordinateZ")[:self.phys_dim]
+        coords = []
+        shape = tuple(reversed(vert))
+        for c in comps:
+            cg, cnode = t.child(gc, c, gcnode, "DataArray_t")
+            ds = t.dataset(cg, cnode)
+            if ds.shape != shape:
+                t.fail(cnode, f"data of shape {' x '.join(map(str, ds.shape[::-1]))} (Fortran order) "
+                              f"does not match the zone size {' x '.join(map(str, vert))}")
+            if ds.dtype.kind != "f" or ds.dtype.itemsize not in (4, 8):
+                t.fail(cnode, f"coordinates of type {ds.dtype}: expected R4 or R8")
+            plist = ds.id.get_create_plist()
+            if plist.get_nfilters():
+                t.fail(cnode, "compressed or filtered coordinates are not supported")
+            if ds.chunks is None:
+                stored, need = ds.id.get_storage_size(), ds.size * ds.dtype.itemsize
+                if stored < need:
+                    t.fail(cnode, f"only {stored} of {need} bytes are stored (incomplete data)")
+            coords.append((c, ds, cnode))
+        return _Zone(name, node, g, dims, coords)
+
+    # ------------------------------------------------------------------ records
+    def _range(self, g, node, zone: _Zone, what: str = "PointRange"):
+        """0-based begin and end (3-vectors) of an IndexRange_t child ``what``."""
+        t = self.tree
+        pr, prnode = t.child(g, what, node, "IndexRange_t")
+        r = t.ints(pr, prnode, (2, self.idim))
+        lo = [int(v) - 1 for v in r[0]] + [0] * (3 - self.idim)
+        hi = [int(v) - 1 for v in r[1]] + [0] * (3 - self.idim)
+        return lo, hi, prnode, r
+
+    def _check_in(self, lo, hi, zone: _Zone, node, r):
+        for a in range(3):
+            for v in (lo[a], hi[a]):
+                if not 0 <= v < zone.dims[a]:
+                    self.tree.fail(node, f"{_show(r)} lies outside zone {zone.name!r} "
+                                         f"({' x '.join(map(str, zone.dims[:self.idim]))})")
+
+    def _face(self, lo, hi, zone: _Zone, node, r) -> str:
+        """The face of ``zone`` holding the range (first matching axis)."""
+        for a in range(self.idim):
+            if lo[a] == hi[a] and lo[a] in (0, zone.dims[a] - 1):
+                if zone.dims[a] == 1:
+                    continue
+                return "ijk"[a] + ("min" if lo[a] == 0 else "max")
+        self.tree.fail(node, f"{_show(r)} does not lie on a face of zone {zone.name!r} "
+                             f"({' x '.join(map(str, zone.dims[:self.idim]))})")
+
+    def _point_list(self, g, node, zone: _Zone):
+        """A PointList covering a full rectangle, as the 0-based corners of that rectangle."""
+        t = self.tree
+        pl, plnode = t.child(g, "PointList", node, "IndexArray_t")
+        limit = int(np.prod(zone.dims))
+        arr = t.ints(pl, plnode, (None, self.idim), max_values=self.idim * limit)
+        if arr.shape[0] == 0:
+            t.fail(plnode, "is empty")
+        lo, hi = arr.min(axis=0), arr.max(axis=0)
+        count = int(np.prod(hi - lo + 1))
+        if count != arr.shape[0] or len(np.unique(arr, axis=0)) != count:
+            t.fail(plnode, f"its {arr.shape[0]} points do not cover the rectangle "
+                           f"{lo.tolist()}..{hi.tolist()} exactly once; tfi_quat reads point lists of "
+                           "whole rectangles only")
+        pad = [1] * (3 - self.idim)
+        return [int(v) - 1 for v in lo] + [0] * len(pad), [int(v) - 1 for v in hi] + [0] * len(pad), plnode, \
+            np.stack([lo, hi])
+
+    def bcs(self):
+        """Every BC_t of the base: dicts as :attr:`CGNSInfo.bcs` plus ``block`` and ``spec``."""
+        t = self.tree
+        out = []
+        for zn, zone in enumerate(self.zones):
+            zbc, zbcnode = t.child(zone.group, "ZoneBC", zone.node, "ZoneBC_t", required=False)
+            if zbc is None:
+                continue
+            for name, g, node in t.children(zbc, zbcnode, "BC_t"):
+                bctype = t.string(g, node)
+                bctype = _BC_ALIASES.get(bctype, bctype)
+                if bctype not in BC_TYPES:
+                    t.fail(node, f"unknown BCType {bctype!r}")
+                loc, locnode = t.child(g, "GridLocation", node, "GridLocation_t", required=False)
+                if loc is not None and t.string(loc, locnode) != "Vertex":
+                    t.fail(locnode, f"BC location {t.string(loc, locnode)!r}: tfi_quat reads vertex "
+                                    "ranges (GridLocation Vertex) only")
+                family = None
+                resolved = bctype
+                if bctype == "FamilySpecified":
+                    fam, famnode = t.child(g, "FamilyName", node, "FamilyName_t", required=False)
+                    if fam is None:
+                        t.fail(node, "BCType FamilySpecified without a FamilyName")
+                    family = t.string(fam, famnode)
+                    if family not in self.families:
+                        t.fail(famnode, f"family {family!r} is not a Family_t of base {self.name!r}")
+                    resolved = _BC_ALIASES.get(self.families[family], self.families[family]) or "Null"
+                    if resolved not in BC_TYPES:
+                        t.fail(f"{self.node}/{family}", f"unknown BCType {resolved!r} in its FamilyBC")
+                if "PointRange" in g:
+                    lo, hi, rnode, r = self._range(g, node, zone)
+                elif "PointList" in g:
+                    lo, hi, rnode, r = self._point_list(g, node, zone)
+                else:
+                    t.fail(node, "has neither PointRange nor PointList (element ranges are not "
+                                 "structured-grid boundary conditions)")
+                self._check_in(lo, hi, zone, rnode, r)
+                face = self._face(lo, hi, zone, rnode, r)
+                d, a, b = face_axes(face)
+                rng = ((min(lo[a], hi[a]), max(lo[a], hi[a])), (min(lo[b], hi[b]), max(lo[b], hi[b])))
+                out.append(dict(zone=zone.name, name=name, type=bctype, family=family, resolved=resolved,
+                                kind=bc_kind(resolved), face=face, range=_one_based(lo, hi, self.idim),
+                                node=node, block=zn, spec=PatchSpec(zn, face, rng)))
+        return out
+
+    def connectivity_records(self):
+        """``(one_to_one, other)``: dicts as :attr:`CGNSInfo.one_to_one` / ``other_connectivity``."""
+        t = self.tree
+        ones, other = [], []
+        for zn, zone in enumerate(self.zones):
+            zgc, zgcnode = t.child(zone.group, "ZoneGridConnectivity", zone.node,
+                                   "ZoneGridConnectivity_t", required=False)
+            if zgc is None:
+                continue
+            for name, g, node in t.children(zgc, zgcnode):
+                label = t.label(g, node)
+                if label == "GridConnectivity_t":
+                    gtype = "Overset"
+                    ct, ctnode = t.child(g, "GridConnectivityType", node, required=False)
+                    if ct is not None:
+                        gtype = t.string(ct, ctnode)
+                    other.append(dict(zone=zone.name, name=name, type=gtype, donor=t.string(g, node),
+                                      node=node))
+                    continue
+                if label != "GridConnectivity1to1_t":
+                    continue
+                donor = t.string(g, node)
+                if "/" in donor:
+                    dbase, _, dzone = donor.partition("/")
+                    if dbase != self.name:
+                        t.fail(node, f"donor zone {donor!r} is in another base; tfi_quat reads one base")
+                    donor = dzone
+                if donor not in self.index:
+                    t.fail(node, f"donor zone {donor!r} is not a zone of base {self.name!r}")
+                lo, hi, rnode, r = self._range(g, node, zone)
+                dzone_ = self.zones[self.index[donor]]
+                dlo, dhi, dnode, dr = self._range(g, node, dzone_, "PointRangeDonor")
+                tr, trnode = t.child(g, "Transform", node, required=False)
+                if tr is None:
+                    transform = list(range(1, self.idim + 1))
+                else:
+                    transform = [int(v) for v in t.ints(tr, trnode, (self.idim,))]
+                    if sorted(abs(v) for v in transform) != list(range(1, self.idim + 1)):
+                        t.fail(trnode, f"{transform} is not a signed permutation of "
+                                       f"{list(range(1, self.idim + 1))}")
+                ones.append(dict(zone=zone.name, name=name, donor=donor, range=_one_based(lo, hi, self.idim),
+                                 donor_range=_one_based(dlo, dhi, self.idim), transform=transform,
+                                 node=node, block=zn, donor_block=self.index[donor],
+                                 lo=lo, hi=hi, dlo=dlo, dhi=dhi, rnode=rnode, dnode=dnode))
+        return ones, other
+
+    def interface(self, rec) -> Interface:
+        """The canonical :class:`Interface` of one 1-to-1 record."""
+        t = self.tree
+        zone, dzone = self.zones[rec["block"]], self.zones[rec["donor_block"]]
+        lo, hi, dlo, dhi = rec["lo"], rec["hi"], rec["dlo"], rec["dhi"]
+        self._check_in(lo, hi, zone, rec["rnode"], rec["range"])
+        self._check_in(dlo, dhi, dzone, rec["dnode"], rec["donor_range"])
+        face = self._face(lo, hi, zone, rec["rnode"], rec["range"])
+        dface = self._face(dlo, dhi, dzone, rec["dnode"], rec["donor_range"])
+        tr = list(rec["transform"]) + [3] * (3 - self.idim)
+        T = np.zeros((3, 3), dtype=np.int64)
+        for m, v in enumerate(tr):
+            T[abs(v) - 1, m] = 1 if v > 0 else -1
+        d, a, b = face_axes(face)
+        ds = face_axes(dface)[0]
+        where = (f"{rec['node']}: zone {zone.name!r} {_show(rec['range'])} -> zone {dzone.name!r} "
+                 f"{_show(rec['donor_range'])}, Transform {rec['transform']}")
+        if abs(tr[d]) != ds + 1:
+            t.fail(where, f"the Transform does not map the normal of face {face} onto the normal "
+                          f"of donor face {dface}")
+        # the normal entry continues the index space through the interface (see topology.model)
+        side_m = 1 if face.endswith("max") else -1
+        side_s = 1 if dface.endswith("max") else -1
+        tr[d] = -side_m * side_s * (ds + 1)
+        T[:, d] = 0
+        T[ds, d] = 1 if tr[d] > 0 else -1
+        img = T @ (np.array(hi) - np.array(lo))
+        if not np.array_equal(img, np.array(dhi) - np.array(dlo)):
+            t.fail(where, "PointRangeDonor is not the image of PointRange under the Transform")
+        mb = list(lo)
+        mb[a], mb[b] = min(lo[a], hi[a]), min(lo[b], hi[b])
+        sb = T @ (np.array(mb) - np.array(lo)) + np.array(dlo)
+        rng = ((min(lo[a], hi[a]), max(lo[a], hi[a])), (min(lo[b], hi[b]), max(lo[b], hi[b])))
+        _, da, db = face_axes(dface)
+        srng = ((min(dlo[da], dhi[da]), max(dlo[da], dhi[da])), (min(dlo[db], dhi[db]), max(dlo[db], dhi[db])))
+        try:
+            it = Interface(PatchSpec(rec["block"], face, rng), PatchSpec(rec["donor_block"], dface, srng),
+                           tuple(tr), tuple(mb), tuple(int(v) for v in sb))
+        except ConnectivityError as exc:
+            t.fail(where, str(exc))
+        key1 = (it.master.block, face_index(it.master.face))
+        key2 = (it.slave.block, face_index(it.slave.face))
+        if key2 < key1 or (key1 == key2 and (it.slave.range[0][0], it.slave.range[1][0]) <
+                           (it.master.range[0][0], it.master.range[1][0])):
+            it = it.reversed()
+        return it
+
+    def connectivity(self, grid=None) -> Connectivity | None:
+        """The :class:`Connectivity` of the base (None when it has no BC and no 1-to-1 record).
+
+        With ``grid``, the points of every interface are checked to coincide.
+        """
+        t = self.tree
+        bcs = self.bcs()
+        ones, _ = self.connectivity_records()
+        if not bcs and not ones:
+            return None
+        interfaces, nodes = [], []
+        for rec in ones:
+            it = self.interface(rec)
+            if it in interfaces:
+                nodes[interfaces.index(it)].append(rec)
+                continue
+            interfaces.append(it)
+            nodes.append([rec])
+        patches = [Patch(b["spec"], b["kind"], b["family"] or b["resolved"], origin="file") for b in bcs]
+        dims = [z.dims for z in self.zones]
+        try:
+            conn = Connectivity(interfaces, patches, self.ndim, dims)
+        except ConnectivityError as exc:
+            raise GridFormatError(f"{t.path}: {self.node}: {exc}") from None
+
+        def name(item):
+            role, n = item
+            if role == "patch":
+                return bcs[n]["node"]
+            return " and ".join(r["node"] for r in nodes[n])
+        overlaps = conn.overlaps()
+        if overlaps:
+            first, second = overlaps[0]
+            spec = conn.item_spec(second)
+            raise GridFormatError(f"{t.path}: {name(second)} overlaps {name(first)} (zone "
+                                  f"{self.zones[spec.block].name!r} face {spec.face})")
+        if grid is not None:
+            from ..topology.search import check_interfaces
+
+            def where(n):
+                recs = nodes[n]
+                r = recs[0]
+                return (f"{t.path}: {' and '.join(x['node'] for x in recs)} (zone {r['zone']!r} "
+                        f"{_show(r['range'])}, donor zone {r['donor']!r} {_show(r['donor_range'])})")
+            try:
+                check_interfaces(conn, grid, where)
+            except ConnectivityError as exc:
+                raise GridFormatError(str(exc)) from None
+        return conn
+
+    # ------------------------------------------------------------------ coordinates
+    def blocks(self, allow_nonfinite: bool, max_points):
+        t = self.tree
+        check_points(f"{t.path}: base {self.name!r}, {len(self.zones)} zone(s)",
+                     sum(int(np.prod(z.dims)) for z in self.zones), max_points=max_points)
+        blocks, single = [], False
+        for z in self.zones:
+            xyz = alloc(z.dims + (3,), np.float64, t.path, f"zone {z.name!r}")
+            if len(z.coords) < 3:
+                xyz[..., 2] = 0.0
+            for c, (cname, ds, cnode) in enumerate(z.coords):
+                single = single or ds.dtype.itemsize == 4
+                view = xyz[..., c].T if self.idim == 3 else xyz[:, :, 0, c].T
+                try:
+                    ds.read_direct(view)
+                except (OSError, TypeError, ValueError) as exc:
+                    t.fail(cnode, f"cannot read: {exc}")
+            if not allow_nonfinite:
+                check_finite(xyz, t.path, f"zone {z.name!r}", f"{z.node}/GridCoordinates")
+            blocks.append(Block(xyz, None, z.name, allow_nonfinite=True))
+        return blocks, single
+
+
+def _one_based(lo, hi, idim) -> list:
+    return [[v + 1 for v in lo[:idim]], [v + 1 for v in hi[:idim]]]
+
+
+def _show(r) -> str:
+    r = np.asarray(r).tolist()
+    return f"[{', '.join('[' + ', '.join(map(str, c)) + ']' for c in r)}]"
+
+
+# ----------------------------------------------------------------------------- reading
+
+@damaged_file_errors
+def read(path, *, base: str | None = None, allow_nonfinite: bool = False,
+         max_points: int | None = None) -> Grid:
+    """Read a CGNS/HDF5 file: the structured zones of one base with their connectivity.
+
+    Parameters
+    ----------
+    path : str or path-like
+    base : str, optional
+        Name of the ``CGNSBase_t`` to read (default: the first).
+    allow_nonfinite : bool
+        Accept NaN or infinite coordinates (default: GridFormatError).
+    max_points : int, optional
+        Refuse a base declaring more points (default: what fits in memory),
+        before anything is allocated.
+
+    Returns
+    -------
+    Grid
+        One block per zone (named after it), ``xyz`` float64 ``(ni, nj, nk, 3)``
+        Fortran order (nk = 1 for a base of cell dimension 2);
+        ``source_format`` a :class:`CGNSFormat`, ``source_path`` the path,
+        ``connectivity`` a :class:`~tfi_quat.topology.Connectivity` (patches
+        from ``ZoneBC`` with ``name`` the BC type or family and
+        ``origin="file"``, interfaces from ``GridConnectivity1to1_t``) or None.
+
+    Raises
+    ------
+    GridFormatError
+        An ADF file (convert it with ``adf2hdf``), not HDF5, damaged metadata,
+        no base (or no base named ``base``), an unstructured zone, missing or
+        malformed nodes, a BC or 1-to-1 range off the zone's faces, a
+        ``PointList`` that is not a whole rectangle, 1-to-1 records whose points
+        do not coincide or that overlap, more points than ``max_points``;
+        each naming the file and the node.
+    FileNotFoundError, IsADirectoryError, PermissionError
+        From the operating system, naming the path.
+    """
+    p = Path(os.fspath(path))
+    with _open(p) as f:
+        b = _Base(_Tree(p, f), base)
+        blocks, single = b.blocks(allow_nonfinite, max_points)
+        try:
+            grid = Grid(blocks, b.ndim, source_format=CGNSFormat(b.name, single, os.path.abspath(p)), source_path=p)
+        except GridValueError as exc:
+            raise GridFormatError(f"{p}: base {b.name!r}: {exc}") from None
+        grid.connectivity = b.connectivity(grid)
+    return grid
+
+
+@damaged_file_errors
+def info(path, *, base: str | None = None) -> CGNSInfo:
+    """Describe a CGNS file from its metadata (no coordinates are read).
+
+    Parameters
+    ----------
+    path : str or path-like
+    base : str, optional
+        The base to describe in detail (default: the first).
+
+    Returns
+    -------
+    CGNSInfo
+    """
+    p = Path(os.fspath(path))
+    with _open(p) as f:
+        t = _Tree(p, f)
+        b = _Base(t, base)
+        bases = []
+        for name, g, node, cd, pd in b.all:
+            bases.append((name, cd, pd, [z for z, *_ in t.children(g, node, "Zone_t")]))
+        zones = [(z.name, z.dims, "R4" if z.coords[0][1].dtype.itemsize == 4 else "R8") for z in b.zones]
+        keep = ("zone", "name", "type", "family", "resolved", "kind", "face", "range", "node")
+        bcs = [{k: r[k] for k in keep} for r in b.bcs()]
+        ones, other = b.connectivity_records()
+        keep1 = ("zone", "name", "donor", "range", "donor_range", "transform", "node")
+        return CGNSInfo(os.fspath(p), bases, b.name, zones, bcs, [{k: r[k] for k in keep1} for r in ones], other)
+
+
+# ----------------------------------------------------------------------------- writing
+
+def _tid(size: int):
+    tid = h5py.h5t.C_S1.copy()
+    tid.set_size(size)
+    tid.set_strpad(h5py.h5t.STR_NULLTERM)
+    return tid
+
+
+class _Writer:
+    """Creates CGNS nodes with the attributes of the CGNS/HDF5 mapping."""
+
+    def __init__(self):
+        self.s33, self.s3 = _tid(33), _tid(3)
+        self.scalar = h5py.h5s.create(h5py.h5s.SCALAR)
+        self.one = h5py.h5s.create_simple((1,))
+        self.flag = np.array([1], dtype=np.int32)
+
+    def _str_attr(self, gid, key: bytes, text: str, tid, size: int):
+        aid = h5py.h5a.create(gid, key, tid, self.scalar)
+        aid.write(np.array(text.encode("ascii")[:size - 1].ljust(size, b"\0"), dtype=f"S{size}"))
+
+    def attrs(self, g, name: str, label: str, dtype: str, flags: bool = True):
+        gid = g.id
+        self._str_attr(gid, b"name", name, self.s33, 33)
+        self._str_attr(gid, b"label", label, self.s33, 33)
+        self._str_attr(gid, b"type", dtype, self.s3, 3)
+        if flags:
+            aid = h5py.h5a.create(gid, b"flags", h5py.h5t.NATIVE_INT32, self.one)
+            aid.write(self.flag)
+
+    def node(self, parent, name: str, label: str, data=None, dtype: str | None = None):
+        """Create a node; ``data`` a str (C1), an int array (I4/I8) or float array (R4/R8)."""
+        g = parent.create_group(name, track_order=True)
+        if data is None:
+            self.attrs(g, name, label, "MT")
+            return g
+        if isinstance(data, str):
+            arr, dtype = np.frombuffer(data.encode("ascii"), dtype=np.int8), "C1"
+        else:
+            arr = np.asarray(data)
+            if dtype is None:
+                dtype = {("i", 4): "I4", ("i", 8): "I8", ("f", 4): "R4", ("f", 8): "R8"}[
+                    (arr.dtype.kind, arr.dtype.itemsize)]
+        self.attrs(g, name, label, dtype)
+        g.create_dataset(" data", data=arr, track_times=False)
+        return g
+
+
+def _valid_name(name: str) -> bool:
+    return 0 < len(name) <= _NAME_LEN and "/" not in name and name not in (".", "..") and \
+        not name.startswith(" ") and name.isascii()
+
+
+def _zone_names(grid: Grid) -> list[str]:
+    names, seen = [], set()
+    for n, b in enumerate(grid.blocks):
+        name = b.name if b.name and _valid_name(b.name) else f"block{n + 1}"
+        base, k = name, 1
+        while name in seen:
+            k += 1
+            suffix = f"_{k}"
+            name = base[:_NAME_LEN - len(suffix)] + suffix
+        seen.add(name)
+        names.append(name)
+    return names
+
+
+#: the type written for a kind when no more specific one is known
+_PLAIN = {"wall": "BCWall", "symmetry": "BCSymmetryPlane", "fixed": "BCFarfield"}
+
+
+def _bc_type(p: Patch) -> str | None:
+    """The BCType written for a patch (None: not written, see :func:`write`)."""
+    name = p.name or ""
+    if p.kind == "wall":
+        return name if name in BC_TYPES and bc_kind(name) == "wall" else "BCWall"
+    if p.kind == "symmetry":
+        return "BCSymmetryPlane"
+    if p.kind == "fixed":
+        ok = name in BC_TYPES and bc_kind(name) == "fixed" and name not in ("FamilySpecified", "Null")
+        return name if ok else "BCFarfield"
+    return None
+
+
+def _family_of(p: Patch, families) -> str | None:
+    if not families:
+        return None
+    for key in (p, p.name, p.kind):
+        if key is not None and key in families:
+            fam = families[key]
+            if not isinstance(fam, str) or not _valid_name(fam):
+                raise GridValueError(f"families: {fam!r} for {key!r} is not a valid CGNS name "
+                                     f"(1 to {_NAME_LEN} ASCII characters, no '/')")
+            return fam
+    return None
+
+
+def _range_array(lo, hi, idim):
+    return np.array([list(lo)[:idim], list(hi)[:idim]], dtype=np.int32) + 1
+
+
+def _write_records(w: _Writer, base_g, zone_groups, names, conn: Connectivity, families, idim: int,
+                   zbc_keep=None):
+    """ZoneBC, families and both 1-to-1 records of every interface of ``conn``."""
+    fam_types: dict = {}
+    bc_rows = [[] for _ in zone_groups]
+    for p in conn.patches:
+        bctype = _bc_type(p)
+        if bctype is None:
+            continue
+        fam = _family_of(p, families)
+        if fam is not None:
+            if fam in names:
+                raise GridValueError(f"families: family {fam!r} has the name of a zone")
+            have = fam_types.setdefault(fam, bctype)
+            if have != bctype:
+                if bc_kind(have) != bc_kind(bctype):
+                    raise GridValueError(f"families: family {fam!r} holds patches of kinds "
+                                         f"{bc_kind(have)} ({have}) and {bc_kind(bctype)} ({bctype})")
+                # one type per family: the plain type of the kind
+                fam_types[fam] = _PLAIN[bc_kind(bctype)]
+        bc_rows[p.spec.block].append((p, bctype, fam))
+    for fam, bctype in fam_types.items():
+        if fam in base_g:  # a family of the copied file: kept as it is
+            continue
+        fg = w.node(base_g, fam, "Family_t")
+        w.node(fg, "FamilyBC", "FamilyBC_t", bctype)
+    for zn, rows in enumerate(bc_rows):
+        if not rows:
+            continue
+        zbc = w.node(zone_groups[zn], "ZoneBC", "ZoneBC_t")
+        used = set()
+        for p, bctype, fam in rows:
+            s = p.spec
+            stem = f"{fam or bctype}_{s.face}"[:_NAME_LEN - 4]
+            name, k = stem, 1
+            while name in used:
+                k += 1
+                name = f"{stem}_{k}"
+            used.add(name)
+            g = w.node(zbc, name, "BC_t", "FamilySpecified" if fam else bctype)
+            lo, hi = _spec_corners(s, conn.dims[s.block])
+            w.node(g, "PointRange", "IndexRange_t", _range_array(lo, hi, idim))
+            if fam:
+                w.node(g, "FamilyName", "FamilyName_t", fam)
+    zgc = {}
+
+    def conn_group(zn):
+        if zn not in zgc:
+            g = zone_groups[zn].get("ZoneGridConnectivity")
+            zgc[zn] = g if g is not None else w.node(zone_groups[zn], "ZoneGridConnectivity",
+                                                     "ZoneGridConnectivity_t")
+        return zgc[zn]
+
+    for n, it in enumerate(conn.interfaces):
+        for side, rec in (("", it), ("_donor", it.reversed())):
+            zn, dn = rec.master.block, rec.slave.block
+            g = w.node(conn_group(zn), f"interface{n + 1}{side}", "GridConnectivity1to1_t", names[dn])
+            w.node(g, "PointRange", "IndexRange_t", _range_array(*rec.point_range, idim))
+            w.node(g, "PointRangeDonor", "IndexRange_t", _range_array(*rec.point_range_donor, idim))
+            w.node(g, "Transform", _LABEL_TRANSFORM, np.array(rec.transform[:idim], dtype=np.int32))
+
+
+def _spec_corners(s: PatchSpec, dims):
+    d, a, b = face_axes(s.face)
+    lo, hi = [0, 0, 0], [0, 0, 0]
+    lo[d] = hi[d] = 0 if s.face.endswith("min") else dims[d] - 1
+    (lo[a], hi[a]), (lo[b], hi[b]) = s.range
+    return lo, hi
+
+
+def _root(w: _Writer, f: h5py.File):
+    w.attrs(f, "HDF5 MotherNode", "Root Node of HDF5 File", "MT", flags=False)
+    fmt = b"IEEE_LITTLE_32\0" if np.little_endian else b"IEEE_BIG_32\0"
+    f.create_dataset(" format", data=np.frombuffer(fmt, dtype=np.int8), track_times=False)
+    ver = f"HDF5 Version {h5py.version.hdf5_version}".encode("ascii")[:32].ljust(33, b"\0")
+    f.create_dataset(" hdf5version", data=np.frombuffer(ver, dtype=np.int8), track_times=False)
+
+
+def _coords(w: _Writer, zg, block: Block, ndim: int, single: bool):
+    gc = w.node(zg, "GridCoordinates", "GridCoordinates_t")
+    xyz = block.xyz
+    for c, cname in enumerate(("CoordinateX", "CoordinateY", "CoordinateZ")[:ndim]):
+        view = xyz[..., c].T if ndim == 3 else xyz[:, :, 0, c].T
+        g = gc.create_group(cname, track_order=True)
+        w.attrs(g, cname, "DataArray_t", "R4" if single else "R8")
+        g.create_dataset(" data", data=view.astype(np.float32) if single else view, track_times=False)
+
+
+def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
+    w = _Writer()
+    ndim = grid.ndim
+    names = _zone_names(grid)
+    with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
+        _root(w, f)
+        w.node(f, "CGNSLibraryVersion", "CGNSLibraryVersion_t", np.array([LIBRARY_VERSION], dtype=np.float32))
+        bg = w.node(f, base, "CGNSBase_t", np.array([ndim, ndim], dtype=np.int32))
+        zgs = []
+        for b, name in zip(grid.blocks, names):
+            dims = list(b.dims[:ndim])
+            size = np.array([dims, [max(1, d - 1) for d in dims], [0] * ndim], dtype=np.int64)
+            zg = w.node(bg, name, "Zone_t", size.astype(np.int32) if size.max() <= 2**31 - 1 else size)
+            w.node(zg, "ZoneType", "ZoneType_t", "Structured")
+            _coords(w, zg, b, ndim, single)
+            zgs.append(zg)
+        if conn is not None:
+            _write_records(w, bg, zgs, names, conn, families, ndim)
+
+
+def _copy_attrs_node(w, src, dst_parent, key):
+    g = dst_parent.create_group(key, track_order=True)
+    for a in ("name", "label", "type"):
+        size = 3 if a == "type" else 33
+        w._str_attr(g.id, a.encode(), _text(src.attrs[a]) if a in src.attrs else "", w.s3 if size == 3 else w.s33,
+                    size)
+    if "flags" in src.attrs:
+        h5py.h5a.create(g.id, b"flags", h5py.h5t.NATIVE_INT32, w.one).write(w.flag)
+    return g
+
+
+def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families):
+    """Copy the tree of ``fmt.source``, replacing the coordinates of ``fmt.base`` (and the records
+    when ``conn`` is given)."""
+    src_path = Path(fmt.source)
+    w = _Writer()
+    with _open(src_path) as src:
+        t = _Tree(src_path, src)
+        b = _Base(t, fmt.base)
+        if len(b.zones) != grid.nblocks or any(z.dims != blk.dims for z, blk in zip(b.zones, grid.blocks)):
+            raise GridValueError(
+                f"like={src_path}: base {fmt.base!r} holds zones of sizes "
+                f"{[z.dims for z in b.zones]}, the grid blocks {[blk.dims for blk in grid.blocks]}; "
+                "write without like (keep=False) to make a new file")
+        if b.ndim != grid.ndim:
+            raise GridValueError(f"like={src_path}: base {fmt.base!r} is {b.ndim}-D, the grid {grid.ndim}-D")
+        zone_keys = {z.group.name: n for n, z in enumerate(b.zones)}
+        with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
+            for a in src.attrs:
+                w._str_attr(f.id, a.encode(), _text(src.attrs[a]), w.s3 if a == "type" else w.s33,
+                            3 if a == "type" else 33)
+            for key in src:
+                link = src.get(key, getlink=True)
+                if not isinstance(link, h5py.HardLink):
+                    _copy_link(src, f, key, link)
+                    continue
+                if key != fmt.base:
+                    src.copy(src[key], f, name=key)
+                    continue
+                bsrc = src[key]
+                bdst = _copy_attrs_node(w, bsrc, f, key)
+                zgs = []
+                for ck in bsrc:
+                    clink = bsrc.get(ck, getlink=True)
+                    if not isinstance(clink, h5py.HardLink):
+                        _copy_link(bsrc, bdst, ck, clink)
+                        continue
+                    obj = bsrc[ck]
+                    if obj.name not in zone_keys:
+                        bsrc.copy(obj, bdst, name=ck)
+                        continue
+                    n = zone_keys[obj.name]
+                    zdst = _copy_attrs_node(w, obj, bdst, ck)
+                    for zk in obj:
+                        zlink = obj.get(zk, getlink=True)
+                        if not isinstance(zlink, h5py.HardLink):
+                            _copy_link(obj, zdst, zk, zlink)
+                            continue
+                        if zk == "GridCoordinates":
+                            _replace_coords(w, obj[zk], zdst, grid.blocks[n], grid.ndim, single)
+                        elif conn is not None and zk == "ZoneBC":
+                            continue
+                        elif conn is not None and zk == "ZoneGridConnectivity":
+                            zsrc = obj[zk]
+                            zg = _copy_attrs_node(w, zsrc, zdst, zk)
+                            for ck2 in zsrc:
+                                node = zsrc[ck2]
+                                if isinstance(node, h5py.Group) and \
+                                        _text(node.attrs.get("label", b"")) == "GridConnectivity1to1_t":
+                                    continue
+                                zsrc.copy(node, zg, name=ck2)
+                        else:
+                            obj.copy(obj[zk], zdst, name=zk)
+                    zgs.append(zdst)
+                if conn is not None:
+                    _write_records(w, bdst, zgs, [z.name for z in b.zones], conn, families, grid.ndim)
+
+
+def _copy_link(src, dst, key, link):
+    if isinstance(link, h5py.SoftLink):
+        dst[key] = h5py.SoftLink(link.path)
+    elif isinstance(link, h5py.ExternalLink):
+        dst[key] = h5py.ExternalLink(link.filename, link.path)
+
+
+def _replace_coords(w: _Writer, gsrc, zdst, block: Block, ndim: int, single: bool):
+    gdst = _copy_attrs_node(w, gsrc, zdst, "GridCoordinates")
+    names = ("CoordinateX", "CoordinateY", "CoordinateZ")[:ndim]
+    for key in gsrc:
+        if key in names:
+            continue
+        gsrc.copy(gsrc[key], gdst, name=key)
+    xyz = block.xyz
+    for c, cname in enumerate(names):
+        view = xyz[..., c].T if ndim == 3 else xyz[:, :, 0, c].T
+        g = gdst.create_group(cname, track_order=True)
+        w.attrs(g, cname, "DataArray_t", "R4" if single else "R8")
+        g.create_dataset(" data", data=view.astype(np.float32) if single else view, track_times=False)
+        if cname in gsrc:
+            for extra in gsrc[cname]:  # DataClass, DimensionalUnits, ... of the coordinate
+                if extra != " data":
+                    gsrc[cname].copy(gsrc[cname][extra], g, name=extra)
+
+
+def write(path, grid: Grid, *, like=None, overwrite: bool = False, connectivity=None, families=None,
+          single: bool | None = None, base: str | None = None, keep: bool = True) -> None:
+    """Write a grid as a CGNS/HDF5 file, atomically.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Target; written to a temporary file in the same folder, renamed into
+        place when complete.
+    grid : Grid
+        One zone per block (named after the block, made unique; ``blockN``
+        when unnamed); coordinates ``R8`` from the ``(ni, nj, nk, 3)`` arrays'
+        transposed views (no copy), or ``R4`` with ``single``.  A 2-D grid
+        gets a base of cell and physical dimension 2 (``CoordinateX/Y``).
+    like : CGNSFormat or Grid, optional
+        A grid read from a CGNS file (or its ``source_format``): the new file
+        is a copy of that file's tree in which only the coordinates of the
+        base read are replaced (flow solutions, families, descriptors,
+        reference state, other bases and connectivity kept).  Its precision
+        is kept unless ``single`` says otherwise.  By default (``keep``) a
+        grid read from a CGNS file is written like that file.
+    overwrite : bool
+        Allow replacing the grid's own input file (``grid.source_path``).
+    connectivity : Connectivity, optional
+        Boundary patches and interfaces to write (default: ``grid.connectivity``
+        for a new file).  Written as ``ZoneBC`` (BCType from the kind: wall ->
+        the patch name when it is a ``BCWall*`` type, else ``BCWall``;
+        symmetry -> ``BCSymmetryPlane``; fixed -> the name when it is a CGNS
+        BCType of that kind, else ``BCFarfield``) and both
+        ``GridConnectivity1to1_t`` records of every interface.  Patches of
+        kind ``free`` are not written: they are derived from the grid by the
+        deformer (collapsed faces), and every CGNS type would read back as
+        another kind.  Given together with ``like``, it replaces the copied
+        file's ``ZoneBC`` and 1-to-1 records (other connectivity kept).
+    families : dict, optional
+        Family names for patches, keyed by :class:`~tfi_quat.topology.Patch`,
+        patch name or kind: the BCs get ``FamilySpecified`` and a
+        ``FamilyName``, the base a ``Family_t`` with its ``FamilyBC``.
+    single : bool, optional
+        Coordinates as float32 (``R4``); default: as ``like``, else float64.
+    base : str, optional
+        Base name of a new file (default ``like``'s, else ``"Base"``).
+    keep : bool
+        Write a grid read from a CGNS file like that file (see ``like``);
+        False makes a new file.
+
+    Raises
+    ------
+    OverwriteError
+        ``path`` is the grid's input file and ``overwrite`` is false.
+    GridValueError
+        Not a Grid; ``like``'s file no longer matches the grid; bad family names.
+    """
+    if not isinstance(grid, Grid):
+        raise GridValueError(f"write needs a Grid, got {type(grid).__name__}")
+    like = getattr(like, "source_format", like)
+    if like is None and keep and isinstance(grid.source_format, CGNSFormat):
+        like = grid.source_format
+    fmt = like if isinstance(like, CGNSFormat) else None
+    if single is None:
+        single = bool(fmt.single) if fmt is not None else False
+    copy = fmt is not None and fmt.source is not None
+    if copy and not Path(fmt.source).is_file():
+        raise GridValueError(f"like: the file {fmt.source} that the grid was read from is gone; "
+                             "pass keep=False to write a new file")
+    conn_default = getattr(grid, "connectivity", None)
+    conn = connectivity if connectivity is not None else (None if copy else conn_default)
+    if conn is not None:
+        if not isinstance(conn, Connectivity):
+            raise GridValueError(f"connectivity must be a Connectivity, got {type(conn).__name__}")
+        try:
+            conn.check(grid)
+        except ConnectivityError as exc:
+            raise GridValueError(f"connectivity: {exc}") from None
+    name = base or (fmt.base if fmt is not None else "Base")
+    if not _valid_name(name):
+        raise GridValueError(f"base name {name!r} is not a valid CGNS name")
+    target = check_target(path, overwrite=overwrite, protect=[grid.source_path])
+    with atomic_output(target, mode="path") as tmp:
+        os.unlink(tmp)
+        try:
+            if copy:
+                _write_like(tmp, grid, fmt, single, conn, families)
+            else:
+                _write_new(tmp, grid, name, single, conn, families)
+        except TfiQuatError:
+            raise
+        except (OSError, KeyError, RuntimeError) as exc:
+            raise GridFormatError(f"{target}: cannot write CGNS file: {exc}") from None
+
+
+from . import register  # noqa: E402  (registers the format on import)
+
+register("cgns", (".cgns",), read, write, CGNSFormat)
