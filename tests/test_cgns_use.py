@@ -4,12 +4,16 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 
 import tfi_quat as tq
 from tfi_quat import topology
+from tfi_quat.case import load_case
 from tfi_quat.cli import main
 from tfi_quat.deform import Deformer, rigid_motion
 from tfi_quat.errors import CaseError, ConnectivityError, GridFormatError, GridValueError
@@ -170,3 +174,178 @@ def test_convert_connectivity_options_need_a_cgns_target(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:       # a usage error
         run_cli(capsys, "convert", path, tmp_path / "o.h5", "--connect", "--connectivity", tmp_path / "m.json")
     assert exc.value.code == 2 and "not allowed with" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------ CGNS files
+DATA = Path(__file__).resolve().parent / "data" / "cgns"
+
+
+def float32(grid):
+    """The grid as a float32 CGNS file stores it."""
+    return grid.with_blocks([tq.Block(b.xyz.astype(np.float32), name=b.name) for b in grid])
+
+
+def tree(path) -> dict:
+    """Every node of an HDF5 file: path -> (attributes, data bytes or None)."""
+    out = {}
+    with h5py.File(path, "r") as f:
+        def visit(name, obj):
+            attrs = {k: np.asarray(v).tobytes() for k, v in obj.attrs.items()}
+            out[name] = (attrs, obj[()].tobytes() if isinstance(obj, h5py.Dataset) else None)
+        f.visititems(visit)
+    return out
+
+
+def assert_kept_but_coordinates(src, out) -> None:
+    a, b = tree(src), tree(out)
+    assert a.keys() == b.keys()
+    changed = [k for k in a if a[k] != b[k]]
+    assert changed and all("/GridCoordinates/Coordinate" in k for k in changed), changed
+
+
+@pytest.mark.parametrize("builder", [box_pair, two_block_o])
+def test_cgns_grid_deforms_bit_for_bit_as_plot3d_with_flags(builder, tmp_path, capsys):
+    """The issue's property, through the CLI: ``convert --connect --wall``, then ``deform`` with no
+    flags gives the grid ``deform`` gives from Plot3D with the walls as flags; the interfaces of
+    the deformed file are bit-identical across zones."""
+    grid, walls, sym, fixed = builder()
+    x, cg = tmp_path / "g.x", tmp_path / "g.cgns"
+    tq.write(x, grid)
+    flags = [a for k, specs in (("--wall", walls), ("--symmetry", sym), ("--fixed", fixed))
+             for s in specs for a in (k, s)]
+    rc, out, err = run_cli(capsys, "convert", x, cg, "--connect", *flags)
+    assert rc == 0 and "cgns: CGNS/HDF5" in out and "1-to-1 record(s)" in out, err
+    motion = ["--rotate", "5", "--about", "0.5,0,0"]
+    rc, out, err = run_cli(capsys, "deform", x, *flags, *motion, "-o", tmp_path / "p.x")
+    assert rc == 0, err
+    rc, out, err = run_cli(capsys, "deform", cg, *motion, "-o", tmp_path / "c.cgns")
+    assert rc == 0, err
+    want, got = tq.read(tmp_path / "p.x"), tq.read(tmp_path / "c.cgns")
+    assert same_bits(got, want) and not same_bits(got, grid)
+    assert got.connectivity == tq.read(cg).connectivity
+    interfaces_identical(got, got.connectivity)
+    assert_kept_but_coordinates(cg, tmp_path / "c.cgns")
+    # and back to Plot3D: the same coordinates
+    rc, out, err = run_cli(capsys, "convert", tmp_path / "c.cgns", tmp_path / "c.x")
+    assert rc == 0 and "note: the boundary conditions and interfaces" in out, err
+    assert same_bits(tq.read(tmp_path / "c.x"), want)
+
+
+def test_cgns_library_cgrid_deforms_as_plot3d_with_its_walls_as_flags(tmp_path, capsys):
+    """The CGNS library's C-grid (wake cut as a self 1-to-1 record): no flags needed."""
+    src = DATA / "cgrid2d.cgns"
+    grid = tq.read(src)
+    x = tmp_path / "c.x"
+    rc, out, err = run_cli(capsys, "convert", src, x, "--double")
+    assert rc == 0, err
+    flags = ["--wall", "1:jmin:4-12", "--fixed", "1:jmax", "--fixed", "1:imin", "--fixed", "1:imax"]
+    motion = ["--rotate", "3", "--about", "0.25,0,0"]
+    assert run_cli(capsys, "deform", x, *flags, *motion, "-o", tmp_path / "p.x")[0] == 0
+    rc, out, err = run_cli(capsys, "deform", src, *motion, "-o", tmp_path / "o.cgns")
+    assert rc == 0, err
+    got = tq.read(tmp_path / "o.cgns")
+    assert got.source_format.single                         # the input's float32, kept
+    want = Deformer(tq.read(x), walls=flags[1:2], fixed=flags[3::2]).deform(
+        rigid_motion(3.0, (0, 0, 1), (0.25, 0, 0)))
+    assert same_bits(got, float32(want))
+    interfaces_identical(got, got.connectivity)
+    assert_kept_but_coordinates(src, tmp_path / "o.cgns")
+    # the API the same way: the grid's own walls, output keeps the connectivity and variant
+    out = Deformer(grid).deform(rigid_motion(3.0, (0, 0, 1), (0.25, 0, 0)))
+    assert out.connectivity is grid.connectivity and out.source_format == grid.source_format
+    tq.write(tmp_path / "api.cgns", out, like=grid)
+    assert same_bits(tq.read(tmp_path / "api.cgns"), got)
+
+
+def test_flags_override_the_file_face_by_face(tmp_path, capsys):
+    """multiblock.cgns names two non-planar faces BCSymmetryPlane: a clear error, and --fixed on
+    those faces (nothing else) makes it deformable; the output keeps every other node."""
+    src = DATA / "multiblock.cgns"
+    out = tmp_path / "o.cgns"
+    rc, so, err = run_cli(capsys, "deform", src, "--rotate", "2", "-o", out)
+    assert rc == 2 and "symmetry patch 1:kmin" in err and "not planar" in err and not out.exists()
+    rc, so, err = run_cli(capsys, "deform", src, "--rotate", "2", "--fixed", "1:kmin", "--fixed", "2:kmin",
+                          "-o", out)
+    assert rc == 0, err
+    grid = tq.read(src)
+    d = Deformer(grid, fixed=["1:kmin", "2:kmin"])
+    kinds = {(p.spec.block, p.spec.face, p.spec.range): p.kind for p in d.connectivity.patches}
+    assert kinds[(0, "kmin", ((0, 4), (0, 3)))] == "fixed"
+    assert kinds[(0, "jmin", ((2, 4), (0, 2)))] == "symmetry"            # the file's, kept
+    assert kinds[(0, "jmin", ((0, 2), (0, 2)))] == "wall"
+    assert same_bits(tq.read(out), d.deform(rigid_motion(2.0)))
+    assert_kept_but_coordinates(src, out)
+    # the second base has no boundary conditions: walls by flag
+    rc, so, err = run_cli(capsys, "deform", src, "--base", "coarse", "--rotate", "2", "-o", tmp_path / "c.cgns")
+    assert rc == 2 and "no wall points" in err
+    rc, so, err = run_cli(capsys, "deform", src, "--base", "coarse", "--wall", "1:imin", "--rotate", "2",
+                          "-o", tmp_path / "c.cgns")
+    assert rc == 0, err
+    assert tq.read(tmp_path / "c.cgns", base="coarse").nblocks == 1
+    rc, so, err = run_cli(capsys, "deform", src, "--base", "nope", "--rotate", "2", "-o", tmp_path / "n.cgns")
+    assert rc == 2 and "nope" in err and len(err.strip().splitlines()) == 1
+
+
+def test_case_file_with_a_cgns_grid_takes_the_file_walls(tmp_path, capsys):
+    src = DATA / "cgrid2d.cgns"
+    case = tmp_path / "c.toml"
+    case.write_text(f'grid = "{src}"\noutput = "o.cgns"\n\n[motion]\nrotate = 3.0\nabout = [0.25, 0.0, 0.0]\n')
+    rc, out, err = run_cli(capsys, "deform", "--case", case)
+    assert rc == 0, err
+    want = Deformer(tq.read(src)).deform(rigid_motion(3.0, (0, 0, 1), (0.25, 0, 0)))
+    assert same_bits(tq.read(tmp_path / "o.cgns"), float32(want))
+    assert same_bits(tq.deformer_from_case(load_case(case)).deform(rigid_motion(3.0, (0, 0, 1), (0.25, 0, 0))),
+                     want)
+    # walls in the case file override the file's face by face
+    case.write_text(f'grid = "{src}"\noutput = "w.cgns"\nfixed = ["1:jmin"]\nwalls = ["1:jmax"]\n')
+    assert run_cli(capsys, "deform", "--case", case, "--rotate", "1")[0] == 0
+    moved, ref = tq.read(tmp_path / "w.cgns"), tq.read(src)
+    assert np.array_equal(moved[0].face("jmin"), ref[0].face("jmin"))
+
+
+def test_quality_and_plot_take_the_file_walls(tmp_path, capsys):
+    src = DATA / "cgrid2d.cgns"
+    rc, out, err = run_cli(capsys, "quality", src, "--json")
+    assert rc == 0, err
+    assert [w["patch"] for w in json.loads(out)["walls"]] == ["1:jmin:4-12,1-1"]
+    rc, out, err = run_cli(capsys, "quality", src, "--json", "--walls", "1:jmax")
+    assert [w["patch"] for w in json.loads(out)["walls"]] == ["1:jmax:1-15,1-1"]
+    rc, out, err = run_cli(capsys, "plot", src, "-o", tmp_path / "f.png", "--color", "orthogonality")
+    assert rc == 0 and (tmp_path / "f.png").stat().st_size > 0, err
+    x = tmp_path / "c.x"
+    tq.write(x, tq.read(src))
+    rc, out, err = run_cli(capsys, "plot", x, "-o", tmp_path / "g.png", "--color", "orthogonality")
+    assert rc == 2 and "needs wall patches" in err                     # a Plot3D file has none
+
+
+def test_convert_writes_maps_into_cgns(tmp_path, capsys):
+    grid, walls, *_ = box_pair()
+    x = tmp_path / "g.x"
+    tq.write(x, grid)
+    conn = topology.connect(grid, walls=walls)
+    conn.to_json(tmp_path / "m.json")
+    conn.to_nmf(tmp_path / "m.nmf")
+    for opt, path in (("--connectivity", tmp_path / "m.json"), ("--nmf", tmp_path / "m.nmf")):
+        out = tmp_path / f"{path.suffix[1:]}.cgns"
+        rc, so, err = run_cli(capsys, "convert", x, out, opt, path)
+        assert rc == 0 and "10 boundary condition(s), 2 1-to-1 record(s)" in so, err
+        got = tq.read(out)
+        assert same_bits(got, grid)
+        assert [(p.spec, p.kind) for p in got.connectivity.patches] == [(p.spec, p.kind) for p in conn.patches]
+        assert got.connectivity.interfaces == conn.interfaces
+    # a map with --wall over it; --single
+    rc, so, err = run_cli(capsys, "convert", x, tmp_path / "s.cgns", "--connectivity", tmp_path / "m.json",
+                          "--fixed", "2:imin", "--single")
+    assert rc == 0 and "float32" in so, err
+    got = tq.read(tmp_path / "s.cgns")
+    assert {p.spec.face: p.kind for p in got.connectivity.patches if p.spec.block == 1}["imin"] == "fixed"
+    # CGNS to CGNS with a new search replaces the boundary conditions, keeps the rest
+    src = DATA / "multiblock.cgns"
+    rc, so, err = run_cli(capsys, "convert", src, tmp_path / "n.cgns", "--connect", "--wall", "1:imin")
+    assert rc == 0, err
+    got = tq.read(tmp_path / "n.cgns")
+    assert [p.spec for p in got.connectivity.patches if p.kind == "wall"] == \
+        [p.spec for p in topology.connect(got, walls=["1:imin"]).patches if p.kind == "wall"]
+    assert "FlowSolution" in "".join(tree(tmp_path / "n.cgns"))
+    rc, so, err = run_cli(capsys, "convert", src, tmp_path / "n.x", "--in-base", "coarse")
+    assert rc == 0 and tq.read(tmp_path / "n.x").nblocks == 1, err

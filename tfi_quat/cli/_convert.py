@@ -18,7 +18,6 @@ from pathlib import Path
 
 from .. import write
 from ..errors import CaseError, GridFormatError, OverwriteError
-from ._common import add_base_arg
 from ..io import format_for
 from ._info import add_input_args, describe_variant, format_name, one_line_errors, read_input
 
@@ -110,10 +109,6 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     c.add_argument("--no-auto-symmetry", action="store_true",
                    help="--connect: do not make planar faces next to a wall symmetry")
     add_input_args(parser, prefix="in-")
-    try:
-        add_base_arg(parser)
-    except argparse.ArgumentError:     # the shared input options have it already
-        pass
 
 
 def _output_format(args, in_format: str, plot3d_opts: dict) -> str:
@@ -256,6 +251,12 @@ def _written_variant(path, fmt: str, grid, kw: dict) -> str:
     if fmt == "hdf5":
         from ..io.hdf5 import info
         return describe_variant(info(path).format)
+    if fmt == "cgns":
+        from ..io.cgns import CGNSFormat, info
+        i = info(path)
+        single = bool(i.zones) and i.zones[0][2] == "R4"
+        return (f"{describe_variant(CGNSFormat(i.base, single))}, {len(i.bcs)} boundary condition(s), "
+                f"{len(i.one_to_one)} 1-to-1 record(s)")
     from ..io.plot3d import Plot3DFormat
     base = grid.source_format if isinstance(grid.source_format, Plot3DFormat) else Plot3DFormat()
     opts = {k: v for k, v in kw.items() if k in {f for _, _, f in _PLOT3D_OUTPUT}}

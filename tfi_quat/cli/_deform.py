@@ -75,7 +75,7 @@ def _motion(args, case):
         return read_grid(args, args.moved, strict=False), f"walls from {args.moved}"
     if given:
         rot = args.rotate or 0.0
-        axis = tuple(unit_vector(args.axis, "--axis")) if args.axis else (0.0, 0.0, 1.0)
+        axis = tuple(float(v) for v in unit_vector(args.axis, "--axis")) if args.axis else (0.0, 0.0, 1.0)
         about = args.about or (0.0, 0.0, 0.0)
         tr = args.translate or (0.0, 0.0, 0.0)
     elif case is not None and case.motion is not None:
