@@ -349,3 +349,13 @@ def test_convert_writes_maps_into_cgns(tmp_path, capsys):
     assert "FlowSolution" in "".join(tree(tmp_path / "n.cgns"))
     rc, so, err = run_cli(capsys, "convert", src, tmp_path / "n.x", "--in-base", "coarse")
     assert rc == 0 and tq.read(tmp_path / "n.x").nblocks == 1, err
+
+
+def test_convert_refuses_other_format_options_for_cgns(tmp_path, capsys):
+    grid, *_ = box_pair()
+    x = tmp_path / "g.x"
+    tq.write(x, grid)
+    rc, out, err = run_cli(capsys, "convert", x, tmp_path / "o.cgns", "--fortran", "--compress")
+    assert rc == 2 and "--ascii/--binary/--fortran, --compress/--no-compress/--compression-level do not " \
+        "apply to CGNS output" in err, err
+    assert not (tmp_path / "o.cgns").exists()

@@ -176,14 +176,12 @@ def _convert(args) -> int:
             if extra is not None:
                 kw["extra_json"] = extra
     elif fmt == "cgns":
-        other = {k: v for k, v in plot3d_opts.items() if k != "precision"}
-        if other or args.compress is not None or args.compression_level is not None:
-            opts = ", ".join(text for dest, text, key in _PLOT3D_OUTPUT
-                             if key in other and getattr(args, dest) is not None)
-            opts = ", ".join(filter(None, [opts, "--compress/--no-compress/--compression-level"
-                                           if args.compress is not None or args.compression_level is not None
-                                           else ""]))
-            raise GridFormatError(f"{args.output}: {opts} do not apply to CGNS output "
+        bad = [text for dest, text, key in _PLOT3D_OUTPUT
+               if key != "precision" and getattr(args, dest) is not None]
+        if args.compress is not None or args.compression_level is not None:
+            bad.append("--compress/--no-compress/--compression-level")
+        if bad:
+            raise GridFormatError(f"{args.output}: {', '.join(bad)} do not apply to CGNS output "
                                   "(--single/--double do)")
         if "precision" in plot3d_opts:
             kw["single"] = plot3d_opts["precision"] == 4
