@@ -78,6 +78,7 @@ import random
 import re
 import resource
 import select
+import shutil
 import signal
 import struct
 import subprocess
@@ -93,6 +94,8 @@ OUTCOMES = ("ok", "error", "foreign", "crash", "hang", "overmem", "wrong")
 #: outcomes that are bugs
 FAILURES = ("foreign", "crash", "hang", "overmem", "wrong")
 MEM_LIMIT = 4 << 30
+#: the seed of the CGNS targets: a file written by the CGNS library (tests/data/cgns/README.md)
+CGNS_SEED = Path(__file__).resolve().parent / "data" / "cgns" / "multiblock.cgns"
 TIMEOUT = 10.0
 
 
@@ -223,6 +226,10 @@ def make_seeds(folder) -> dict[str, Seed]:
         path = folder / f"{name}.h5"
         tq.write(path, grid, overwrite=True, **kw)
         seeds[name] = Seed(name, path, ".h5", False)
+    # the CGNS library's own multiblock file: BCs, families, 1-to-1 records, a second base
+    path = folder / "cgns.cgns"
+    shutil.copyfile(CGNS_SEED, path)
+    seeds["cgns"] = Seed("cgns", path, ".cgns", False)
     grid_x = folder / "grid.x"
     tq.write(grid_x, g2, overwrite=True)
     for ext in ("json", "nmf"):
@@ -246,7 +253,7 @@ class Target:
 
     name: str
     seed: str
-    check: str          # "plot3d", "hdf5", "json", "nmf", "case" or "cli"
+    check: str          # "plot3d", "hdf5", "cgns", "json", "nmf", "case" or "cli"
     argv: tuple = ()    # CLI: arguments, "{mutant}", "{grid}", "{out}" are filled in
 
 
@@ -255,11 +262,13 @@ for _name in PLOT3D_VARIANTS:
     TARGETS[_name] = Target(_name, _name, "plot3d")
 for _name in ("h5-plain", "h5-gzip", "h5-2d"):
     TARGETS[_name] = Target(_name, _name, "hdf5")
+TARGETS["cgns"] = Target("cgns", "cgns", "cgns")
 TARGETS["json"] = Target("json", "json", "json")
 TARGETS["nmf"] = Target("nmf", "nmf", "nmf")
 TARGETS["case"] = Target("case", "case", "case")
 TARGETS["cli-info-p3d"] = Target("cli-info-p3d", "p3d-ftn-le-f8", "cli", ("info", "{mutant}"))
 TARGETS["cli-info-h5"] = Target("cli-info-h5", "h5-gzip", "cli", ("info", "{mutant}"))
+TARGETS["cli-info-cgns"] = Target("cli-info-cgns", "cgns", "cli", ("info", "{mutant}"))
 TARGETS["cli-convert-ascii"] = Target("cli-convert-ascii", "p3d-ascii", "cli",
                                       ("convert", "{mutant}", "{out}.h5"))
 TARGETS["cli-connect-p3d"] = Target("cli-connect-p3d", "p3d-bin-2d", "cli",
@@ -471,8 +480,9 @@ def grid_problems(grid) -> str | None:
 
 
 def _check_grid(path, ref, structure_must_match: bool) -> None:
+    """``path``: a grid file to read, or a grid read already."""
     import tfi_quat as tq
-    g = tq.read(path)
+    g = path if isinstance(path, tq.Grid) else tq.read(path)
     why = grid_problems(g)
     if why:
         raise Wrong(why)
@@ -480,6 +490,21 @@ def _check_grid(path, ref, structure_must_match: bool) -> None:
         raise Wrong(f"read as {len(g)} block(s) {_dims(g)} "
                     f"({getattr(g.source_format, 'describe', lambda: '')()}); the seed has "
                     f"{len(ref['dims'])} block(s) {ref['dims']} and its header is intact")
+
+
+def _check_cgns(path, ref) -> None:
+    """A CGNS mutant: a plausible grid of the seed's zones, and a connectivity that fits it."""
+    import tfi_quat as tq
+    g = tq.read(path)
+    _check_grid(g, ref, True)
+    conn = getattr(g, "connectivity", None)
+    if conn is not None:
+        try:
+            conn.check(g)
+        except Exception as exc:  # noqa: BLE001 - the reader let a misfit connectivity through
+            raise Wrong(f"the reader returned a connectivity that check(grid) rejects: {exc}")
+        if conn.overlaps():
+            raise Wrong(f"the reader returned overlapping connectivity items {conn.overlaps()[:2]}")
 
 
 def _check_map(path, ref, kind: str) -> None:
@@ -566,6 +591,8 @@ def classify(target: Target, path: Path, ref: dict, header_intact: bool, outdir:
             _check_grid(path, ref, header_intact)
         elif target.check == "hdf5":
             _check_grid(path, ref, True)
+        elif target.check == "cgns":
+            _check_cgns(path, ref)
         elif target.check in ("json", "nmf"):
             _check_map(path, ref, target.check)
         elif target.check == "case":
@@ -594,7 +621,7 @@ def reference(seeds: dict[str, Seed], target: Target) -> dict:
     """What a check compares against: the seed grid's block dims and the connectivity grid path."""
     import tfi_quat as tq
     ref = {"grid": str(seeds["json"].path.parent / "grid.x")}
-    if target.check in ("plot3d", "hdf5"):
+    if target.check in ("plot3d", "hdf5", "cgns"):
         ref["dims"] = _dims(tq.read(seeds[target.seed].path))
     return ref
 
@@ -626,8 +653,9 @@ def warm_up(folder, targets) -> None:
     checks = {t.check for t in targets}
     commands = {t.argv[0] for t in targets if t.check == "cli"}
     for t in targets:
-        if t.check in ("plot3d", "hdf5"):
-            tq.read(folder / f"{t.seed}{'.h5' if t.seed.startswith('h5') else '.x'}")
+        if t.check in ("plot3d", "hdf5", "cgns"):
+            suffix = {"h5": ".h5", "cg": ".cgns"}.get(t.seed[:2], ".x")
+            tq.read(folder / f"{t.seed}{suffix}")
     if checks & {"json", "nmf", "case", "cli"}:
         from tfi_quat.case import load_case
         grid = tq.read(folder / "grid.x")

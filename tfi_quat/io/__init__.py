@@ -111,13 +111,15 @@ def read(path, format: str | None = None, **kw):
         Default: from the extension.
     **kw
         Passed on to the format's reader (e.g. Plot3D variant overrides,
-        ``allow_nonfinite``, ``max_points``: refuse a file declaring more
-        points, before allocating; default what fits in the memory available).
+        the CGNS ``base``, ``allow_nonfinite``, ``max_points``: refuse a file
+        declaring more points, before allocating; default what fits in the
+        memory available).
 
     Returns
     -------
     Grid
-        With ``source_format`` (the detected variant) and ``source_path`` set.
+        With ``source_format`` (the detected variant) and ``source_path`` set
+        (CGNS: also ``connectivity``, from the file's BCs and 1-to-1 records).
 
     Raises
     ------

@@ -212,16 +212,40 @@ class _Tree:
     def fail(self, node: str, msg: str):
         raise GridFormatError(f"{self.path}: {node}: {msg}")
 
+    # h5py's low-level calls throughout: a CGNS tree has hundreds of small nodes, and
+    # the high-level objects cost ten times more per node
+
     def attr(self, g, key: str, node: str) -> str:
-        if key not in g.attrs:
-            self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
+        kb = key.encode("ascii")
         try:
-            return _text(g.attrs[key])
-        except (OSError, TypeError, ValueError) as exc:
+            if not h5py.h5a.exists(g.id, kb):
+                self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
+            aid = h5py.h5a.open(g.id, kb)
+            tid = aid.get_type()
+            if tid.get_class() != h5py.h5t.STRING or tid.is_variable_str() or aid.shape not in ((), (1,)):
+                return _text(g.attrs[key])
+            buf = np.zeros(aid.shape, dtype=f"S{tid.get_size()}")
+            aid.read(buf)
+            return _text(buf.reshape(-1)[0])
+        except (OSError, TypeError, ValueError, KeyError) as exc:
             self.fail(node, f"cannot read attribute {key!r}: {exc}")
 
     def label(self, g, node: str) -> str:
         return self.attr(g, "label", node)
+
+    def _open(self, g, key: str, sub: str):
+        """The object behind a hard link ``key`` of ``g``: h5py.Group or h5py.Dataset; None if absent."""
+        kb = key.encode("utf-8", "surrogateescape")
+        if not g.id.links.exists(kb):
+            return None
+        if g.id.links.get_info(kb).type != h5py.h5l.TYPE_HARD:
+            self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
+        oid = h5py.h5o.open(g.id, kb)
+        if isinstance(oid, h5py.h5g.GroupID):
+            return h5py.Group(oid)
+        if isinstance(oid, h5py.h5d.DatasetID):
+            return h5py.Dataset(oid)
+        return False
 
     def children(self, g, node: str, label: str | None = None):
         """``(name, group, path)`` of the child nodes (hard-linked groups) with ``label``.
@@ -233,13 +257,11 @@ class _Tree:
         for key in g:
             if key.startswith(" "):
                 continue
-            link = g.get(key, getlink=True)
             sub = f"{node.rstrip('/')}/{key}"
-            if not isinstance(link, h5py.HardLink):
-                if label is None:
-                    continue
-                self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
-            obj = g[key]
+            if label is None and g.id.links.get_info(key.encode("utf-8", "surrogateescape")).type \
+                    != h5py.h5l.TYPE_HARD:
+                continue
+            obj = self._open(g, key, sub)
             if not isinstance(obj, h5py.Group):
                 continue
             if label is None or self.label(obj, sub) == label:
@@ -248,37 +270,46 @@ class _Tree:
 
     def child(self, g, key: str, node: str, label: str | None = None, required: bool = True):
         sub = f"{node.rstrip('/')}/{key}"
-        link = g.get(key, getlink=True)
-        if link is None:
+        obj = self._open(g, key, sub)
+        if obj is None:
             if required:
                 self.fail(sub, "is missing")
             return None, sub
-        if not isinstance(link, h5py.HardLink):
-            self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
-        obj = g[key]
         if not isinstance(obj, h5py.Group):
             self.fail(sub, "is not a CGNS node (not an HDF5 group)")
-        if label is not None and self.label(obj, sub) != label:
-            self.fail(sub, f"has label {self.label(obj, sub)!r}, expected {label!r}")
+        if label is not None:
+            have = self.label(obj, sub)
+            if have != label:
+                self.fail(sub, f"has label {have!r}, expected {label!r}")
         return obj, sub
 
+    def has(self, g, key: str) -> bool:
+        return g.id.links.exists(key.encode("utf-8", "surrogateescape"))
+
     def dataset(self, g, node: str) -> h5py.Dataset:
-        link = g.get(" data", getlink=True)
-        if link is None:
+        obj = self._open(g, " data", f"{node}/ data")
+        if obj is None:
             self.fail(node, "has no data")
-        if not isinstance(link, h5py.HardLink) or not isinstance(g[" data"], h5py.Dataset):
+        if not isinstance(obj, h5py.Dataset):
             self.fail(node, "its ' data' is not a dataset")
-        return g[" data"]
+        return obj
 
     def data(self, g, node: str, max_values: int = 1 << 16) -> np.ndarray:
         """The node's value, at most ``max_values`` values (metadata, not coordinates)."""
         ds = self.dataset(g, node)
-        if ds.size > max_values:
-            self.fail(node, f"holds {ds.size:,} values, more than the {max_values:,} expected")
-        if ds.dtype.kind not in "iuf":
-            self.fail(node, f"data of type {ds.dtype} is not numbers or characters")
+        dsid = ds.id
+        shape = dsid.shape
+        size = int(np.prod(shape)) if shape else 1
+        if size > max_values:
+            self.fail(node, f"holds {size:,} values, more than the {max_values:,} expected")
+        dtype = dsid.dtype
+        if dtype.kind not in "iuf":
+            self.fail(node, f"data of type {dtype} is not numbers or characters")
         try:
-            return ds[()]
+            out = np.empty(shape, dtype=dtype.newbyteorder("="))
+            if size:
+                dsid.read(h5py.h5s.ALL, h5py.h5s.ALL, out)
+            return out
         except (OSError, TypeError, ValueError) as exc:
             self.fail(node, f"cannot read its data: {exc}")
 
@@ -458,9 +489,9 @@ class _Base:
                     resolved = _BC_ALIASES.get(self.families[family], self.families[family]) or "Null"
                     if resolved not in BC_TYPES:
                         t.fail(f"{self.node}/{family}", f"unknown BCType {resolved!r} in its FamilyBC")
-                if "PointRange" in g:
+                if t.has(g, "PointRange"):
                     lo, hi, rnode, r = self._range(g, node, zone)
-                elif "PointList" in g:
+                elif t.has(g, "PointList"):
                     lo, hi, rnode, r = self._point_list(g, node, zone)
                 else:
                     t.fail(node, "has neither PointRange nor PointList (element ranges are not "
@@ -747,6 +778,22 @@ class _Writer:
         self.scalar = h5py.h5s.create(h5py.h5s.SCALAR)
         self.one = h5py.h5s.create_simple((1,))
         self.flag = np.array([1], dtype=np.int32)
+        # children listed in creation order, as the CGNS library lists them
+        self.gcpl = h5py.h5p.create(h5py.h5p.GROUP_CREATE)
+        self.gcpl.set_link_creation_order(h5py.h5p.CRT_ORDER_TRACKED | h5py.h5p.CRT_ORDER_INDEXED)
+        self.dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        self.dcpl.set_obj_track_times(False)
+
+    def group(self, parent, name: str) -> h5py.Group:
+        """A new child group (h5py's low-level calls: a CGNS tree has many small nodes)."""
+        return h5py.Group(h5py.h5g.create(parent.id, name.encode("ascii"), gcpl=self.gcpl))
+
+    def data(self, g, arr: np.ndarray, key: bytes = b" data") -> None:
+        """Dataset ``key`` of ``g`` holding the C-contiguous ``arr`` (contiguous layout)."""
+        arr = np.ascontiguousarray(arr)
+        space = h5py.h5s.create_simple(arr.shape) if arr.shape else self.scalar
+        ds = h5py.h5d.create(g.id, key, h5py.h5t.py_create(arr.dtype), space, dcpl=self.dcpl)
+        ds.write(h5py.h5s.ALL, h5py.h5s.ALL, arr)
 
     def _str_attr(self, gid, key: bytes, text: str, tid, size: int):
         aid = h5py.h5a.create(gid, key, tid, self.scalar)
@@ -763,7 +810,7 @@ class _Writer:
 
     def node(self, parent, name: str, label: str, data=None, dtype: str | None = None):
         """Create a node; ``data`` a str (C1), an int array (I4/I8) or float array (R4/R8)."""
-        g = parent.create_group(name, track_order=True)
+        g = self.group(parent, name)
         if data is None:
             self.attrs(g, name, label, "MT")
             return g
@@ -775,7 +822,7 @@ class _Writer:
                 dtype = {("i", 4): "I4", ("i", 8): "I8", ("f", 4): "R4", ("f", 8): "R8"}[
                     (arr.dtype.kind, arr.dtype.itemsize)]
         self.attrs(g, name, label, dtype)
-        g.create_dataset(" data", data=arr, track_times=False)
+        self.data(g, arr)
         return g
 
 
@@ -905,9 +952,9 @@ def _spec_corners(s: PatchSpec, dims):
 def _root(w: _Writer, f: h5py.File):
     w.attrs(f, "HDF5 MotherNode", "Root Node of HDF5 File", "MT", flags=False)
     fmt = b"IEEE_LITTLE_32\0" if np.little_endian else b"IEEE_BIG_32\0"
-    f.create_dataset(" format", data=np.frombuffer(fmt, dtype=np.int8), track_times=False)
+    w.data(f, np.frombuffer(fmt, dtype=np.int8), b" format")
     ver = f"HDF5 Version {h5py.version.hdf5_version}".encode("ascii")[:32].ljust(33, b"\0")
-    f.create_dataset(" hdf5version", data=np.frombuffer(ver, dtype=np.int8), track_times=False)
+    w.data(f, np.frombuffer(ver, dtype=np.int8), b" hdf5version")
 
 
 def _coords(w: _Writer, zg, block: Block, ndim: int, single: bool):
@@ -915,9 +962,9 @@ def _coords(w: _Writer, zg, block: Block, ndim: int, single: bool):
     xyz = block.xyz
     for c, cname in enumerate(("CoordinateX", "CoordinateY", "CoordinateZ")[:ndim]):
         view = xyz[..., c].T if ndim == 3 else xyz[:, :, 0, c].T
-        g = gc.create_group(cname, track_order=True)
+        g = w.group(gc, cname)
         w.attrs(g, cname, "DataArray_t", "R4" if single else "R8")
-        g.create_dataset(" data", data=view.astype(np.float32) if single else view, track_times=False)
+        w.data(g, view.astype(np.float32) if single else view)
 
 
 def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
@@ -941,7 +988,7 @@ def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
 
 
 def _copy_attrs_node(w, src, dst_parent, key):
-    g = dst_parent.create_group(key, track_order=True)
+    g = w.group(dst_parent, key)
     for a in ("name", "label", "type"):
         size = 3 if a == "type" else 33
         w._str_attr(g.id, a.encode(), _text(src.attrs[a]) if a in src.attrs else "", w.s3 if size == 3 else w.s33,
@@ -1035,9 +1082,9 @@ def _replace_coords(w: _Writer, gsrc, zdst, block: Block, ndim: int, single: boo
     xyz = block.xyz
     for c, cname in enumerate(names):
         view = xyz[..., c].T if ndim == 3 else xyz[:, :, 0, c].T
-        g = gdst.create_group(cname, track_order=True)
+        g = w.group(gdst, cname)
         w.attrs(g, cname, "DataArray_t", "R4" if single else "R8")
-        g.create_dataset(" data", data=view.astype(np.float32) if single else view, track_times=False)
+        w.data(g, view.astype(np.float32) if single else view)
         if cname in gsrc:
             for extra in gsrc[cname]:  # DataClass, DimensionalUnits, ... of the coordinate
                 if extra != " data":
