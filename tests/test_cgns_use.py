@@ -5,18 +5,21 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tempfile
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import tfi_quat as tq
 from tfi_quat import topology
 from tfi_quat.case import load_case
 from tfi_quat.cli import main
 from tfi_quat.deform import Deformer, rigid_motion
-from tfi_quat.errors import CaseError, ConnectivityError, GridFormatError, GridValueError
+from tfi_quat.errors import CaseError, ConnectivityError, GridFormatError, GridValueError, TfiQuatError
 from tfi_quat.topology import Connectivity
 
 from _deform_grids import box_pair, two_block_o
@@ -359,3 +362,34 @@ def test_convert_refuses_other_format_options_for_cgns(tmp_path, capsys):
     assert rc == 2 and "--ascii/--binary/--fortran, --compress/--no-compress/--compression-level do not " \
         "apply to CGNS output" in err, err
     assert not (tmp_path / "o.cgns").exists()
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(walls=st.lists(st.sampled_from(["1:jmin", "2:imin", "1:kmin", "2:kmax", "1:jmin:1-4,1-7"]),
+                      min_size=1, max_size=3, unique=True),
+       angle=st.floats(-4.0, 4.0), axis=st.tuples(*[st.floats(-1.0, 1.0)] * 3).filter(
+           lambda v: sum(x * x for x in v) > 0.1),
+       shift=st.tuples(*[st.floats(-0.02, 0.02)] * 3))
+def test_any_walls_written_to_cgns_deform_as_given_by_flags(walls, angle, axis, shift):
+    """Whatever walls a CGNS file names, deforming it is bit for bit deforming the Plot3D grid with
+    those walls as flags (or both refuse the case with the same error)."""
+    if "1:jmin" in walls and "1:jmin:1-4,1-7" in walls:
+        walls = [w for w in walls if w != "1:jmin:1-4,1-7"]
+    grid, *_ = box_pair()
+    motion = rigid_motion(angle, axis, (0.5, 0.0, 0.5), shift)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "g.cgns"
+        tq.write(path, grid, connectivity=topology.connect(grid, walls=walls))
+        own = tq.read(path)
+        assert own == grid
+        try:
+            want = Deformer(grid, walls=walls).deform(motion)
+        except TfiQuatError as exc:
+            with pytest.raises(type(exc)):
+                Deformer(own).deform(motion)
+            return
+        got = Deformer(own).deform(motion)
+        assert same_bits(got, want)
+        interfaces_identical(got, own.connectivity)
+        tq.write(Path(tmp) / "o.cgns", got, like=own)
+        assert same_bits(tq.read(Path(tmp) / "o.cgns"), want)

@@ -147,7 +147,8 @@ class Deformer:
     walls, symmetry, fixed : sequence of PatchSpec or "BLOCK:FACE[:A1-A2,B1-B2]"
         Boundary patches by kind (1-based text, 0-based PatchSpec).  A whole
         face given as a wall is reduced by the interfaces on it.  Faces not
-        given are ``fixed``.
+        given are ``fixed``, or keep their kinds in ``connectivity`` (the
+        grid's own included).
     connectivity : tfi_quat.topology.Connectivity, optional
         Interfaces and patches (e.g. loaded from JSON or an ``.nmf``).  Default:
         the grid's own (``grid.connectivity``, read from a CGNS file with its
@@ -497,7 +498,8 @@ def _assemble(sk, ref: Grid, outs, pos) -> Grid:
 
 
 def deformer_from_case(case, grid: Grid | None = None, **kw) -> Deformer:
-    """Build a :class:`Deformer` from a :class:`tfi_quat.case.Case` (walls, symmetry, fixed)."""
+    """Build a :class:`Deformer` from a :class:`tfi_quat.case.Case` (walls, symmetry, fixed; a case
+    for a CGNS grid may give none and take the file's)."""
     from .. import io
     if grid is None:
         grid = io.read(case.grid)
