@@ -393,3 +393,17 @@ def test_any_walls_written_to_cgns_deform_as_given_by_flags(walls, angle, axis, 
         interfaces_identical(got, own.connectivity)
         tq.write(Path(tmp) / "o.cgns", got, like=own)
         assert same_bits(tq.read(Path(tmp) / "o.cgns"), want)
+
+
+def test_deform_a_plot3d_grid_into_cgns_writes_the_boundaries_used(tmp_path, capsys):
+    grid, walls, *_ = box_pair()
+    x = tmp_path / "g.x"
+    tq.write(x, grid)
+    rc, out, err = run_cli(capsys, "deform", x, "--wall", "1:jmin", "--wall", "2:imin", "--rotate", "5",
+                           "--about", "0.5,0,0", "-o", tmp_path / "o.cgns")
+    assert rc == 0, err
+    got = tq.read(tmp_path / "o.cgns")
+    d = Deformer(grid, walls=walls)
+    assert same_bits(got, d.deform(MOTION))
+    assert [(p.spec, p.kind) for p in got.connectivity.patches] == [(p.spec, p.kind) for p in d.connectivity.patches]
+    assert got.connectivity.interfaces == d.connectivity.interfaces

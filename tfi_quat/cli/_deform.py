@@ -8,7 +8,8 @@ import time
 
 from ..errors import CaseError
 from . import EXIT_CHECK
-from ._common import add_base_arg, case_and_grid, check_output, finite, output_like, read_grid, vector
+from ._common import (add_base_arg, case_and_grid, check_output, file_format, finite, output_like,
+                      read_grid, vector)
 
 #: negative cells listed in the summary line
 _SHOW = 3
@@ -23,7 +24,8 @@ The walls, symmetry planes and fixed boundaries come from the grid file
 itself when it records them (CGNS: its boundary conditions and 1-to-1
 interfaces), from --case, --nmf or --connectivity, and from
 --wall/--symmetry/--fixed (BLOCK:FACE[:A1-A2,B1-B2], 1-based), which
-override the others face part by face part; faces not named are fixed.  The wall motion is either a moved grid
+override the others face part by face part; faces not named are fixed.
+The wall motion is either a moved grid
 (--moved, same dimensions, only its wall points are used) or a rigid motion
 of the walls (--rotate/--axis/--about/--translate), or the case file's
 [motion].  Prints the number of negative cells and the smallest cell-volume
@@ -31,7 +33,8 @@ ratio to the reference at the end.  A deformed grid with negative cells is
 not written (exit status 1, the count and the first cells on stderr)
 unless --allow-negative is given.  OUT is written in the input's format and
 variant unless its extension names another format; a CGNS input gives a
-CGNS output with every node of the input but the coordinates."""
+CGNS output with every node of the input but the coordinates, another
+input written to a .cgns file gets the boundaries the deformation used."""
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
@@ -169,7 +172,11 @@ def run(args) -> int:
         print(f"tfi-quat deform: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}; "
               f"{out} not written (--allow-negative writes it)", file=sys.stderr)
         return EXIT_CHECK
-    io.write(out, result, like=output_like(out, grid), overwrite=args.force)
+    like = output_like(out, grid)
+    boundaries = {}
+    if like is None and result.connectivity is None and file_format(out) == "cgns":
+        boundaries["connectivity"] = deformer.connectivity      # a CGNS file holds the ones used
+    io.write(out, result, like=like, overwrite=args.force, **boundaries)
     print(f"wrote {out}: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}")
     return 0
 
