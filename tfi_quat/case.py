@@ -19,6 +19,12 @@ A case file is TOML (layout in ``docs/formats.md``)::
     span = 1.5
     direction = [0.0, 0.0, 1.0]          # bend direction
 
+The grid may be any format :func:`tfi_quat.read` reads.  A CGNS grid brings
+its own walls, symmetry planes and fixed faces (its boundary conditions):
+a case for one may leave ``walls``, ``symmetry`` and ``fixed`` out, and the
+patches it does give override the file's face part by face part
+(:class:`tfi_quat.deform.Deformer`).
+
 :func:`load_case` reads and validates one (unknown keys, bad patch strings,
 wrong types and a missing grid file are :class:`~tfi_quat.errors.CaseError`
 naming the case file and the key); :func:`save_case` writes one.
@@ -301,7 +307,8 @@ class Case:
     grid : Path
         The grid file (absolute after :func:`load_case`).
     walls, symmetry, fixed : list of PatchSpec
-        Patches (0-based in the API, 1-based in the file).
+        Patches (0-based in the API, 1-based in the file); may be empty for
+        a grid that carries its own (CGNS).
     motion : Motion or None
     output : Path or None
         Where to write the result (absolute after :func:`load_case`).

@@ -10,7 +10,10 @@ carried through untouched.
 A :class:`Grid` is an ordered list of blocks with a dimension ``ndim`` (2 or 3)
 and, when it was read from a file, the detected file variant
 (``source_format``) and path (``source_path``), so it can be written back in
-the same variant and an input is never overwritten by accident.
+the same variant and an input is never overwritten by accident.  A grid read
+from a format that records its boundary conditions and block interfaces
+(CGNS) also carries them as a :class:`tfi_quat.topology.Connectivity`
+(``connectivity``).
 """
 
 from __future__ import annotations
@@ -341,10 +344,27 @@ class Grid:
         The file the grid was read from; writing over it needs ``overwrite=True``.
     allow_nonfinite : bool
         Passed on to :class:`Block` for array inputs.
+    connectivity : tfi_quat.topology.Connectivity, optional
+        The grid's interfaces and boundary patches with their kinds, as a file
+        that records them (CGNS) gives them; None (the default) for formats
+        that do not.  Checked against the blocks (ndim, block count and
+        dimensions).  :class:`tfi_quat.deform.Deformer` uses it when given no
+        ``connectivity``; a CGNS writer writes it.  It is shared, not copied,
+        by :meth:`copy` and :meth:`with_blocks` (a connectivity is not
+        modified once made), and ``==`` ignores it: two grids are equal when
+        their coordinates (and IBLANK) are.
+
+    Raises
+    ------
+    GridValueError
+        No blocks, a bad ``ndim``, a 3-D block or z != 0 in a 2-D grid.
+    ConnectivityError
+        ``connectivity`` is not made for these blocks.
     """
 
     def __init__(self, blocks: Iterable[Block | np.ndarray] | Block, ndim: int | None = None, *,
-                 source_format=None, source_path=None, allow_nonfinite: bool = False):
+                 source_format=None, source_path=None, allow_nonfinite: bool = False,
+                 connectivity=None):
         if isinstance(blocks, (Block, np.ndarray)):
             blocks = [blocks]
         blist: list[Block] = []
@@ -369,6 +389,14 @@ class Grid:
         self.ndim = int(ndim)
         self.source_format = source_format
         self.source_path = None if source_path is None else os.fspath(source_path)
+        if connectivity is not None:
+            check = getattr(connectivity, "check", None)
+            if not callable(check):
+                raise GridValueError(f"connectivity must be a tfi_quat.topology.Connectivity, "
+                                     f"got {type(connectivity).__name__}")
+            check(self)
+        #: interfaces and boundary patches (:class:`tfi_quat.topology.Connectivity`) or None
+        self.connectivity = connectivity
 
     # ------------------------------------------------------------ container
     def __len__(self) -> int:
@@ -402,14 +430,22 @@ class Grid:
         return np.min(lo, axis=0), np.max(hi, axis=0)
 
     def copy(self) -> "Grid":
-        """Deep copy (coordinates and iblank); keeps ``source_format``, drops ``source_path``."""
-        return Grid([b.copy() for b in self.blocks], self.ndim, source_format=self.source_format)
+        """Deep copy (coordinates and iblank); keeps ``source_format`` and ``connectivity`` (shared),
+        drops ``source_path``."""
+        return Grid([b.copy() for b in self.blocks], self.ndim, source_format=self.source_format,
+                    connectivity=self.connectivity)
 
     def with_blocks(self, blocks: Sequence[Block]) -> "Grid":
-        """A new grid with other blocks and this grid's ndim and source format."""
-        return Grid(list(blocks), self.ndim, source_format=self.source_format)
+        """A new grid with other blocks and this grid's ndim and source format, and its
+        ``connectivity`` when the new blocks have this grid's dimensions (else None)."""
+        out = Grid(list(blocks), self.ndim, source_format=self.source_format)
+        if out.dims == self.dims:
+            out.connectivity = self.connectivity    # made for these dimensions: checked already
+        return out
 
     def __eq__(self, other) -> bool:
+        """Equal coordinates, IBLANK and ndim; ``source_format``, ``source_path`` and
+        ``connectivity`` are not compared."""
         if not isinstance(other, Grid):
             return NotImplemented
         return self.ndim == other.ndim and len(self) == len(other) and \

@@ -7,7 +7,10 @@ import math
 import os
 from pathlib import Path
 
-from ..errors import CaseError, OverwriteError
+from ..errors import CaseError, GridFormatError, OverwriteError
+
+#: registry name of the format whose files hold several bases (``--base``)
+BASE_FORMAT = "cgns"
 
 
 def case_and_grid(args):
@@ -20,6 +23,67 @@ def case_and_grid(args):
     if path is None:
         raise CaseError("no grid: give GRID or --case")
     return case, path
+
+
+def add_base_arg(parser) -> None:
+    """Add ``--base NAME`` (dest ``base``): the CGNS base to read."""
+    parser.add_argument("--base", metavar="NAME", default=None,
+                        help="CGNS input: the base to read (default: the first; 'tfi-quat info' lists them)")
+
+
+def file_format(path) -> str | None:
+    """Registry name of a grid file's format (from its extension or HDF5 signature), None if unknown."""
+    from ..io import format_for
+    try:
+        return format_for(path).name
+    except GridFormatError:
+        return None
+
+
+def read_options(args, path, *, strict: bool = True) -> dict:
+    """Reader keywords from the shared input options: ``{"base": NAME}`` for a CGNS file.
+
+    ``--base`` on a file of another format is a :class:`GridFormatError`
+    naming the file when ``strict`` (the command's main input), and is left
+    out for it otherwise (a second input such as ``--ref``).
+    """
+    base = getattr(args, "base", None)
+    if base is None:
+        return {}
+    fmt = file_format(path)
+    if fmt == BASE_FORMAT:
+        return {"base": base}
+    if strict:
+        raise GridFormatError(f"{path}: --base {base}: selects a base of a CGNS file; this is "
+                              f"{'a ' + fmt if fmt else 'not a CGNS'} file")
+    return {}
+
+
+def read_grid(args, path, *, strict: bool = True):
+    """Read a grid file with the shared input options (:func:`read_options`)."""
+    from .. import io
+    return io.read(path, **read_options(args, path, strict=strict))
+
+
+def output_like(out, grid):
+    """``like=`` for writing a grid derived from ``grid`` to ``out``: ``grid`` (its file variant,
+    and for CGNS every node of its file) when ``out`` names the same format or none, else None
+    (``out``'s extension chooses the format)."""
+    from ..io import format_for
+    try:
+        source = format_for(like=grid).name
+    except GridFormatError:
+        return None
+    target = file_format(out)
+    return grid if target in (None, source) else None
+
+
+def grid_walls(grid) -> list:
+    """The wall patches (PatchSpec) of the grid's own connectivity (a CGNS file's walls), else []."""
+    conn = getattr(grid, "connectivity", None)
+    if conn is None:
+        return []
+    return [p.spec for p in conn.patches if p.kind == "wall"]
 
 
 def check_output(path, force: bool, inputs=()) -> Path:

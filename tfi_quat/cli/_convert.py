@@ -3,8 +3,11 @@
 The output format is ``--format``, else the one OUT's extension names, else
 the input's.  Plot3D to Plot3D keeps the input's variant (``like=grid``) and
 the variant options change only what they name; HDF5 to HDF5 keeps the
-compression and the ``/extra`` JSON.  An existing OUT (the input included) is
-replaced only with ``--force``.
+compression and the ``/extra`` JSON; CGNS to CGNS keeps every node of the
+input but the coordinates.  A CGNS output gets the input's boundary
+conditions and interfaces (a CGNS input's), or those ``--connect`` finds
+(:func:`tfi_quat.topology.connect`) or ``--connectivity``/``--nmf`` loads.
+An existing OUT (the input included) is replaced only with ``--force``.
 """
 
 from __future__ import annotations
@@ -14,17 +17,22 @@ import os
 from pathlib import Path
 
 from .. import write
-from ..errors import GridFormatError, OverwriteError
+from ..errors import CaseError, GridFormatError, OverwriteError
 from ..io import format_for
 from ._info import add_input_args, describe_variant, format_name, one_line_errors, read_input
 
-HELP = "convert a grid to another format or file variant (Plot3D, HDF5)"
+HELP = "convert a grid to another format or file variant (Plot3D, HDF5, CGNS)"
 DESCRIPTION = """\
 Convert a grid file.  The output format is --format, else the one OUT's
 extension names, else the input's.  Plot3D to Plot3D writes the input's
 variant unless an option below changes it; HDF5 to HDF5 keeps the
-compression and the extra JSON data.  OUT is never replaced unless --force
-is given (the input file included)."""
+compression and the extra JSON data; CGNS to CGNS keeps every node of the
+input but the coordinates.  A CGNS output holds boundary conditions and
+1-to-1 interfaces: the input's own (a CGNS input), or those --connect finds
+(walls as --wall marks them, planar faces next to a wall symmetry, the rest
+fixed), or a map --connectivity MAP.json or --nmf MAP.nmf gives; Plot3D and
+HDF5 outputs hold none.  OUT is never replaced unless --force is given (the
+input file included)."""
 
 #: output options: (destination, option text, Plot3DFormat field)
 _PLOT3D_OUTPUT = (
@@ -40,9 +48,9 @@ _PLOT3D_OUTPUT = (
 
 
 def add_args(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", metavar="IN", help="input grid file (Plot3D or HDF5)")
+    parser.add_argument("input", metavar="IN", help="input grid file (Plot3D, HDF5 or CGNS)")
     parser.add_argument("output", metavar="OUT", help="output grid file")
-    parser.add_argument("--format", choices=("plot3d", "hdf5"),
+    parser.add_argument("--format", choices=("plot3d", "hdf5", "cgns"),
                         help="output format (default: from OUT's extension, else the input's)")
     parser.add_argument("-f", "--force", action="store_true",
                         help="replace OUT if it exists (even when it is the input)")
@@ -87,6 +95,19 @@ def add_args(parser: argparse.ArgumentParser) -> None:
                       help="write uncompressed datasets (default, unless the input is compressed HDF5)")
     h.add_argument("--compression-level", type=int, choices=range(10), metavar="0..9",
                    help="gzip level (default 4; implies --compress)")
+    c = parser.add_argument_group(
+        "CGNS output", "boundary conditions and interfaces (default: a CGNS input's own); "
+        "--single/--double set the coordinate precision (default float64)")
+    src = c.add_mutually_exclusive_group()
+    src.add_argument("--connect", action="store_true",
+                     help="find the interfaces and classify the boundary (tfi-quat connect)")
+    src.add_argument("--connectivity", metavar="MAP.json", help="interfaces and patches from a JSON map")
+    src.add_argument("--nmf", metavar="MAP.nmf", help="interfaces and patches from a Neutral Map File")
+    for kind in ("wall", "symmetry", "fixed"):
+        c.add_argument(f"--{kind}", action="append", default=[], metavar="B:FACE[:RANGE]",
+                       help=f"a {kind} patch, 1-based (repeatable; with --connect, --connectivity or --nmf)")
+    c.add_argument("--no-auto-symmetry", action="store_true",
+                   help="--connect: do not make planar faces next to a wall symmetry")
     add_input_args(parser, prefix="in-")
 
 
@@ -154,11 +175,67 @@ def _convert(args) -> int:
             extra = read_extra(args.input)
             if extra is not None:
                 kw["extra_json"] = extra
+    elif fmt == "cgns":
+        bad = [text for dest, text, key in _PLOT3D_OUTPUT
+               if key != "precision" and getattr(args, dest) is not None]
+        if args.compress is not None or args.compression_level is not None:
+            bad.append("--compress/--no-compress/--compression-level")
+        if bad:
+            raise GridFormatError(f"{args.output}: {', '.join(bad)} do not apply to CGNS output "
+                                  "(--single/--double do)")
+        if "precision" in plot3d_opts:
+            kw["single"] = plot3d_opts["precision"] == 4
+    conn = _connectivity(args, grid, fmt)
+    if conn is not None:
+        kw["connectivity"] = conn
     like = grid if fmt == in_format else None
     write(args.output, grid, format=fmt, like=like, overwrite=args.force, **kw)
     print(f"wrote {args.output}: {_written_variant(args.output, fmt, grid, kw)}, "
           f"{grid.nblocks} block(s), {grid.npoints:,} points")
+    if fmt != "cgns" and grid.connectivity is not None:
+        print(f"note: the boundary conditions and interfaces of {args.input} are not written "
+              f"(a {fmt} file holds none)")
     return 0
+
+
+def _connectivity(args, grid, fmt: str):
+    """The connectivity to write: from --connect, --connectivity or --nmf (with the kinds given),
+    None for the writer's default (the grid's own)."""
+    from ..spec import parse_patch_spec
+    kinds = {}
+    for kind in ("wall", "symmetry", "fixed"):
+        specs = []
+        for text in getattr(args, kind):
+            try:
+                specs.append(parse_patch_spec(text))
+            except CaseError as exc:
+                raise CaseError(f"--{kind}: {exc}") from None
+        kinds[kind if kind != "wall" else "walls"] = specs
+    source = ("--connect" if args.connect else f"--connectivity {args.connectivity}" if args.connectivity
+              else f"--nmf {args.nmf}" if args.nmf else None)
+    if source is None:
+        given = [f"--{k}" for k in ("wall", "symmetry", "fixed") if getattr(args, k)]
+        if args.no_auto_symmetry:
+            given.append("--no-auto-symmetry")
+        if given:
+            raise CaseError(f"{', '.join(given)} need --connect, --connectivity or --nmf")
+        return None
+    if fmt != "cgns":
+        raise CaseError(f"{args.output}: {source}: a {fmt} file cannot hold boundary conditions or "
+                        "interfaces; write a CGNS file, or save the map with "
+                        "'tfi-quat connect GRID -o MAP.json'")
+    from .. import topology
+    if args.no_auto_symmetry and not args.connect:
+        raise CaseError("--no-auto-symmetry applies to --connect")
+    if args.connect:
+        return topology.connect(grid, auto_symmetry=not args.no_auto_symmetry, **kinds)
+    if args.connectivity:
+        conn = topology.Connectivity.from_json(args.connectivity, grid)
+    else:
+        conn = topology.Connectivity.from_nmf(args.nmf, grid)
+    if any(kinds.values()):
+        conn = topology.classify(conn, grid, **kinds)
+    return conn
 
 
 def _written_variant(path, fmt: str, grid, kw: dict) -> str:
@@ -172,6 +249,12 @@ def _written_variant(path, fmt: str, grid, kw: dict) -> str:
     if fmt == "hdf5":
         from ..io.hdf5 import info
         return describe_variant(info(path).format)
+    if fmt == "cgns":
+        from ..io.cgns import CGNSFormat, info
+        i = info(path)
+        single = bool(i.zones) and i.zones[0][2] == "R4"
+        return (f"{describe_variant(CGNSFormat(i.base, single))}, {len(i.bcs)} boundary condition(s), "
+                f"{len(i.one_to_one)} 1-to-1 record(s)")
     from ..io.plot3d import Plot3DFormat
     base = grid.source_format if isinstance(grid.source_format, Plot3DFormat) else Plot3DFormat()
     opts = {k: v for k, v in kw.items() if k in {f for _, _, f in _PLOT3D_OUTPUT}}

@@ -8,7 +8,8 @@ import time
 
 from ..errors import CaseError
 from . import EXIT_CHECK
-from ._common import case_and_grid, check_output, finite, vector
+from ._common import (add_base_arg, case_and_grid, check_output, file_format, finite, output_like,
+                      read_grid, vector)
 
 #: negative cells listed in the summary line
 _SHOW = 3
@@ -19,19 +20,26 @@ METHODS = ("two-level", "samareh", "tfi")
 HELP = "deform a volume grid when its walls move (quaternion TFI or plain TFI)"
 DESCRIPTION = """Deform GRID for a wall motion and write the deformed grid to OUT.
 
-The walls, symmetry planes and fixed boundaries come from --case, --nmf or
---connectivity, or from --wall/--symmetry/--fixed (BLOCK:FACE[:A1-A2,B1-B2],
-1-based); faces not named are fixed.  The wall motion is either a moved grid
+The walls, symmetry planes and fixed boundaries come from the grid file
+itself when it records them (CGNS: its boundary conditions and 1-to-1
+interfaces), from --case, --nmf or --connectivity, and from
+--wall/--symmetry/--fixed (BLOCK:FACE[:A1-A2,B1-B2], 1-based), which
+override the others face part by face part; faces not named are fixed.
+The wall motion is either a moved grid
 (--moved, same dimensions, only its wall points are used) or a rigid motion
 of the walls (--rotate/--axis/--about/--translate), or the case file's
 [motion].  Prints the number of negative cells and the smallest cell-volume
 ratio to the reference at the end.  A deformed grid with negative cells is
 not written (exit status 1, the count and the first cells on stderr)
-unless --allow-negative is given."""
+unless --allow-negative is given.  OUT is written in the input's format and
+variant unless its extension names another format; a CGNS input gives a
+CGNS output with every node of the input but the coordinates, another
+input written to a .cgns file gets the boundaries the deformation used."""
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("grid", nargs="?", help="reference grid (Plot3D or HDF5); default: the case file's grid")
+    p.add_argument("grid", nargs="?",
+                   help="reference grid (Plot3D, HDF5 or CGNS); default: the case file's grid")
     p.add_argument("--case", help="case file (TOML) with grid, walls, symmetry, fixed, motion")
     p.add_argument("--nmf", help="Neutral Map File with interfaces and boundary kinds")
     p.add_argument("--connectivity", help="connectivity JSON written by 'tfi-quat connect'")
@@ -57,6 +65,7 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--allow-negative", action="store_true",
                    help="write the deformed grid even when it has negative cells (exit status 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_base_arg(p)
 
 
 def _motion(args, case):
@@ -66,11 +75,10 @@ def _motion(args, case):
     if args.moved and given:
         raise CaseError("give either --moved or --rotate/--axis/--about/--translate, not both")
     if args.moved:
-        from .. import io
-        return io.read(args.moved), f"walls from {args.moved}"
+        return read_grid(args, args.moved, strict=False), f"walls from {args.moved}"
     if given:
         rot = args.rotate or 0.0
-        axis = tuple(unit_vector(args.axis, "--axis")) if args.axis else (0.0, 0.0, 1.0)
+        axis = tuple(float(v) for v in unit_vector(args.axis, "--axis")) if args.axis else (0.0, 0.0, 1.0)
         about = args.about or (0.0, 0.0, 0.0)
         tr = args.translate or (0.0, 0.0, 0.0)
     elif case is not None and case.motion is not None:
@@ -126,7 +134,7 @@ def run(args) -> int:
     if out is None:
         raise CaseError("no output file: give -o OUT")
     check_output(out, args.force, inputs=[path, args.moved, args.case, args.nmf, args.connectivity])
-    grid = io.read(path)
+    grid = read_grid(args, path)
     conn = None
     if args.nmf and args.connectivity:
         raise CaseError("give --nmf or --connectivity, not both")
@@ -138,6 +146,7 @@ def run(args) -> int:
     fixed = [parse_patch_spec(w) for w in args.fixed]
     if case is not None and not (walls or sym or fixed):
         walls, sym, fixed = list(case.walls), list(case.symmetry), list(case.fixed)
+    # none given, no map: a CGNS grid's own connectivity (Deformer's default), else connect()
     moved, desc = _motion(args, case)
     t0 = time.perf_counter()
     method = _method(args)
@@ -163,7 +172,11 @@ def run(args) -> int:
         print(f"tfi-quat deform: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}; "
               f"{out} not written (--allow-negative writes it)", file=sys.stderr)
         return EXIT_CHECK
-    io.write(out, result, like=grid, overwrite=args.force)
+    like = output_like(out, grid)
+    boundaries = {}
+    if like is None and result.connectivity is None and file_format(out) == "cgns":
+        boundaries["connectivity"] = deformer.connectivity      # a CGNS file holds the ones used
+    io.write(out, result, like=like, overwrite=args.force, **boundaries)
     print(f"wrote {out}: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}")
     return 0
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import CaseError, GridValueError
-from ._common import case_and_grid, walls_arg, check_output
+from ._common import add_base_arg, case_and_grid, check_output, grid_walls, read_grid, walls_arg
 
 HELP = "draw a grid (2-D: zoom windows, reference overlaid; 3-D: wall surface and cuts) into a PNG"
 DESCRIPTION = """Draw GRID into FIG (PNG, or another format matplotlib knows from the extension).
@@ -19,7 +19,9 @@ default two planes through the first wall's block), --zoom X0,X1,Y0,Y1 then
 applies to the cuts in their projected coordinates.  --color METRIC fills
 the cells with a quality metric (volume, jacobian, scaled_jacobian,
 skewness, aspect_ratio, volume_ratio (needs --ref), orthogonality and
-orthogonality_change (need walls; the latter --ref)) with a colour bar."""
+orthogonality_change (need walls; the latter --ref)) with a colour bar.
+The walls: --walls, else the case file's, else a CGNS grid's own wall
+boundary conditions."""
 
 
 def _size(text: str):
@@ -46,12 +48,14 @@ def _zoom(text: str):
 def add_args(p: argparse.ArgumentParser) -> None:
     from ..plot import COLOR_METRICS
 
-    p.add_argument("grid", nargs="?", metavar="GRID", help="grid file (Plot3D or HDF5); default: the case file's grid")
+    p.add_argument("grid", nargs="?", metavar="GRID",
+                   help="grid file (Plot3D, HDF5 or CGNS); default: the case file's grid")
     p.add_argument("-o", "--output", required=True, metavar="FIG.png", help="image file to write")
     p.add_argument("--ref", metavar="REF", help="reference (undeformed) grid, same blocks and dimensions")
     p.add_argument("--walls", "--wall", dest="walls", action="extend", nargs="+", default=[],
                    metavar="B:FACE[:RANGE]", help="wall patches, 1-based")
     p.add_argument("--case", metavar="CASE.toml", help="case file: its grid and walls")
+    add_base_arg(p)
     p.add_argument("--zoom", type=_zoom, action="append", metavar="WINDOW",
                    help="all, near, le, te or X0,X1,Y0,Y1 (repeatable: one panel each)")
     p.add_argument("--color", choices=COLOR_METRICS, metavar="METRIC",
@@ -69,7 +73,6 @@ def add_args(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from .. import io
     from ..plot import grid_figure, save_figure
 
     case, path = case_and_grid(args)
@@ -79,10 +82,12 @@ def run(args) -> int:
         raise CaseError(f"--dpi must be >= 10, got {args.dpi}")
     check_output(args.output, args.force, inputs=[path, args.ref, args.case])
     walls = walls_arg(args, case)
-    grid = io.read(path)
+    grid = read_grid(args, path)
+    if not walls:
+        walls = grid_walls(grid)
     if args.cut and grid.ndim == 2:
         raise CaseError(f"{path}: --cut {args.cut[0]}: cuts are planes through a 3-D grid; this grid is 2-D")
-    ref = io.read(args.ref) if args.ref else None
+    ref = read_grid(args, args.ref, strict=False) if args.ref else None
     title = args.title
     if title is None:
         title = str(path)

@@ -7,7 +7,7 @@ import argparse
 import json
 
 from ..errors import CaseError, GridValueError
-from ._common import case_and_grid, finite, non_negative_int, walls_arg
+from ._common import add_base_arg, case_and_grid, finite, grid_walls, non_negative_int, read_grid, walls_arg
 
 HELP = "grid quality: volumes, Jacobians, skewness, aspect ratio, negative cells, near-wall orthogonality"
 DESCRIPTION = """Measure the quality of GRID: per block and over the grid, the min, mean and
@@ -16,19 +16,21 @@ Jacobian, the equiangle skewness and the aspect ratio; the negative cells
 (volume <= 0), the cells with a corner Jacobian <= 0 and the degenerate ones,
 each with the first few (block, i, j, k), 1-based.  With --ref (the grid before
 deformation) also the cell volume ratio GRID / REF.  With walls (--walls, or
-the case file's) the angle between the wall normal and the first --layers
-grid lines off the wall, and with --ref its change.  Definitions:
+the case file's, else a CGNS grid's own wall boundary conditions) the angle
+between the wall normal and the first --layers grid lines off the wall, and
+with --ref its change.  Definitions:
 docs/quality.md.  Exit status 0, or 1 with --fail-on-negative when a cell
 has a volume <= 0; 2 on bad input."""
 
 
 def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("grid", nargs="?", metavar="GRID",
-                   help="grid file (Plot3D or HDF5); default: the case file's grid")
+                   help="grid file (Plot3D, HDF5 or CGNS); default: the case file's grid")
     p.add_argument("--ref", metavar="REF", help="the grid before deformation (same blocks and dimensions)")
     p.add_argument("--walls", "--wall", dest="walls", action="extend", nargs="+", default=[],
                    metavar="B:FACE[:RANGE]", help="wall patches, 1-based (e.g. 1:jmin:65-193)")
     p.add_argument("--case", metavar="CASE.toml", help="case file: its grid and walls")
+    add_base_arg(p)
     p.add_argument("--layers", type=int, default=5, metavar="K",
                    help="grid lines off the wall measured per wall point (default 5)")
     p.add_argument("--rtol", type=finite, default=1e-12,
@@ -41,7 +43,6 @@ def add_args(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from .. import io
     from ..quality import quality_report
 
     case, path = case_and_grid(args)
@@ -50,15 +51,17 @@ def run(args) -> int:
     if args.rtol < 0:
         raise CaseError(f"--rtol must be >= 0, got {args.rtol:g}")
     walls = walls_arg(args, case)
-    grid = io.read(path)
-    ref = io.read(args.ref) if args.ref else None
+    where = args.case if (case is not None and not args.walls) else "--walls"
+    grid = read_grid(args, path)
+    if not walls:
+        walls, where = grid_walls(grid), f"the wall boundary conditions of {path}"
+    ref = read_grid(args, args.ref, strict=False) if args.ref else None
     try:
         report = quality_report(grid, ref=ref, walls=walls or None, layers=args.layers, rtol=args.rtol,
                                 max_locations=args.locations)
     except GridValueError as exc:
         raise GridValueError(f"{args.ref}: does not match {path}: {exc}") from None
     except CaseError as exc:
-        where = args.case if (case is not None and not args.walls) else "--walls"
         raise CaseError(f"{where}: {exc} (grid {path})") from None
     if args.json:
         d = {"grid": str(path), "reference": None if args.ref is None else str(args.ref)}

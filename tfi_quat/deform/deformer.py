@@ -147,11 +147,18 @@ class Deformer:
     walls, symmetry, fixed : sequence of PatchSpec or "BLOCK:FACE[:A1-A2,B1-B2]"
         Boundary patches by kind (1-based text, 0-based PatchSpec).  A whole
         face given as a wall is reduced by the interfaces on it.  Faces not
-        given are ``fixed``.
+        given are ``fixed``, or keep their kinds in ``connectivity`` (the
+        grid's own included).
     connectivity : tfi_quat.topology.Connectivity, optional
-        Interfaces and patches (e.g. loaded from JSON or an ``.nmf``); found
-        with :func:`tfi_quat.topology.connect` when omitted.  When given with
-        ``walls``/``symmetry``/``fixed``, those kinds are applied to it.
+        Interfaces and patches (e.g. loaded from JSON or an ``.nmf``).  Default:
+        the grid's own (``grid.connectivity``, read from a CGNS file with its
+        boundary conditions and 1-to-1 interfaces), else found with
+        :func:`tfi_quat.topology.connect`.  When given (or taken from the grid)
+        with ``walls``/``symmetry``/``fixed``, those kinds are applied to it
+        face part by face part (:func:`tfi_quat.topology.classify`); the rest
+        keeps its kinds.  The grid's own connectivity is always re-classified
+        so: boundary parts it leaves out get the kinds :func:`~tfi_quat.topology.connect`
+        gives them.
     method : {"two-level", "samareh", "tfi"}
         ``two-level`` (default) and ``samareh``: interpolate translations and
         rotations (quaternion TFI), the rotations acting in the two-level
@@ -221,7 +228,13 @@ class Deformer:
         symmetry = as_patch_specs(symmetry, "symmetry")
         fixed = as_patch_specs(fixed, "fixed")
         from .. import topology
-        if connectivity is None:
+        own = connectivity is None and grid.connectivity is not None
+        if own:
+            # the file's kinds, the given ones over them, the rest as connect() classifies it
+            # (fixed, planar next to a wall: symmetry), in connect()'s patch order
+            connectivity = topology.classify(grid.connectivity, grid, walls=walls, symmetry=symmetry,
+                                             fixed=fixed)
+        elif connectivity is None:
             connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
         elif walls or symmetry or fixed:
             connectivity = topology.classify(connectivity, grid, walls=walls, symmetry=symmetry,
@@ -235,7 +248,10 @@ class Deformer:
             raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
         pts = boundary_points(grid, connectivity, self.tol)
         if not pts.wall.size:
-            raise CaseError("no wall points: give at least one wall patch")
+            src = ""
+            if own:
+                src = f" (the boundary conditions of {grid.source_path or 'the grid'} name no wall)"
+            raise CaseError(f"no wall points{src}: give at least one wall patch")
         self.centre = _centre(pts, centre)
         if two:
             layer = twolevel.wall_layer(pts, rotation_length, diag)
@@ -283,8 +299,11 @@ class Deformer:
         Returns
         -------
         Grid
-            A new grid; the reference is not modified.  Every call starts from
-            the reference, so repeated steps do not drift.
+            A new grid with the reference's ``source_format`` and
+            ``connectivity`` (so ``write(path, out, like=reference)`` writes
+            the reference's file variant, a CGNS file with its boundary
+            conditions); the reference is not modified.  Every call starts
+            from the reference, so repeated steps do not drift.
         """
         with self._lock:
             t0 = time.perf_counter()
@@ -475,11 +494,12 @@ def _assemble(sk, ref: Grid, outs, pos) -> Grid:
         if sk.ndim == 2:
             out[..., 2] = 0.0
         blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
-    return Grid(blocks, ref.ndim, source_format=ref.source_format)
+    return Grid(blocks, ref.ndim, source_format=ref.source_format, connectivity=ref.connectivity)
 
 
 def deformer_from_case(case, grid: Grid | None = None, **kw) -> Deformer:
-    """Build a :class:`Deformer` from a :class:`tfi_quat.case.Case` (walls, symmetry, fixed)."""
+    """Build a :class:`Deformer` from a :class:`tfi_quat.case.Case` (walls, symmetry, fixed; a case
+    for a CGNS grid may give none and take the file's)."""
     from .. import io
     if grid is None:
         grid = io.read(case.grid)
