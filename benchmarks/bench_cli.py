@@ -26,6 +26,7 @@ import argparse
 import json
 import os
 import pstats
+import resource
 import subprocess
 import sys
 import tempfile
@@ -54,20 +55,27 @@ def _cli(*args) -> list[str]:
     return [sys.executable, "-m", "tfi_quat.cli", *args]
 
 
-def _run(cmd, env) -> tuple[float, str]:
+def _cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _run(cmd, env) -> tuple[float, float, str]:
+    """Wall and CPU seconds (user + system, all threads) of one command, and its stdout."""
+    c0 = _cpu()
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
-    return wall, proc.stdout
+    return wall, _cpu() - c0, proc.stdout
 
 
 def profile(deform_cmd, env, work: Path, min_ms: float, top: int) -> None:
     """One ``deform`` under cProfile: the tfi_quat functions (and imports) by cumulative time."""
     out = work / "deform.prof"
     cmd = [sys.executable, "-m", "cProfile", "-o", str(out), "-m", "tfi_quat.cli", *deform_cmd[3:]]
-    wall, stdout = _run(cmd, env)
+    wall, _, stdout = _run(cmd, env)
     print(f"\nprofiled deform: {wall:.2f} s wall (cProfile adds its own overhead)")
     for line in stdout.splitlines():
         if line.startswith("set-up"):
@@ -114,28 +122,33 @@ def main(argv=None):
                       "--axis", "0,0,1", "--method", args.method, "-o", str(work / "deformed.x"),
                       "--force", "--quiet")
         convert = _cli("convert", str(src), str(work / "converted.x"), "--force")
-        t_dw, out = _run(deform, env)
-        t_cw, _ = _run(convert, env)
+        t_dw, _, out = _run(deform, env)
+        t_cw, _, _ = _run(convert, env)
         print(f"warm-up: deform {t_dw:.2f} s, convert {t_cw:.2f} s")
         print("  " + "\n  ".join(out.strip().splitlines()))
-        td, tc = [], []
+        td, tc, cd, cc = [], [], [], []
         for r in range(args.repeat):
-            t, out = _run(deform, env)
+            t, c, out = _run(deform, env)
             td.append(t)
-            t, _ = _run(convert, env)
+            cd.append(c)
+            t, c, _ = _run(convert, env)
             tc.append(t)
-            print(f"run {r + 1}: deform {td[-1]:.3f} s, convert {tc[-1]:.3f} s")
+            cc.append(c)
+            print(f"run {r + 1}: deform {td[-1]:.3f} s ({cd[-1]:.2f} s CPU), "
+                  f"convert {tc[-1]:.3f} s ({cc[-1]:.2f} s CPU); load average {os.getloadavg()[0]:.1f}")
         setup = [line for line in out.splitlines() if line.startswith("set-up")]
         best_d, best_c = min(td), min(tc)
         print(f"best of {args.repeat}: deform {best_d:.3f} s, convert {best_c:.3f} s, "
-              f"ratio {best_d / best_c:.2f} (target <= 2.0); last deform's {setup[0] if setup else ''}")
+              f"ratio {best_d / best_c:.2f} (target <= 2.0); CPU time {min(cd):.2f} s against "
+              f"{min(cc):.2f} s, ratio {min(cd) / min(cc):.2f}; last deform's {setup[0] if setup else ''}")
         if args.profile:
             profile(deform, env, work, args.min_ms, args.top)
     if args.json:
         Path(args.json).write_text(json.dumps({
             "points": grid.npoints, "dims": [ni, nj, nk], "method": args.method, "rotate": args.rotate,
             "deform_s": td, "convert_s": tc, "best_deform_s": best_d, "best_convert_s": best_c,
-            "ratio": best_d / best_c, "load_average": os.getloadavg()[0]}, indent=2) + "\n")
+            "ratio": best_d / best_c, "deform_cpu_s": cd, "convert_cpu_s": cc,
+            "cpu_ratio": min(cd) / min(cc), "load_average": os.getloadavg()[0]}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

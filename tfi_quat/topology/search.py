@@ -196,14 +196,17 @@ class _Geometry:
         n = self.n
         ei, ej = [], []
         for fc in self.faces:
-            ids = np.arange(fc.off, fc.off + fc.size).reshape(fc.na, fc.nb, order="F")
-            for p, q in ((ids[:-1, :], ids[1:, :]), (ids[:, :-1], ids[:, 1:])):
-                p, q = p.ravel(), q.ravel()
-                if p.size:
-                    d = np.linalg.norm(self.xyz[p] - self.xyz[q], axis=1)
-                    close = d <= np.minimum(self.tol[p], self.tol[q])
-                    ei.append(p[close])
-                    ej.append(q[close])
+            # views (nb, na) of the face's rows: point (a, b) is row off + a + na * b
+            ids = np.arange(fc.off, fc.off + fc.size).reshape(fc.nb, fc.na)
+            x = self.xyz[fc.sl()].reshape(fc.nb, fc.na, 3)
+            tol = self.tol[fc.sl()].reshape(fc.nb, fc.na)
+            for lo, hi in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                           ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+                if ids[lo].size:
+                    d = np.linalg.norm((x[lo] - x[hi]).reshape(-1, 3), axis=1).reshape(ids[lo].shape)
+                    close = d <= np.minimum(tol[lo], tol[hi])
+                    ei.append(ids[lo][close])
+                    ej.append(ids[hi][close])
         ei = np.concatenate(ei) if ei else np.zeros(0, np.int64)
         ej = np.concatenate(ej) if ej else np.zeros(0, np.int64)
         _, self.cface = _components(n, ei, ej)
@@ -230,9 +233,9 @@ class _Geometry:
         c = self.cface[fc.sl()].reshape(fc.na, fc.nb, order="F")
         act_a, act_b = fc.active
         if act_a and act_b:
-            corners = np.stack([c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:]], axis=-1)
-            s = np.sort(corners, axis=-1)
-            distinct = 1 + (np.diff(s, axis=-1) != 0).sum(axis=-1)
+            p, q, r, s = c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:]
+            # each corner that differs from every corner before it is one more cluster
+            distinct = (1 + (q != p) + ((r != p) & (r != q)) + ((s != p) & (s != q) & (s != r)))
             return distinct <= 2
         if act_a:
             return (c[:-1, :] == c[1:, :])
