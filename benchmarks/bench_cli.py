@@ -11,13 +11,17 @@ and the motion a rotation of ``--rotate`` degrees about the z axis.
 Each command runs as a fresh subprocess (``python -m tfi_quat.cli``), once
 to warm up (numba caches, the page cache), then ``--repeat`` times each,
 alternating; the best of each and their ratio are printed (target
-``deform <= 2.0 x convert``).  ``--profile`` adds one ``deform`` under
-cProfile (the tfi_quat functions and imports above ``--min-ms``) and the
-CLI's own set-up / step line.
+``deform <= 2.0 x convert``), wall time and CPU time (user + system, all
+threads: on a loaded machine the steadier of the two).  ``--root PATH``
+also times ``deform`` of another checkout (the code before a change) in the
+same rounds.  ``--profile`` adds one ``deform`` under cProfile (the tfi_quat
+functions and imports above ``--min-ms``) and the CLI's own set-up / step
+line.
 
     python benchmarks/bench_cli.py                       # 5 M points, best of 5
     python benchmarks/bench_cli.py --points 2e5 --repeat 2 --profile
     python benchmarks/bench_cli.py --json out.json       # the table as JSON too
+    python benchmarks/bench_cli.py --root /tmp/old-checkout   # and deform of another copy
 """
 
 from __future__ import annotations
@@ -64,7 +68,7 @@ def _run(cmd, env) -> tuple[float, float, str]:
     """Wall and CPU seconds (user + system, all threads) of one command, and its stdout."""
     c0 = _cpu()
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
+    proc = subprocess.run(cmd, cwd=env["PYTHONPATH"], env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
@@ -106,9 +110,12 @@ def main(argv=None):
     ap.add_argument("--min-ms", type=float, default=20.0, help="profile rows of at least this many ms")
     ap.add_argument("--top", type=int, default=40, help="profile rows shown")
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--root", help="also time deform of the package at ROOT (another checkout, e.g. "
+                                   "the code before a change), alternating with this one's")
     args = ap.parse_args(argv)
 
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env_old = dict(os.environ, PYTHONPATH=str(Path(args.root).resolve())) if args.root else None
     with tempfile.TemporaryDirectory(prefix="bench_cli_") as tmp:
         work = Path(tmp)
         import tfi_quat as tq
@@ -126,7 +133,10 @@ def main(argv=None):
         t_cw, _, _ = _run(convert, env)
         print(f"warm-up: deform {t_dw:.2f} s, convert {t_cw:.2f} s")
         print("  " + "\n  ".join(out.strip().splitlines()))
-        td, tc, cd, cc = [], [], [], []
+        if env_old is not None:
+            t_ow, _, out_old = _run(deform, env_old)
+            print(f"warm-up of {args.root}: deform {t_ow:.2f} s")
+        td, tc, cd, cc, to, co = [], [], [], [], [], []
         for r in range(args.repeat):
             t, c, out = _run(deform, env)
             td.append(t)
@@ -134,13 +144,22 @@ def main(argv=None):
             t, c, _ = _run(convert, env)
             tc.append(t)
             cc.append(c)
+            old = ""
+            if env_old is not None:
+                t, c, _ = _run(deform, env_old)
+                to.append(t)
+                co.append(c)
+                old = f", deform of --root {to[-1]:.3f} s ({co[-1]:.2f} s CPU)"
             print(f"run {r + 1}: deform {td[-1]:.3f} s ({cd[-1]:.2f} s CPU), "
-                  f"convert {tc[-1]:.3f} s ({cc[-1]:.2f} s CPU); load average {os.getloadavg()[0]:.1f}")
+                  f"convert {tc[-1]:.3f} s ({cc[-1]:.2f} s CPU){old}; load average {os.getloadavg()[0]:.1f}")
         setup = [line for line in out.splitlines() if line.startswith("set-up")]
         best_d, best_c = min(td), min(tc)
         print(f"best of {args.repeat}: deform {best_d:.3f} s, convert {best_c:.3f} s, "
               f"ratio {best_d / best_c:.2f} (target <= 2.0); CPU time {min(cd):.2f} s against "
               f"{min(cc):.2f} s, ratio {min(cd) / min(cc):.2f}; last deform's {setup[0] if setup else ''}")
+        if to:
+            print(f"--root deform: best {min(to):.3f} s, ratio {min(to) / best_c:.2f} to convert; CPU time "
+                  f"{min(co):.2f} s, ratio {min(co) / min(cc):.2f}")
         if args.profile:
             profile(deform, env, work, args.min_ms, args.top)
     if args.json:
@@ -148,7 +167,7 @@ def main(argv=None):
             "points": grid.npoints, "dims": [ni, nj, nk], "method": args.method, "rotate": args.rotate,
             "deform_s": td, "convert_s": tc, "best_deform_s": best_d, "best_convert_s": best_c,
             "ratio": best_d / best_c, "deform_cpu_s": cd, "convert_cpu_s": cc,
-            "cpu_ratio": min(cd) / min(cc), "load_average": os.getloadavg()[0]}, indent=2) + "\n")
+            "cpu_ratio": min(cd) / min(cc), "root": args.root, "root_deform_s": to, "root_deform_cpu_s": co, "load_average": os.getloadavg()[0]}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

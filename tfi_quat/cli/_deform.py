@@ -70,7 +70,7 @@ def _motion(args, case):
         return io.read(args.moved), f"walls from {args.moved}"
     if given:
         rot = args.rotate or 0.0
-        axis = tuple(unit_vector(args.axis, "--axis")) if args.axis else (0.0, 0.0, 1.0)
+        axis = tuple(float(v) for v in unit_vector(args.axis, "--axis")) if args.axis else (0.0, 0.0, 1.0)
         about = args.about or (0.0, 0.0, 0.0)
         tr = args.translate or (0.0, 0.0, 0.0)
     elif case is not None and case.motion is not None:
@@ -117,8 +117,7 @@ class _Progress:
 
 def run(args) -> int:
     from .. import io
-    from ..deform import Deformer
-    from ..quality import volume_ratio_summary
+    from .._jit import warm_up_in_background
     from ..spec import parse_patch_spec
 
     case, path = case_and_grid(args)
@@ -126,16 +125,20 @@ def run(args) -> int:
     if out is None:
         raise CaseError("no output file: give -o OUT")
     check_output(out, args.force, inputs=[path, args.moved, args.case, args.nmf, args.connectivity])
-    grid = io.read(path)
-    conn = None
     if args.nmf and args.connectivity:
         raise CaseError("give --nmf or --connectivity, not both")
-    if args.nmf or args.connectivity:
-        from ..topology import Connectivity
-        conn = Connectivity.from_nmf(args.nmf, grid) if args.nmf else Connectivity.from_json(args.connectivity, grid)
     walls = [parse_patch_spec(w) for w in args.wall]
     sym = [parse_patch_spec(w) for w in args.symmetry]
     fixed = [parse_patch_spec(w) for w in args.fixed]
+    # numba's set-up runs while the grid is read (the read holds no lock numba needs)
+    warm_up_in_background()
+    grid = io.read(path)
+    from ..deform import Deformer
+    from ..quality import volume_ratio_summary
+    conn = None
+    if args.nmf or args.connectivity:
+        from ..topology import Connectivity
+        conn = Connectivity.from_nmf(args.nmf, grid) if args.nmf else Connectivity.from_json(args.connectivity, grid)
     if case is not None and not (walls or sym or fixed):
         walls, sym, fixed = list(case.walls), list(case.symmetry), list(case.fixed)
     moved, desc = _motion(args, case)
