@@ -5,8 +5,8 @@ Only boundary points are touched (O(surface)).  Steps:
 1. Gather the points of every boundary face (six per block, four in 2-D)
    with a matching tolerance scaled by the local spacing.
 2. Contract points that coincide with an in-face neighbour (collapsed faces,
-   poles) and the copies of one block point on two or three faces, so that a
-   k-d tree over the remaining representatives sees small cliques only.
+   poles) and the copies of one block point on two or three faces, so that the
+   coincidence search over the remaining representatives sees small cliques only.
 3. Coincident representatives (:func:`tfi_quat._points.close_pairs`, a sweep
    along a generic direction) give every boundary point a geometric node label.
 4. Pairs of coincident, non-degenerate points on faces ``F1 <= F2`` vote for an
