@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import tfi_quat
@@ -266,6 +266,48 @@ def test_volume_ratio_of_an_affine_map():
     y = np.asfortranarray(x @ A.T + 0.5)
     m = cell_metrics(y, ref=x)
     np.testing.assert_allclose(m["volume_ratio"], np.linalg.det(A), rtol=1e-12)
+
+
+def _summary_reference(grid, ref):
+    """volume_ratio_summary written plainly: ratios in C order, ``np.argmin`` over them."""
+    neg, best = 0, (np.inf, None)
+    for b, (blk, rb) in enumerate(zip(grid, ref)):
+        v, vr = cell_volumes(blk, grid.ndim), cell_volumes(rb, grid.ndim)
+        ratio = np.full(v.shape, np.inf)
+        ok = vr != 0.0
+        ratio[ok] = v[ok] / vr[ok]
+        neg += int(np.count_nonzero(ratio <= 0.0))
+        m = int(np.argmin(ratio))
+        if ratio.flat[m] < best[0]:
+            best = (float(ratio.flat[m]), (b, *map(int, np.unravel_index(m, ratio.shape))))
+    return {"negative": neg, "min_ratio": best[0], "where": best[1]}
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31), two_d=st.booleans(), nan=st.booleans())
+def test_volume_ratio_summary_matches_its_definition(seed, two_d, nan):
+    """Ties (cells repeated along k and i), zero reference volumes, flipped cells, a NaN."""
+    rng = np.random.default_rng(seed)
+    blocks, refs = [], []
+    for _ in range(int(rng.integers(1, 3))):
+        ni, nj, nk = (int(n) for n in rng.integers(2, 6, 3))
+        nk = 1 if two_d else nk
+        x = np.zeros((ni, nj, nk, 3))
+        x[..., 0] = np.arange(ni)[:, None, None] * rng.choice([1.0, 0.5])
+        x[..., 1] = rng.choice([0.0, 1.0, 2.0], nj).cumsum()[None, :, None]   # repeated rows: zero volumes
+        x[..., 2] = np.arange(nk)[None, None, :]
+        y = x.copy()
+        y[..., 1] *= rng.choice([1.0, -1.0, 0.5])                               # flipped or squeezed: ties
+        y[..., 0] += 0.3 * (rng.random(y.shape[:3]) < 0.2)
+        if nan:
+            y[tuple(int(rng.integers(n)) for n in y.shape[:3]) + (0,)] = np.nan
+        blocks.append(Block(np.asfortranarray(y), allow_nonfinite=True))
+        refs.append(Block(np.asfortranarray(x)))
+    ndim = 2 if two_d else 3
+    grid, ref = Grid(blocks, ndim, allow_nonfinite=True), Grid(refs, ndim)
+    got, want = Q.volume_ratio_summary(grid, ref), _summary_reference(grid, ref)
+    assert got["negative"] == want["negative"] and got["where"] == want["where"]
+    assert got["min_ratio"] == want["min_ratio"] or (np.isnan(got["min_ratio"]) and np.isnan(want["min_ratio"]))
 
 
 def test_compiled_and_uncompiled_kernels_agree():

@@ -7,6 +7,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tfi_quat import ConnectivityError, Grid
 from tfi_quat.spec import PatchSpec
@@ -938,3 +940,45 @@ def test_cli_main_connect_options_2d(tmp_path, capsys):
     assert {p.spec.face: p.kind for p in back.patches} == {"imin": "free", "imax": "free", "jmin": "wall",
                                                            "jmax": "free"}
     assert max(int(line.split()[2]) for line in nmf.read_text().splitlines() if line[:1] not in "# ") == 4
+
+
+# ------------------------------------------------------------ connected components
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(0, 40), data=st.data())
+def test_connected_components_match_scipy(n, data):
+    """Same count and labels (numbered by each component's smallest node) as scipy's."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components as scipy_components
+
+    from tfi_quat.topology.graph import connected_components
+    m = data.draw(st.integers(0, 3 * n)) if n else 0
+    i = np.array(data.draw(st.lists(st.integers(0, n - 1), min_size=m, max_size=m)) if n else [], dtype=np.int64)
+    j = np.array(data.draw(st.lists(st.integers(0, n - 1), min_size=m, max_size=m)) if n else [], dtype=np.int64)
+    count, labels = connected_components(n, i, j)
+    if n == 0:
+        assert count == 0 and labels.size == 0
+        return
+    want_count, want = scipy_components(coo_matrix((np.ones(m, np.int8), (i, j)), shape=(n, n)), directed=False)
+    assert count == want_count
+    np.testing.assert_array_equal(labels, want)
+
+
+def test_connected_components_long_chains_and_bad_edges():
+    from tfi_quat.topology.graph import connected_components
+    rng = np.random.default_rng(5)
+    p = rng.permutation(5000)
+    count, labels = connected_components(5001, p[:-1], p[1:])      # one chain, randomly numbered
+    assert count == 2 and np.all(labels[p] == 0) and labels[5000] == 1
+    with pytest.raises(ValueError, match="outside"):
+        connected_components(3, [0], [3])
+    with pytest.raises(ValueError, match="length"):
+        connected_components(3, [0, 1], [2])
+
+
+def test_non_finite_boundary_coordinates_are_named():
+    from tfi_quat import Block, GridValueError
+    x = sheared_box(4, 3, 3)
+    x[1, 0, 2, 0] = np.nan                               # on faces jmin and kmax
+    grid = Grid([Block(x, allow_nonfinite=True)], 3)
+    with pytest.raises(GridValueError, match=r"block 1 face jmin: non-finite"):
+        connect(grid)

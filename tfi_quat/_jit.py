@@ -35,7 +35,8 @@ import os
 
 import numba
 
-__all__ = ["jit", "pjit", "prange", "CACHE", "ENABLED", "numba", "serial_below", "SERIAL_BELOW"]
+__all__ = ["jit", "pjit", "prange", "CACHE", "ENABLED", "numba", "serial_below", "SERIAL_BELOW",
+           "warm_up_in_background"]
 
 
 def _flag(name: str, default: str) -> bool:
@@ -97,3 +98,27 @@ def _one_thread():
         yield
     finally:
         numba.set_num_threads(prev)
+
+
+def warm_up_in_background():
+    """Start numba's one-time set-up (its typing and lowering tables: about 0.6 s of CPU that
+    the first compiled call of a process otherwise waits for) in a background thread, so
+    that it overlaps work without kernels, such as reading a grid.  Returns the thread
+    (``None`` when compilation is off).  A kernel called meanwhile waits for it (numba's
+    compiler lock); if the set-up fails here, the first kernel call does it as usual."""
+    if not ENABLED:
+        return None
+
+    def work():
+        try:
+            from numba.core.compiler_lock import global_compiler_lock
+            from numba.core.registry import cpu_target
+            with global_compiler_lock:
+                cpu_target.target_context.refresh()
+        except Exception:           # noqa: BLE001 -- an optimisation only
+            pass
+
+    import threading
+    thread = threading.Thread(target=work, name="tfi_quat-jit-warm-up")
+    thread.start()
+    return thread

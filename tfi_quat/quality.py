@@ -1066,23 +1066,35 @@ def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
     Returns
     -------
     dict with keys ``negative`` (int), ``min_ratio`` (float) and ``where``
-    ((block, i, j, k) 0-based of the smallest ratio).
+    ((block, i, j, k) 0-based of the smallest ratio; of a NaN ratio if there is
+    one; the first in C order, i then j then k, among equal ones).
     """
     neg = 0
     best = (np.inf, None)
     for b, (blk, ref) in enumerate(zip(grid, reference)):
-        v = cell_volumes(blk, grid.ndim)
+        ratio = cell_volumes(blk, grid.ndim)         # Fortran order, divided in place
         vr = cell_volumes(ref, grid.ndim)
-        ok = vr != 0.0
-        ratio = np.full(v.shape, np.inf)
-        ratio[ok] = v[ok] / vr[ok]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            np.divide(ratio, vr, out=ratio)
+        np.copyto(ratio, np.inf, where=vr == 0.0)
         neg += int(np.count_nonzero(ratio <= 0.0))
         if ratio.size:
-            m = int(np.argmin(ratio))
-            if ratio.flat[m] < best[0]:
-                ijk = np.unravel_index(m, ratio.shape)
-                best = (float(ratio.flat[m]), (b, *map(int, ijk)))
+            ijk = _first_min(ratio)
+            if ratio[ijk] < best[0]:
+                best = (float(ratio[ijk]), (b, *ijk))
     return {"negative": neg, "min_ratio": best[0], "where": best[1]}
+
+
+def _first_min(a: np.ndarray) -> tuple[int, int, int]:
+    """``np.unravel_index(np.argmin(a), a.shape)`` for a Fortran-order 3-D array, without
+    ``argmin``'s copy of it into C order: the minimum (or NaN) found in memory order, then
+    the first of its copies in C order."""
+    t = a.T                                         # C order, shape (nk, nj, ni)
+    v = t.flat[int(np.argmin(t))]
+    same = np.flatnonzero(np.isnan(t) if v != v else t == v)
+    k, j, i = np.unravel_index(same, t.shape)
+    first = np.lexsort((k, j, i))[0]
+    return int(i[first]), int(j[first]), int(k[first])
 
 
 # ------------------------------------------------------------ near-wall orthogonality

@@ -125,8 +125,7 @@ class _Progress:
 
 def run(args) -> int:
     from .. import io
-    from ..deform import Deformer
-    from ..quality import volume_ratio_summary
+    from .._jit import warm_up_in_background
     from ..spec import parse_patch_spec
 
     case, path = case_and_grid(args)
@@ -134,16 +133,20 @@ def run(args) -> int:
     if out is None:
         raise CaseError("no output file: give -o OUT")
     check_output(out, args.force, inputs=[path, args.moved, args.case, args.nmf, args.connectivity])
-    grid = read_grid(args, path)
-    conn = None
     if args.nmf and args.connectivity:
         raise CaseError("give --nmf or --connectivity, not both")
-    if args.nmf or args.connectivity:
-        from ..topology import Connectivity
-        conn = Connectivity.from_nmf(args.nmf, grid) if args.nmf else Connectivity.from_json(args.connectivity, grid)
     walls = [parse_patch_spec(w) for w in args.wall]
     sym = [parse_patch_spec(w) for w in args.symmetry]
     fixed = [parse_patch_spec(w) for w in args.fixed]
+    # numba's set-up runs while the grid is read (the read holds no lock numba needs)
+    warm_up_in_background()
+    grid = read_grid(args, path)
+    from ..deform import Deformer
+    from ..quality import volume_ratio_summary
+    conn = None
+    if args.nmf or args.connectivity:
+        from ..topology import Connectivity
+        conn = Connectivity.from_nmf(args.nmf, grid) if args.nmf else Connectivity.from_json(args.connectivity, grid)
     if case is not None and not (walls or sym or fixed):
         walls, sym, fixed = list(case.walls), list(case.symmetry), list(case.fixed)
     # none given, no map: a CGNS grid's own connectivity (Deformer's default), else connect()

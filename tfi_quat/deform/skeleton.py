@@ -40,6 +40,7 @@ from .._jit import serial_below
 from ..errors import CaseError
 from ..grid import Grid, face_ijk, faces_of
 from ..spec import PatchSpec
+from ..topology.graph import connected_components
 from . import stages
 
 __all__ = ["WALL", "FIXED", "SYMMETRY", "DERIVED", "BLENDINGS", "ArclengthParams", "BoundaryPoints",
@@ -157,9 +158,6 @@ def _number(grid: Grid, connectivity, tol: float):
         local = ukeys[sel] - offsets[b]
         P[sel] = blk.xyz.reshape(-1, 3, order="F")[local]
     # merge coincident points (interfaces, cuts, collapsed faces) ...
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     from .._points import close_pairs
     pairs = close_pairs(P, tol)
     rows = [pairs[:, 0]] if len(pairs) else []
@@ -176,8 +174,7 @@ def _number(grid: Grid, connectivity, tol: float):
     if rows:
         r = np.concatenate(rows)
         c = np.concatenate(cols)
-        graph = coo_matrix((np.ones(r.size, dtype=np.int8), (r, c)), shape=(nb, nb))
-        ncomp, comp = connected_components(graph, directed=False)
+        ncomp, comp = connected_components(nb, r, c)
     else:
         ncomp, comp = nb, np.arange(nb)
     # global ids numbered by first appearance, representatives = first member
@@ -526,8 +523,8 @@ def _vertices(pts: BoundaryPoints, rects, tol: float, power: float, max_sources:
     w /= w.sum(axis=1, keepdims=True)
     fixed = np.flatnonzero(pts.kind == FIXED)
     if fixed.size:
-        from scipy.spatial import cKDTree
-        dfix, _ = cKDTree(P[fixed]).query(P[free])
+        from .._points import nearest_within
+        dfix, _ = nearest_within(P[fixed], P[free], np.inf)
         decay = dfix / (dmin + dfix)
         decay[(dmin + dfix) == 0.0] = 1.0
     else:

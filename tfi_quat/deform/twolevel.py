@@ -27,6 +27,7 @@ from .. import quaternion as qa
 from ..blending import wall_layer_arclength, wall_layer_line
 from ..fit import constrain_to_planes, fit_rigid
 from ..grid import face_axes, face_layer
+from ..topology.graph import connected_components
 from . import stages
 from .skeleton import FIXED, WALL, BoundaryPoints, Skeleton
 
@@ -134,8 +135,6 @@ class TwoLevel:
 
 def _bodies(sk: Skeleton) -> tuple[Body, ...]:
     """Connected wall bodies, each with the rigid motions its symmetry planes allow."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     pts = sk.points
     wall = pts.wall
     pos = np.full(pts.n_global, -1, dtype=np.int64)
@@ -143,9 +142,7 @@ def _bodies(sk: Skeleton) -> tuple[Body, ...]:
     E = sk.walls.edges
     r, c = pos[E[:, 0]], pos[E[:, 1]]
     ok = (r >= 0) & (c >= 0)
-    graph = coo_matrix((np.ones(int(ok.sum()), dtype=np.int8), (r[ok], c[ok])),
-                       shape=(wall.size, wall.size))
-    _, label = connected_components(graph, directed=False)
+    _, label = connected_components(wall.size, r[ok], c[ok])
     bodies = []
     for lab in np.unique(label):
         gids = wall[label == lab]

@@ -62,6 +62,7 @@ hyperslab selections and never loads the rest of the file.
 from __future__ import annotations
 
 import datetime as _dt
+import faulthandler
 import functools
 import json
 import mmap
@@ -76,6 +77,11 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+
+try:
+    import resource  # the guard's limits; POSIX only, as is the guard (os.fork)
+except ImportError:  # pragma: no cover  (Windows)
+    resource = None
 
 from ..errors import GridFormatError, GridValueError, TfiQuatError
 from ..grid import FACES, Block, Grid, face_axis, face_index, face_layer, face_shape
@@ -294,10 +300,12 @@ def _walk_metadata(source, report) -> None:
 
 
 def _limit_child() -> None:
-    """Limits of the guard's child: address space, no core file, SIGXCPU ends it."""
-    import faulthandler
-    import resource
+    """Limits of the guard's child: address space, no core file, SIGXCPU ends it.
 
+    The child imports nothing (``resource`` and ``faulthandler`` are imported
+    with this module): a thread of the parent, such as the CLI's numba
+    warm-up, may hold a module's import lock at the fork.
+    """
     if faulthandler.is_enabled():
         faulthandler.disable()  # a crash is the expected way for the child to fail
     signal.signal(signal.SIGXCPU, signal.SIG_DFL)
@@ -327,8 +335,6 @@ def _guard_child(source, size: int, wfd, progress) -> None:
     no wake-up of the parent per step, and the parent still knows where a
     crash or an overrun happened.
     """
-    import resource
-
     status = 3
     try:
         steps = 0

@@ -5,10 +5,10 @@ Only boundary points are touched (O(surface)).  Steps:
 1. Gather the points of every boundary face (six per block, four in 2-D)
    with a matching tolerance scaled by the local spacing.
 2. Contract points that coincide with an in-face neighbour (collapsed faces,
-   poles) and the copies of one block point on two or three faces, so that a
-   k-d tree over the remaining representatives sees small cliques only.
-3. Coincident representatives (``scipy.spatial.cKDTree``) give every boundary
-   point a geometric node label.
+   poles) and the copies of one block point on two or three faces, so that the
+   coincidence search over the remaining representatives sees small cliques only.
+3. Coincident representatives (:func:`tfi_quat._points.close_pairs`, a sweep
+   along a generic direction) give every boundary point a geometric node label.
 4. Pairs of coincident, non-degenerate points on faces ``F1 <= F2`` vote for an
    affine map of face indices (one of eight signed permutations plus an
    offset) that their index neighbours confirm.
@@ -23,14 +23,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from .._jit import jit
-from ..errors import CaseError, ConnectivityError
+from .._points import close_pairs
+from ..errors import CaseError, ConnectivityError, GridValueError
 from ..grid import face_axes, face_axis, face_ijk, face_index, face_layer, faces_of
 from ..spec import PatchSpec, parse_patch_spec
+from .graph import connected_components
 from .model import KINDS, Connectivity, Interface, Patch
 
 __all__ = ["connect", "classify", "node_labels", "interface_mismatches", "check_interfaces", "DEFAULT_RTOL",
@@ -145,6 +144,9 @@ class _Geometry:
                 d, _ = face_axis(f)
                 pts = blk.face(f)  # (na, nb, 3)
                 na, nb = pts.shape[:2]
+                if not np.isfinite(pts).all():
+                    raise GridValueError(f"block {b + 1} face {f}: non-finite (NaN or infinite) "
+                                         "coordinates; no connectivity can be found")
                 h = np.full((na, nb), np.inf)
                 if na >= 2:
                     e = np.linalg.norm(np.diff(pts, axis=0), axis=-1)
@@ -194,14 +196,17 @@ class _Geometry:
         n = self.n
         ei, ej = [], []
         for fc in self.faces:
-            ids = np.arange(fc.off, fc.off + fc.size).reshape(fc.na, fc.nb, order="F")
-            for p, q in ((ids[:-1, :], ids[1:, :]), (ids[:, :-1], ids[:, 1:])):
-                p, q = p.ravel(), q.ravel()
-                if p.size:
-                    d = np.linalg.norm(self.xyz[p] - self.xyz[q], axis=1)
-                    close = d <= np.minimum(self.tol[p], self.tol[q])
-                    ei.append(p[close])
-                    ej.append(q[close])
+            # views (nb, na) of the face's rows: point (a, b) is row off + a + na * b
+            ids = np.arange(fc.off, fc.off + fc.size).reshape(fc.nb, fc.na)
+            x = self.xyz[fc.sl()].reshape(fc.nb, fc.na, 3)
+            tol = self.tol[fc.sl()].reshape(fc.nb, fc.na)
+            for lo, hi in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                           ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+                if ids[lo].size:
+                    d = np.linalg.norm((x[lo] - x[hi]).reshape(-1, 3), axis=1).reshape(ids[lo].shape)
+                    close = d <= np.minimum(tol[lo], tol[hi])
+                    ei.append(ids[lo][close])
+                    ej.append(ids[hi][close])
         ei = np.concatenate(ei) if ei else np.zeros(0, np.int64)
         ej = np.concatenate(ej) if ej else np.zeros(0, np.int64)
         _, self.cface = _components(n, ei, ej)
@@ -228,9 +233,9 @@ class _Geometry:
         c = self.cface[fc.sl()].reshape(fc.na, fc.nb, order="F")
         act_a, act_b = fc.active
         if act_a and act_b:
-            corners = np.stack([c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:]], axis=-1)
-            s = np.sort(corners, axis=-1)
-            distinct = 1 + (np.diff(s, axis=-1) != 0).sum(axis=-1)
+            p, q, r, s = c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:]
+            # each corner that differs from every corner before it is one more cluster
+            distinct = (1 + (q != p) + ((r != p) & (r != q)) + ((s != p) & (s != q) & (s != r)))
             return distinct <= 2
         if act_a:
             return (c[:-1, :] == c[1:, :])
@@ -242,36 +247,22 @@ class _Geometry:
 def _components(n, i, j):
     if len(i) == 0:
         return n, np.arange(n)
-    m = coo_matrix((np.ones(len(i), dtype=np.int8), (i, j)), shape=(n, n)).tocsr()
-    return connected_components(m, directed=False)
+    return connected_components(n, i, j)
 
 
 def _close_pairs(xyz: np.ndarray, tol: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pairs ``i < j`` with ``|x_i - x_j| <= min(tol_i, tol_j)``."""
-    n = len(xyz)
-    if n < 2:
+    if len(xyz) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    tree = cKDTree(xyz, balanced_tree=False)
     bound = float(tol.max()) * (1 + 1e-12) + 1e-300
-    todo = np.arange(n)
-    k = 4
-    out_i, out_j = [], []
-    while todo.size:
-        kk = min(k, n)
-        d, idx = tree.query(xyz[todo], k=kk, distance_upper_bound=bound, workers=-1)
-        d = d.reshape(len(todo), kk)
-        idx = idx.reshape(len(todo), kk)
-        valid = idx < n
-        safe = np.where(valid, idx, 0)
-        ok = valid & (d <= np.minimum(tol[todo][:, None], tol[safe]))
-        rows = np.repeat(todo, kk).reshape(len(todo), kk)
-        keep = ok & (safe > rows)
-        out_i.append(rows[keep])
-        out_j.append(safe[keep])
-        saturated = valid[:, -1] & (d[:, -1] <= tol[todo]) if kk < n else np.zeros(len(todo), bool)
-        todo = todo[saturated]
-        k *= 4
-    return np.concatenate(out_i), np.concatenate(out_j)
+    # no pair is farther apart than the points' extent (a huge user tol would overflow tol**2)
+    extent = float(np.sqrt(np.sum(np.ptp(xyz, axis=0) ** 2)))
+    pairs = close_pairs(xyz, min(bound, extent * (1 + 1e-12) + 1e-300))
+    i, j = pairs[:, 0], pairs[:, 1]
+    d = xyz[i] - xyz[j]
+    dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+    ok = dist <= np.minimum(tol[i], tol[j])
+    return i[ok], j[ok]
 
 
 # ------------------------------------------------------------- interfaces
