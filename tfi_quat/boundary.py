@@ -184,7 +184,7 @@ def _angle_terms(ok, ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
     return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv
 
 
-@jit
+@jit(inline="always")
 def _point_quaternion(Pu, Pd, ii, jj, curve, e):
     """Q = Q2 ⊗ Q1 at padded index (ii, jj); returns (w, x, y, z, defined).
 
@@ -408,63 +408,80 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     return w, x, y, z, good
 
 
-@jit
-def _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i):
-    """Row ``i`` of :func:`_motion_kernel` (one function call per row keeps the
-    parallel kernel small, which keeps compilation short)."""
-    na = q.shape[0]
-    nb = q.shape[1]
-    have = False
-    p0 = 1.0
-    p1 = 0.0
-    p2 = 0.0
-    p3 = 0.0
-    inner_row = (not curve) and 0 < i < na - 1
-    for j in range(nb):
-        good = False
-        w = 1.0
-        x = 0.0
-        y = 0.0
-        z = 0.0
-        if inner_row and 0 < j < nb - 1:
-            w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
-        if not good:
-            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, curve, e)
-        if good:
-            if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
-                w = -w
-                x = -x
-                y = -y
-                z = -z
-            have = True
-            p0 = w
-            p1 = x
-            p2 = y
-            p3 = z
-            ok[i, j] = 1
-        else:
-            ok[i, j] = 0
-        q[i, j, 0] = w
-        q[i, j, 1] = x
-        q[i, j, 2] = y
-        q[i, j, 3] = z
-        # delta = r_d - c - rot(q, r_u - c)
-        rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0], Pu[i + oi, j + oj, 1] - c[1],
-                            Pu[i + oi, j + oj, 2] - c[2])
-        delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
-        delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
-        delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
+def _make_motion_kernel(curve: bool):
+    """The motion kernel of a wall curve (``curve`` True) or surface (made on first use by
+    :func:`_motion_kernel`): ``curve`` is a closure constant, so a run compiles the code
+    of the walls it has only."""
+    @jit
+    def motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i):
+        """Row ``i`` of the kernel (one function call per row keeps the parallel
+        kernel small, which keeps compilation short)."""
+        na = q.shape[0]
+        nb = q.shape[1]
+        have = False
+        p0 = 1.0
+        p1 = 0.0
+        p2 = 0.0
+        p3 = 0.0
+        for j in range(nb):
+            good = False
+            w = 1.0
+            x = 0.0
+            y = 0.0
+            z = 0.0
+            if not curve:
+                if 0 < i < na - 1 and 0 < j < nb - 1:
+                    w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
+            if not good:
+                w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, curve, e)
+            if good:
+                if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
+                    w = -w
+                    x = -x
+                    y = -y
+                    z = -z
+                have = True
+                p0 = w
+                p1 = x
+                p2 = y
+                p3 = z
+                ok[i, j] = 1
+            else:
+                ok[i, j] = 0
+            q[i, j, 0] = w
+            q[i, j, 1] = x
+            q[i, j, 2] = y
+            q[i, j, 3] = z
+            # delta = r_d - c - rot(q, r_u - c)
+            rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0],
+                                Pu[i + oi, j + oj, 1] - c[1], Pu[i + oi, j + oj, 2] - c[2])
+            delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
+            delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
+            delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
+
+    @pjit
+    def motion(Pu, Pd, oi, oj, e, c, q, delta, ok):
+        """Q, delta and the defined flag at every patch point; rows in parallel.
+
+        Interior surface points try the straight-line :func:`_interior_quaternion`
+        first; within a row the sign of q follows the previous defined point.
+        """
+        for i in prange(q.shape[0]):
+            motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, np.int64(i))
+
+    return motion
 
 
-@pjit
-def _motion_kernel(Pu, Pd, oi, oj, curve, e, c, q, delta, ok):
-    """Q, delta and the defined flag at every patch point; rows in parallel.
+_MOTION: dict = {}
 
-    Interior surface points try the straight-line :func:`_interior_quaternion`
-    first; within a row the sign of q follows the previous defined point.
-    """
-    for i in prange(q.shape[0]):
-        _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i)
+
+def _motion_kernel(curve: bool):
+    """The motion kernel for wall curves (``curve`` True) or surfaces, made on first use:
+    ``kernel(Pu, Pd, oi, oj, e, c, q, delta, ok)``."""
+    kern = _MOTION.get(bool(curve))
+    if kern is None:
+        kern = _MOTION[bool(curve)] = _make_motion_kernel(bool(curve))
+    return kern
 
 
 @jit
@@ -763,7 +780,7 @@ def motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb):
     q = np.empty((na, nb, 4))
     delta = np.empty((na, nb, 3))
     ok = np.empty((na, nb), dtype=np.uint8)
-    _motion_kernel(Pu, Pd, oi, oj, curve, e, c, q, delta, ok)
+    _motion_kernel(curve)(Pu, Pd, oi, oj, e, c, q, delta, ok)
     if not ok.all():
         _fill_degenerate(Pu, Pd, oi, oj, c, q, delta, ok)
         _align_rows_serial(q)
