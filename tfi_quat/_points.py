@@ -771,85 +771,91 @@ def _kd_query(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order, dist, i
     parallel, in the order ``order`` (:func:`_chunk_order`); within a chunk
     each query first tries the previous one's answer.
     """
+    for c in prange(order.size):
+        _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order[c], dist, idx)
+    return dist, idx
+
+
+@jit
+def _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, b, dist, idx):
+    """Chunk ``b`` of :func:`_kd_query` (a call from the parallel loop keeps that loop small,
+    which keeps it quick to compile)."""
     n = Q.shape[0]
     m = xs.size
     nl = lstart.size - 1
     first = nl - 1
-    for c in prange(order.size):
-        b = order[c]
-        sn = np.empty(_STACK, dtype=np.int64)
-        sd = np.empty(_STACK)
-        hint = -1
-        for q in range(b * chunk, min(n, (b + 1) * chunk)):
-            x = Q[q, 0]
-            y = Q[q, 1]
-            z = Q[q, 2]
-            best = bound2
-            bi = -1                                      # none yet: only d2 < bound2 is accepted
-            if hint >= 0:
-                dx = R[hint, 0] - x
-                dy = R[hint, 1] - y
-                dz = R[hint, 2] - z
-                d2 = dx * dx + dy * dy + dz * dz
-                if d2 < best:
-                    best = d2
-                    bi = hint
-            sp = 0
-            md = _box_d2(box, 0, x, y, z)
-            if md <= best:
-                sn[0] = 0
-                sd[0] = md
-                sp = 1
-            while sp > 0:
-                sp -= 1
-                nd = sn[sp]
-                if sd[sp] > best:
-                    continue
-                while True:
-                    if nd >= first:                      # a leaf: its points
-                        j0 = nd - first
-                        for t in range(lstart[j0], lstart[j0 + 1]):
-                            dx = xs[t] - x
-                            dy = ys[t] - y
-                            dz = zs[t] - z
-                            d2 = dx * dx + dy * dy + dz * dz
-                            if d2 <= best:
-                                j = perm[t]
-                                # a tie goes to the smaller row (bi = -1: none yet, so
-                                # d2 == bound2 is never accepted)
-                                if d2 < best or j < bi:
-                                    best = d2
-                                    bi = j
-                        break
-                    ch = 2 * nd + 1
-                    m0 = _box_d2(box, ch, x, y, z)
-                    m1 = _box_d2(box, ch + 1, x, y, z)
-                    if m0 <= m1:
-                        near = ch
-                        far = ch + 1
-                        mn = m0
-                        mf = m1
-                    else:
-                        near = ch + 1
-                        far = ch
-                        mn = m1
-                        mf = m0
-                    if mf <= best:                       # later, unless best has dropped below by then
-                        sn[sp] = far
-                        sd[sp] = mf
-                        sp += 1
-                    if mn <= best:
-                        nd = near
-                    else:
-                        break
-            if bi >= 0:
-                dist[q] = np.sqrt(best)
-                idx[q] = bi
-                hint = bi
-            else:
-                dist[q] = np.inf
-                idx[q] = m
-    return dist, idx
+    sn = np.empty(_STACK, dtype=np.int64)
+    sd = np.empty(_STACK)
+    hint = -1
+    for q in range(b * chunk, min(n, (b + 1) * chunk)):
+        x = Q[q, 0]
+        y = Q[q, 1]
+        z = Q[q, 2]
+        best = bound2
+        bi = -1                                      # none yet: only d2 < bound2 is accepted
+        if hint >= 0:
+            dx = R[hint, 0] - x
+            dy = R[hint, 1] - y
+            dz = R[hint, 2] - z
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 < best:
+                best = d2
+                bi = hint
+        sp = 0
+        md = _box_d2(box, 0, x, y, z)
+        if md <= best:
+            sn[0] = 0
+            sd[0] = md
+            sp = 1
+        while sp > 0:
+            sp -= 1
+            nd = sn[sp]
+            if sd[sp] > best:
+                continue
+            while True:
+                if nd >= first:                      # a leaf: its points
+                    j0 = nd - first
+                    for t in range(lstart[j0], lstart[j0 + 1]):
+                        dx = xs[t] - x
+                        dy = ys[t] - y
+                        dz = zs[t] - z
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 <= best:
+                            j = perm[t]
+                            # a tie goes to the smaller row (bi = -1: none yet, so
+                            # d2 == bound2 is never accepted)
+                            if d2 < best or j < bi:
+                                best = d2
+                                bi = j
+                    break
+                ch = 2 * nd + 1
+                m0 = _box_d2(box, ch, x, y, z)
+                m1 = _box_d2(box, ch + 1, x, y, z)
+                if m0 <= m1:
+                    near = ch
+                    far = ch + 1
+                    mn = m0
+                    mf = m1
+                else:
+                    near = ch + 1
+                    far = ch
+                    mn = m1
+                    mf = m0
+                if mf <= best:                       # later, unless best has dropped below by then
+                    sn[sp] = far
+                    sd[sp] = mf
+                    sp += 1
+                if mn <= best:
+                    nd = near
+                else:
+                    break
+        if bi >= 0:
+            dist[q] = np.sqrt(best)
+            idx[q] = bi
+            hint = bi
+        else:
+            dist[q] = np.inf
+            idx[q] = m
 
 
 def _points_array(x, name: str) -> np.ndarray:
