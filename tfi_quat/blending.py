@@ -214,61 +214,67 @@ def _layer_dir_i(xyz, s, lam0, lam1, out):
         _layer_task_i(xyz, s, lam0, lam1, out, np.int64(t))
 
 
+@jit
+def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_block`:
+    the plane of the third direction and tile of TILE lines i; compiled once per direction,
+    with the direction a constant, so the index arithmetic folds away."""
+    ni = xyz.shape[0]
+    axis = 2 if kdir is not None else 1
+    n = xyz.shape[axis]
+    c = t // nt
+    i0 = (t % nt) * TILE
+    nw = min(TILE, ni - i0)
+    u0 = np.uint64(i0)
+    if n == 1:
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), 0, c)
+            out[i, j, k, axis] = 0.0
+        return
+    l0 = np.empty(nw)
+    l1 = np.empty(nw)
+    act = np.empty(nw, dtype=np.bool_)
+    some = False
+    for w in range(nw):
+        l0[w] = lam0[at(u0, w), c]
+        l1[w] = lam1[at(u0, w), c]
+        act[w] = _needs_layer(l0[w], l1[w])
+        some = some or act[w]
+    if not some:
+        return                            # out already holds s
+    ln = np.zeros(nw)
+    for m in range(1, n):
+        for w in range(nw):
+            ia, ja, ka = line_point(axis, at(u0, w), m - 1, c)
+            ib, jb, kb = line_point(axis, at(u0, w), m, c)
+            ln[w] += dist(xyz, ia, ja, ka, ib, jb, kb)
+    col = np.empty((n, nw))
+    for m in range(n):
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), m, c)
+            col[m, w] = s[i, j, k, axis]
+    for w in range(nw):
+        act[w] = act[w] and ln[w] > 0.0
+    work = np.empty((5, nw))
+    _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
+    for m in range(n):
+        for w in range(nw):
+            if act[w]:
+                i, j, k = line_point(axis, at(u0, w), m, c)
+                out[i, j, k, axis] = col[m, w]
+
+
 def _make_layer_dir(axis: int):
     """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_block`: one task
-    per plane of the third direction and tile of TILE lines i (``axis`` is a closure
-    constant of the compiled task: its index arithmetic folds away; the parallel loop
-    only calls the task, which keeps it quick to compile)."""
-    @jit
-    def task(xyz, s, lam0, lam1, out, t, nt):
-        ni = xyz.shape[0]
-        n = xyz.shape[axis]
-        c = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if n == 1:
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), 0, c)
-                out[i, j, k, axis] = 0.0
-            return
-        l0 = np.empty(nw)
-        l1 = np.empty(nw)
-        act = np.empty(nw, dtype=np.bool_)
-        some = False
-        for w in range(nw):
-            l0[w] = lam0[at(u0, w), c]
-            l1[w] = lam1[at(u0, w), c]
-            act[w] = _needs_layer(l0[w], l1[w])
-            some = some or act[w]
-        if not some:
-            return                            # out already holds s
-        ln = np.zeros(nw)
-        for m in range(1, n):
-            for w in range(nw):
-                ia, ja, ka = line_point(axis, at(u0, w), m - 1, c)
-                ib, jb, kb = line_point(axis, at(u0, w), m, c)
-                ln[w] += dist(xyz, ia, ja, ka, ib, jb, kb)
-        col = np.empty((n, nw))
-        for m in range(n):
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), m, c)
-                col[m, w] = s[i, j, k, axis]
-        for w in range(nw):
-            act[w] = act[w] and ln[w] > 0.0
-        work = np.empty((5, nw))
-        _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
-        for m in range(n):
-            for w in range(nw):
-                if act[w]:
-                    i, j, k = line_point(axis, at(u0, w), m, c)
-                    out[i, j, k, axis] = col[m, w]
+    per plane of the third direction and tile of TILE lines i (:func:`_layer_task_jk`; the
+    parallel loop only calls it, which keeps it quick to compile)."""
+    kdir = True if axis == 2 else None
 
     @pjit
     def layer_dir(xyz, s, lam0, lam1, out):
         nt = (xyz.shape[0] + TILE - 1) // TILE
         for t in prange(xyz.shape[3 - axis] * nt):
-            task(xyz, s, lam0, lam1, out, np.int64(t), nt)
+            _layer_task_jk(xyz, s, lam0, lam1, out, np.int64(t), nt, kdir)
 
     return layer_dir
 
@@ -354,38 +360,45 @@ def _arc_layer_i(xyz, rtol, lam0, lam1, out):
         _arc_layer_task_i(xyz, rtol, lam0, lam1, out, np.int64(t))
 
 
+@jit
+def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_arclength`:
+    the plane of the third direction and tile of TILE lines i; compiled once per direction,
+    with the direction a constant, so the index arithmetic folds away."""
+    ni = xyz.shape[0]
+    axis = 2 if kdir is not None else 1
+    n = xyz.shape[axis]
+    c = t // nt
+    i0 = (t % nt) * TILE
+    nw = min(TILE, ni - i0)
+    u0 = np.uint64(i0)
+    if n == 1:
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), 0, c)
+            out[i, j, k, axis] = 0.0
+        return
+    cum = np.empty((n, nw))
+    col = np.empty((n, nw))
+    ln = np.empty(nw)
+    den = np.empty(nw)
+    arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
+    _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c)
+    for m in range(n):
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), m, c)
+            out[i, j, k, axis] = col[m, w]
+
+
 def _make_arc_layer(axis: int):
     """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_arclength`: one
     task per plane of the third direction and tile of TILE lines i (as :func:`_make_layer_dir`)."""
-    @jit
-    def task(xyz, rtol, lam0, lam1, out, t, nt):
-        ni = xyz.shape[0]
-        n = xyz.shape[axis]
-        c = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if n == 1:
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), 0, c)
-                out[i, j, k, axis] = 0.0
-            return
-        cum = np.empty((n, nw))
-        col = np.empty((n, nw))
-        ln = np.empty(nw)
-        den = np.empty(nw)
-        arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
-        _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c)
-        for m in range(n):
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), m, c)
-                out[i, j, k, axis] = col[m, w]
+    kdir = True if axis == 2 else None
 
     @pjit
     def arc_layer(xyz, rtol, lam0, lam1, out):
         nt = (xyz.shape[0] + TILE - 1) // TILE
         for t in prange(xyz.shape[3 - axis] * nt):
-            task(xyz, rtol, lam0, lam1, out, np.int64(t), nt)
+            _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, np.int64(t), nt, kdir)
 
     return arc_layer
 

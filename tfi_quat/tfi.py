@@ -372,11 +372,12 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
 # =================================================================== volume kernels
 # One definition for the fused volume stage, specialised at compile time by
 # three flags (2-D or 3-D, quaternion or displacement only, based or not):
-# :func:`_point` takes them as arguments; :func:`_make_row` makes the row of one
-# kind with the flags as closure constants, so numba prunes the other kinds'
-# branches before typing (a row that took the flags as arguments compiled all
-# eight kinds' code into every kernel: three times the compile time), and the
-# kernel made by :func:`_volume_kernel` calls its kind's row (inlined by LLVM).
+# :func:`_point` and :func:`_row` take them as arguments, None (off) or True
+# (on), so that numba compiles the row once per kind with the other kinds'
+# branches pruned before typing (bool flags compiled all eight kinds' code into
+# every kernel: three times the compile time); the kernel made by
+# :func:`_volume_kernel` passes its kind's flags (closure constants) to the row
+# (inlined by LLVM).
 
 @jit(inline="always")
 def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
@@ -391,9 +392,9 @@ def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, 
            hD, hQ, na, nb, lineB, gB, hB, hasq, based):
     """Fused update of one point; returns 1 when the blended Q needs the fallback.
 
-    ``hasq`` False: the baseline, ``out = R_u + Δ`` (Q ≡ 1).  Otherwise
+    ``hasq`` None: the baseline, ``out = R_u + Δ`` (Q ≡ 1).  Otherwise
     ``out = R + Δ + (rot(Q, R - c) - (R - c))`` about the base point ``R``:
-    ``R_u``, or with ``based`` ``R_u + TFI(B)`` (tables ``lineB``, ``gB``,
+    ``R_u``, or with ``based`` True ``R_u + TFI(B)`` (tables ``lineB``, ``gB``,
     ``hB``).  A point that needs the fallback is stored as ``R`` itself (the
     change scaled by 0, without a branch), so that :func:`_fix_rows` still
     finds ``R_u`` there when ``out`` is ``xyz`` (in-place update).  (A select
@@ -402,13 +403,13 @@ def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, 
     t = np.float64(s[i, j, k, L])
     sm = np.float64(s[i, j, k, M])
     sn = np.float64(s[i, j, k, N])
-    if not hasq:
+    if hasq is None:
         dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
         out[i, j, k, 0] = xyz[i, j, k, 0] + dx
         out[i, j, k, 1] = xyz[i, j, k, 1] + dy
         out[i, j, k, 2] = xyz[i, j, k, 2] + dz
         return 0
-    if based:
+    if based is not None:
         x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
     else:
         x0, y0, z0 = xyz[i, j, k, 0], xyz[i, j, k, 1], xyz[i, j, k, 2]
@@ -422,52 +423,52 @@ def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, 
     return 1 if n < QNORM_MIN else 0
 
 
-def _make_row(hasn: bool, hasq: bool, based: bool):
-    """The row update of one kind of volume kernel (the flags are closure constants:
-    numba prunes the other kinds' branches before typing)."""
-    @jit(forceinline=True)
-    def row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-            lineB, gB, hB):
-        """Fused update of the row (j, k), i innermost (2-D: ``hasn`` False, k = 0, N = 2,
-        ``hD``/``hQ`` zero dummies read at (0, 0)).
+@jit(forceinline=True)
+def _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+         lineB, gB, hB, hasn, hasq, based):
+    """Fused update of the row (j, k), i innermost (2-D: ``hasn`` None, k = 0, N = 2,
+    ``hD``/``hQ`` zero dummies read at (0, 0)).
 
-        The role whose direction is 0 (i) reads its table at a fixed (j, k); the
-        others read a contiguous run along i.  Returns the number of points whose
-        blended Q needs the fallback (:func:`_run_volume` has them redone by
-        :func:`_fix_rows`).
-        """
-        ni = xyz.shape[0]
-        nbad = 0
-        if hasn:
-            if L == 0:
-                cm = k if M == 1 else j
-                cn = k if N == 1 else j
-                for i in range(ni):
-                    nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, j, k,
-                                   gD, gQ, i, cm, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
-            elif M == 0:
-                cl = k if L == 1 else j
-                cn = k if N == 1 else j
-                for i in range(ni):
-                    nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
-                                   gD, gQ, j, k, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
-            else:
-                cl = k if L == 1 else j
-                cm = k if M == 1 else j
-                for i in range(ni):
-                    nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
-                                   gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB, hasq, based)
-        elif L == 0:
+    The kind flags ``hasn``, ``hasq``, ``based`` are None (off) or True (on): their
+    types select the code, numba prunes the ``is None`` branches before typing, and a
+    row is compiled once per kind (flags taken as bool values compiled every kind's
+    code into every kernel).
+
+    The role whose direction is 0 (i) reads its table at a fixed (j, k); the
+    others read a contiguous run along i.  Returns the number of points whose
+    blended Q needs the fallback (:func:`_run_volume` has them redone by
+    :func:`_fix_rows`).
+    """
+    ni = xyz.shape[0]
+    nbad = 0
+    if hasn is not None:
+        if L == 0:
+            cm = k if M == 1 else j
+            cn = k if N == 1 else j
             for i in range(ni):
-                nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, j, 0,
-                               gD, gQ, i, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, j, k,
+                               gD, gQ, i, cm, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
+        elif M == 0:
+            cl = k if L == 1 else j
+            cn = k if N == 1 else j
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
+                               gD, gQ, j, k, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
         else:
+            cl = k if L == 1 else j
+            cm = k if M == 1 else j
             for i in range(ni):
-                nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, i, 0,
-                               gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
-        return nbad
-
-    return row
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
+                               gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB, hasq, based)
+    elif L == 0:
+        for i in range(ni):
+            nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, j, 0,
+                           gD, gQ, i, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
+    else:
+        for i in range(ni):
+            nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, i, 0,
+                           gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
+    return nbad
 
 
 def _volume_kernel(hasn: bool, hasq: bool, based: bool):
@@ -493,8 +494,11 @@ def _volume_kernel(hasn: bool, hasq: bool, based: bool):
 
 
 def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
-    # the flags are closure constants (numba keys its disk cache on them)
-    row = _make_row(hasn, hasq, based)
+    # the flags are closure constants (numba keys its disk cache on them); the row takes
+    # them as None or True (a closure over a compiled function would not be cached)
+    nflag = True if hasn else None
+    qflag = True if hasq else None
+    bflag = True if based else None
 
     @pjit
     def volume(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
@@ -507,8 +511,9 @@ def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
             for q in range(ninner):
                 j = q if hasn else pp
                 k = pp if hasn else 0
-                bad[j + nj * k] = row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD,
-                                      gQ, hD, hQ, fbM, fbN, lineB, gB, hB) > 0
+                bad[j + nj * k] = _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD,
+                                       gQ, hD, hQ, fbM, fbN, lineB, gB, hB, nflag, qflag,
+                                       bflag) > 0
 
     volume.__doc__ = (f"Fused {'3' if hasn else '2'}-D {'quaternion' if hasq else 'baseline'} "
                       f"update{' about R_u + TFI(B)' if based else ''} (:func:`_volume_kernel`).")
@@ -626,20 +631,26 @@ def _arc_dir_i(xyz, s, rtol):
         _arc_task_i(xyz, s, rtol, np.int64(t))
 
 
+@jit
+def _arc_task_jk(xyz, s, rtol, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True): compiled once per
+    direction, with the direction a constant, so the tile walker's index arithmetic
+    folds away."""
+    axis = 2 if kdir is not None else 1
+    _arc_tile_task(xyz, s, rtol, axis, t, nt)
+
+
 def _make_arc_dir(axis: int):
     """The kernel of direction ``axis`` (1: j, 2: k) of :func:`arclength`: one task per
-    plane of the third direction and tile of ARC_TILE lines i.  ``axis`` is a closure
-    constant of the compiled task, so the tile walker's index arithmetic folds away; the
-    parallel loop only calls the task (a small parallel body compiles faster)."""
-    @jit
-    def task(xyz, s, rtol, t, nt):
-        _arc_tile_task(xyz, s, rtol, axis, t, nt)
+    plane of the third direction and tile of ARC_TILE lines i (:func:`_arc_task_jk`; the
+    parallel loop only calls it: a small parallel body compiles faster)."""
+    kdir = True if axis == 2 else None
 
     @pjit
     def arc_dir(xyz, s, rtol):
         nt = (xyz.shape[0] + ARC_TILE - 1) // ARC_TILE
         for t in prange(xyz.shape[3 - axis] * nt):
-            task(xyz, s, rtol, np.int64(t), nt)
+            _arc_task_jk(xyz, s, rtol, np.int64(t), nt, kdir)
 
     arc_dir.__doc__ = f"Direction {'jk'[axis - 1]} of :func:`arclength` (n >= 2)."
     return arc_dir
