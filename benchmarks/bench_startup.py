@@ -90,6 +90,8 @@ def main(argv=None) -> int:
     ap.add_argument("--warm", type=int, default=2, help="warm runs per pair, best kept (default 2)")
     ap.add_argument("--top", type=int, default=15, help="kernels listed by compile time (default 15)")
     ap.add_argument("--root", type=Path, default=None, help="run the package at this checkout instead")
+    ap.add_argument("--json", type=Path, default=None, metavar="PATH",
+                    help="also write the figures (runs, ratio, cold run's kernels) to this file")
     args = ap.parse_args(argv)
     pkg = (args.root or ROOT).resolve()
     if not (pkg / "tfi_quat" / "__init__.py").exists():
@@ -126,8 +128,17 @@ def main(argv=None) -> int:
     print("inclusive: with the helpers compiled inside it; outermost: the part of it that was "
           "not inside another compilation")
     print(f"{'dispatcher':60s} {'n':>3s} {'inclusive s':>11s} {'outermost s':>11s}")
-    for name, (n, t, o) in sorted(agg.items(), key=lambda kv: -kv[1][1])[:args.top]:
+    top = sorted(agg.items(), key=lambda kv: -kv[1][1])[:args.top]
+    for name, (n, t, o) in top:
         print(f"{name[-60:]:60s} {n:3d} {t:11.2f} {o:11.2f}")
+    if args.json is not None:
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+        args.json.write_text(json.dumps({
+            "package": str(pkg), "cold_s": cold, "warm_s": warm, "ratio": bc / bw,
+            "compilations": len(comp), "compile_s": sum(t1 - t0 for _, t0, t1 in outer),
+            "load_end": load,
+            "kernels": [{"dispatcher": name, "n": n, "inclusive_s": t, "outermost_s": o}
+                        for name, (n, t, o) in top]}, indent=2) + "\n")
     return 0
 
 

@@ -446,7 +446,7 @@ def test_interior_fast_path_equals_the_general_kernel():
         e = np.zeros(3)
         for i in range(ru.shape[0]):
             for j in range(ru.shape[1]):
-                w, x, y, z, good = B._point_quaternion(ru, rd, i, j, False, e)
+                w, x, y, z, good = B._point_quaternion(ru, rd, i, j, True, e)
                 if good:
                     assert qerr(q[i, j], np.array([w, x, y, z])) <= 1e-14
                 fw, fx, fy, fz, fgood = B._interior_quaternion(ru, rd, i, j) \

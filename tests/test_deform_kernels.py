@@ -125,12 +125,11 @@ def test_fade_and_rebase_against_scipy_slerp():
     shift = rng.normal(size=(n, 3))
     shift[:10] = 0.0
     k = rng.normal(size=(n, 3))
-    one = np.array([1.0, 0.0, 0.0, 0.0])
-    tmp2, r = np.empty(4), np.empty(3)
+    r = np.empty(3)
     fc = np.clip(f, 0.0, 1.0)
     for m in range(n):
         qm, km = q[m].copy(), k[m].copy()
-        S.fade_and_rebase.py_func(qm, f[m], shift[m], km, one, tmp2, r)
+        S.fade_and_rebase.py_func(qm, f[m], shift[m], km, r)
         key = Rotation.from_quat([[0, 0, 0, 1], np.r_[q[m, 1:], q[m, 0]]])
         want = Slerp([0.0, 1.0], key)([fc[m]])
         assert np.isclose(abs(np.dot(qm, _wxyz(want)[0])), 1.0, rtol=0, atol=1e-14)
@@ -138,7 +137,7 @@ def test_fade_and_rebase_against_scipy_slerp():
         np.testing.assert_allclose(km, k[m] + want.apply(shift[m])[0], rtol=0, atol=1e-14)
     # the compiled kernel (inlined into _patch_level / _fill_gaps) is the same function
     qm, km = q[7].copy(), k[7].copy()
-    S.fill_gaps(km[None].repeat(3, 0), np.stack([one, qm, qm]), np.array([0]), np.array([1]),
+    S.fill_gaps(km[None].repeat(3, 0), np.stack([np.array([1.0, 0.0, 0.0, 0.0]), qm, qm]), np.array([0]), np.array([1]),
                  np.array([0, 1]), np.array([2]), np.array([1.0]), True,
                  np.array([1.0, 1.0, f[7]]), np.array([[0.0] * 3, [0.0] * 3, shift[7]]))
 

@@ -29,7 +29,7 @@ def test_switch_off_gives_plain_python_kernels():
         "import numba, numpy as np\n"
         "from tfi_quat import _jit, quaternion as Q, boundary as B, tfi as T\n"
         "assert not _jit.ENABLED and _jit.prange is range\n"
-        "for k in (Q.kmul, Q.kblend, B._motion_kernel, B._interior_quaternion, T._volume_kernel(True, True, False), T._arclength_kernel):\n"
+        "for k in (Q.kmul, Q.kblend, B._motion_kernel(False), B._interior_quaternion, T._volume_kernel(True, True, False), T._ARC_DIR[1]):\n"
         "    assert not isinstance(k, numba.core.dispatcher.Dispatcher), k\n"
         "    assert k.py_func is k\n"
         "out = np.empty(4)\n"

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
@@ -977,7 +977,7 @@ def test_nn_bad_shape_raises(shape, which):
 def test_nn_plain_python_kernels(monkeypatch):
     """The kernels uncompiled (what TFI_QUAT_JIT=0 runs) give the same answers."""
     for name in ("_first_nonfinite", "_swap4", "_select_rounds", "_select", "_range_box", "_kd_build",
-                 "_box_d2", "_kd_query"):
+                 "_box_d2", "_kd_query", "_kd_chunk", "_argsort", "_sift"):
         monkeypatch.setattr(_points, name, getattr(_points, name).py_func)
     monkeypatch.setattr(_points, "CHUNK", 7)
     rng = np.random.default_rng(10)
@@ -988,3 +988,22 @@ def test_nn_plain_python_kernels(monkeypatch):
         same_nn(nearest_within(R, Q, bound), nn_brute(R, Q, bound))
     with pytest.raises(ValueError, match="query contains a non-finite"):
         nearest_within(R, np.array([[0.0, np.nan, 0.0]]), 1.0)
+
+
+@given(keys=st.lists(st.integers(-5, 5) | st.floats(-1e3, 1e3), min_size=0, max_size=60),
+       s=st.integers(0, 3))
+@settings(max_examples=40, deadline=None)
+def test_argsort_heapsort_sorts_any_keys(keys, s):
+    """The heapsort of the sorts above (buckets, pair rows, the kd-tree's fallback): a
+    permutation of the range that orders it, compiled and uncompiled."""
+    key = np.array([0.0] * s + [float(k) for k in keys])
+    e = key.size
+    for fn in (_points._argsort, _points._argsort.py_func):
+        idx = np.full(e - s, -1, dtype=np.int64)
+        fn(key, s, e, idx)
+        assert sorted(idx.tolist()) == list(range(e - s))
+        assert np.all(np.diff(key[s + idx]) >= 0.0)
+    ikey = key.astype(np.int64)
+    idx = np.empty(e - s, dtype=np.int64)
+    _points._argsort(ikey, s, e, idx)
+    assert np.array_equal(ikey[s + idx], np.sort(ikey[s:]))

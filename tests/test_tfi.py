@@ -164,9 +164,11 @@ def test_arclength_kernel_uncompiled_equals_compiled():
     xyz[:, 0, :, :] = xyz[:1, 0, :, :]
     a = np.empty_like(xyz)
     b = np.empty_like(xyz)
-    tfi._arclength_kernel(xyz, a, tfi.ZERO_LENGTH_RTOL)
-    tfi._arclength_kernel.py_func(xyz, b, tfi.ZERO_LENGTH_RTOL)
+    for kern in tfi._ARC_DIR:
+        kern(xyz, a, tfi.ZERO_LENGTH_RTOL)
+        kern.py_func(xyz, b, tfi.ZERO_LENGTH_RTOL)
     np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a, tfi.arclength(xyz))
 
 
 @pytest.mark.parametrize("bad, match", [
@@ -396,8 +398,9 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
     a, b = np.empty_like(xyz), np.empty_like(xyz)
     for hasq in (True, False):
         kern = tfi._volume_kernel(True, hasq, False)
-        kern(xyz, s, a, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD)
-        kern.py_func(xyz, s, b, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD)
+        bad = np.zeros(xyz.shape[1] * xyz.shape[2], dtype=bool)
+        kern(xyz, s, a, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD, bad)
+        kern.py_func(xyz, s, b, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD, bad)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
     # the set-up kernel too
     again = [np.empty_like(t) for t in tables]
@@ -407,8 +410,10 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
     tfi._coherent.py_func(q0)
     QL[..., 0] = q0
     fs = tfi.face_params(s)
-    tfi._prep.py_func(tfi._pair(fs, M, 3), tfi._pair(fs, N, 3), dims[M], dims[N], L, M, N, True, tfi._pair(fdd, L, 3), tfi._pair(fdd, M, 3), tfi._pair(fdd, N, 3),
-                      QL, tfi._pair(fqq, M, 4), tfi._pair(fqq, N, 4), True, *again)
+    tfi._prep_kernel(True, True).py_func(
+        tfi._pair(fs, M, 3), tfi._pair(fs, N, 3), dims[M], dims[N], L, M, N, tfi._pair(fdd, L, 3),
+        tfi._pair(fdd, M, 3), tfi._pair(fdd, N, 3), QL, tfi._pair(fqq, M, 4), tfi._pair(fqq, N, 4),
+        *again)
     for x, y in zip(tables, again):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-15)
 
@@ -564,8 +569,9 @@ def test_deform_block_2d_rigid_and_uncompiled():
     lineD, _, gD, _, hD, _, _, _ = tables
     for hasq in (True, False):
         kern = tfi._volume_kernel(False, hasq, False)
-        kern(xyz, s, a, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD)
-        kern.py_func(xyz, s, b, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD)
+        bad = np.zeros(xyz.shape[1], dtype=bool)
+        kern(xyz, s, a, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD, bad)
+        kern.py_func(xyz, s, b, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD, bad)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
 
 
@@ -739,16 +745,17 @@ def test_fused_stage_allocates_only_surface_tables(with_q):
 
 def test_volume_kernels_are_parallel_and_cached():
     """cache=True and parallel=True on the kernels of the volume stage (docs/method.md §6), set
-    in _jit; one kernel object per kind, made once."""
+    in _jit (serial for the O(surface) set-up); one kernel object per kind, made once."""
     from tfi_quat import _jit
     kinds = [tfi._volume_kernel(*key) for key in itertools.product((True, False), repeat=3)]
     assert len({id(k) for k in kinds}) == 8
     assert tfi._volume_kernel(True, True, False) is tfi._volume_kernel(True, True, False)
-    for k in (*kinds, tfi._arclength_kernel, tfi._prep, tfi._fields2, tfi._gather):
+    serial = (tfi._prep_kernel(True, True), tfi._gather)   # O(surface): serial, quicker to compile
+    for k in (*kinds, *tfi._ARC_DIR, tfi._fields2, *serial):
         if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
             assert k.py_func is k
             continue
-        assert k.targetoptions.get("parallel") is True, k
+        assert bool(k.targetoptions.get("parallel")) is (k not in serial), k
         assert (type(k._cache).__name__ == "FunctionCache") == _jit.CACHE, k
 
 

@@ -21,7 +21,7 @@ direction:
    axis-aligned structured grid is perpendicular to it);
 2. sort the projections: a two-level bucket sort (a few thousand coarse
    equal-width buckets, then each coarse bucket by as many fine buckets as it
-   has points, fine buckets by insertion or ``np.argsort``) -- about half the
+   has points, fine buckets by insertion or heapsort) -- about half the
    time of ``np.argsort`` on a grid boundary, and still ``O(n log n)`` on
    skewed projections;
 3. for every point in sorted order compare it with the points that follow
@@ -142,7 +142,7 @@ _EPS = np.finfo(np.float64).eps
 _TINY = 2.0 ** -500
 #: bound on the absolute rounding error of a projection from subnormal terms
 _SUB = 64 * 2.0 ** -1074
-#: buckets this small are sorted by insertion, larger ones by ``np.argsort``
+#: buckets this small are sorted by insertion, larger ones by heapsort (:func:`_argsort`)
 _SMALL = 24
 
 
@@ -209,6 +209,44 @@ def _insertion_sort(ps, order, s, e):
 
 
 @jit(inline="always")
+def _sift(key, s, idx, root, n):
+    """Restore the max-heap of ``key[s + idx[:n]]`` below ``root``."""
+    while True:
+        c = 2 * root + 1
+        if c >= n:
+            return
+        if c + 1 < n and key[s + idx[c]] < key[s + idx[c + 1]]:
+            c += 1
+        if key[s + idx[root]] < key[s + idx[c]]:
+            t = idx[root]
+            idx[root] = idx[c]
+            idx[c] = t
+            root = c
+        else:
+            return
+
+
+@jit
+def _argsort(key, s, e, idx):
+    """``idx[:e - s]``: a permutation sorting ``key[s:e]`` ascending (heapsort: O(c log c)
+    on any input of ``c`` finite keys; equal keys in no particular order).
+
+    Used instead of ``np.argsort`` and slice assignments, whose compiled forms
+    (quicksort, shape-mismatch messages) take seconds to compile on a first run.
+    """
+    n = e - s
+    for t in range(n):
+        idx[t] = t
+    for root in range(n // 2 - 1, -1, -1):
+        _sift(key, s, idx, root, n)
+    for end in range(n - 1, 0, -1):
+        t = idx[0]
+        idx[0] = idx[end]
+        idx[end] = t
+        _sift(key, s, idx, 0, end)
+
+
+@jit(inline="always")
 def _bucket(v, lo, scale, nb):
     """Bucket ``0 .. nb - 1`` of ``v >= lo``: monotone in ``v``, also when ``scale`` is 0 or inf."""
     x = (v - lo) * scale
@@ -239,7 +277,8 @@ def _sort_by_projection(p, pmin, pmax):
     ``[pmin, pmax]`` (a cache-friendly scatter of the whole set), then each
     coarse bucket through a small scratch buffer by as many fine buckets as it
     has points over its own range; fine buckets are sorted by insertion, or by
-    ``np.argsort`` when large.  Memory: the two output arrays and scratch the
+    :func:`_argsort` when large (equal keys may come in any order: the pairs
+    found do not depend on it).  Memory: the two output arrays and scratch the
     size of the largest coarse bucket (``~n / 4096`` unless skewed).
     """
     n = p.size
@@ -268,6 +307,7 @@ def _sort_by_projection(p, pmin, pmax):
     count = np.empty(big + 1, dtype=np.int64)
     tp = np.empty(big)
     to = np.empty(big, dtype=np.int64)
+    ix = np.empty(big, dtype=np.int64)
     s = 0
     for b in range(k1):
         e = start1[b]
@@ -298,11 +338,13 @@ def _sort_by_projection(p, pmin, pmax):
                 for f in range(c):
                     r1 = s + count[f]
                     if r1 - r0 > _SMALL:
-                        srt = np.argsort(ps[r0:r1])
-                        seg = order[r0:r1][srt]
-                        key = ps[r0:r1][srt]
-                        order[r0:r1] = seg
-                        ps[r0:r1] = key
+                        _argsort(ps, r0, r1, ix)
+                        for t in range(r1 - r0):
+                            tp[t] = ps[r0 + ix[t]]
+                            to[t] = order[r0 + ix[t]]
+                        for t in range(r1 - r0):
+                            ps[r0 + t] = tp[t]
+                            order[r0 + t] = to[t]
                     elif r1 - r0 > 1:
                         _insertion_sort(ps, order, r0, r1)
                     r0 = r1
@@ -367,6 +409,8 @@ def _lexsorted(first, second, m, n):
     out = np.empty((m, 2), dtype=np.int64)
     fill = start[:n].copy()
     col = np.empty(m, dtype=np.int64)
+    ix = np.empty(0, dtype=np.int64)            # sort scratch, grown as needed
+    tmp = np.empty(0, dtype=np.int64)
     for k in range(m):
         i = first[k]
         col[fill[i]] = second[k]
@@ -375,7 +419,14 @@ def _lexsorted(first, second, m, n):
         s = start[i]
         e = start[i + 1]
         if e - s > _SMALL:
-            col[s:e] = np.sort(col[s:e])
+            if ix.size < e - s:
+                ix = np.empty(e - s, dtype=np.int64)
+                tmp = np.empty(e - s, dtype=np.int64)
+            _argsort(col, s, e, ix)
+            for t in range(e - s):
+                tmp[t] = col[s + ix[t]]
+            for t in range(e - s):
+                col[s + t] = tmp[t]
         elif e - s > 1:
             for t in range(s + 1, e):
                 v = col[t]
@@ -557,12 +608,20 @@ def _select(key, o1, o2, perm, s, e, k, rounds):
     while hi > lo:
         rounds -= 1
         if rounds < 0:
-            srt = np.argsort(key[lo:hi + 1]) + lo
+            c = hi + 1 - lo
+            srt = np.empty(c, dtype=np.int64)
+            _argsort(key, lo, hi + 1, srt)
+            tmp = np.empty(c)
             for arr in (key, o1, o2):
-                seg = arr[srt]
-                arr[lo:hi + 1] = seg
-            segp = perm[srt]
-            perm[lo:hi + 1] = segp
+                for t in range(c):
+                    tmp[t] = arr[lo + srt[t]]
+                for t in range(c):
+                    arr[lo + t] = tmp[t]
+            tp = np.empty(c, dtype=np.int64)
+            for t in range(c):
+                tp[t] = perm[lo + srt[t]]
+            for t in range(c):
+                perm[lo + t] = tp[t]
             return
         a = key[lo]
         b = key[(lo + hi) // 2]
@@ -642,7 +701,9 @@ def _kd_build(R, leaf):
         xs[i] = R[i, 0]
         ys[i] = R[i, 1]
         zs[i] = R[i, 2]
-    perm = np.arange(m)
+    perm = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        perm[i] = i
     rs = np.empty(nn, dtype=np.int64)
     re = np.empty(nn, dtype=np.int64)
     rs[0] = 0
@@ -710,85 +771,91 @@ def _kd_query(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order, dist, i
     parallel, in the order ``order`` (:func:`_chunk_order`); within a chunk
     each query first tries the previous one's answer.
     """
+    for c in prange(order.size):
+        _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order[c], dist, idx)
+    return dist, idx
+
+
+@jit
+def _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, b, dist, idx):
+    """Chunk ``b`` of :func:`_kd_query` (a call from the parallel loop keeps that loop small,
+    which keeps it quick to compile)."""
     n = Q.shape[0]
     m = xs.size
     nl = lstart.size - 1
     first = nl - 1
-    for c in prange(order.size):
-        b = order[c]
-        sn = np.empty(_STACK, dtype=np.int64)
-        sd = np.empty(_STACK)
-        hint = -1
-        for q in range(b * chunk, min(n, (b + 1) * chunk)):
-            x = Q[q, 0]
-            y = Q[q, 1]
-            z = Q[q, 2]
-            best = bound2
-            bi = -1                                      # none yet: only d2 < bound2 is accepted
-            if hint >= 0:
-                dx = R[hint, 0] - x
-                dy = R[hint, 1] - y
-                dz = R[hint, 2] - z
-                d2 = dx * dx + dy * dy + dz * dz
-                if d2 < best:
-                    best = d2
-                    bi = hint
-            sp = 0
-            md = _box_d2(box, 0, x, y, z)
-            if md <= best:
-                sn[0] = 0
-                sd[0] = md
-                sp = 1
-            while sp > 0:
-                sp -= 1
-                nd = sn[sp]
-                if sd[sp] > best:
-                    continue
-                while True:
-                    if nd >= first:                      # a leaf: its points
-                        j0 = nd - first
-                        for t in range(lstart[j0], lstart[j0 + 1]):
-                            dx = xs[t] - x
-                            dy = ys[t] - y
-                            dz = zs[t] - z
-                            d2 = dx * dx + dy * dy + dz * dz
-                            if d2 <= best:
-                                j = perm[t]
-                                # a tie goes to the smaller row (bi = -1: none yet, so
-                                # d2 == bound2 is never accepted)
-                                if d2 < best or j < bi:
-                                    best = d2
-                                    bi = j
-                        break
-                    ch = 2 * nd + 1
-                    m0 = _box_d2(box, ch, x, y, z)
-                    m1 = _box_d2(box, ch + 1, x, y, z)
-                    if m0 <= m1:
-                        near = ch
-                        far = ch + 1
-                        mn = m0
-                        mf = m1
-                    else:
-                        near = ch + 1
-                        far = ch
-                        mn = m1
-                        mf = m0
-                    if mf <= best:                       # later, unless best has dropped below by then
-                        sn[sp] = far
-                        sd[sp] = mf
-                        sp += 1
-                    if mn <= best:
-                        nd = near
-                    else:
-                        break
-            if bi >= 0:
-                dist[q] = np.sqrt(best)
-                idx[q] = bi
-                hint = bi
-            else:
-                dist[q] = np.inf
-                idx[q] = m
-    return dist, idx
+    sn = np.empty(_STACK, dtype=np.int64)
+    sd = np.empty(_STACK)
+    hint = -1
+    for q in range(b * chunk, min(n, (b + 1) * chunk)):
+        x = Q[q, 0]
+        y = Q[q, 1]
+        z = Q[q, 2]
+        best = bound2
+        bi = -1                                      # none yet: only d2 < bound2 is accepted
+        if hint >= 0:
+            dx = R[hint, 0] - x
+            dy = R[hint, 1] - y
+            dz = R[hint, 2] - z
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 < best:
+                best = d2
+                bi = hint
+        sp = 0
+        md = _box_d2(box, 0, x, y, z)
+        if md <= best:
+            sn[0] = 0
+            sd[0] = md
+            sp = 1
+        while sp > 0:
+            sp -= 1
+            nd = sn[sp]
+            if sd[sp] > best:
+                continue
+            while True:
+                if nd >= first:                      # a leaf: its points
+                    j0 = nd - first
+                    for t in range(lstart[j0], lstart[j0 + 1]):
+                        dx = xs[t] - x
+                        dy = ys[t] - y
+                        dz = zs[t] - z
+                        d2 = dx * dx + dy * dy + dz * dz
+                        if d2 <= best:
+                            j = perm[t]
+                            # a tie goes to the smaller row (bi = -1: none yet, so
+                            # d2 == bound2 is never accepted)
+                            if d2 < best or j < bi:
+                                best = d2
+                                bi = j
+                    break
+                ch = 2 * nd + 1
+                m0 = _box_d2(box, ch, x, y, z)
+                m1 = _box_d2(box, ch + 1, x, y, z)
+                if m0 <= m1:
+                    near = ch
+                    far = ch + 1
+                    mn = m0
+                    mf = m1
+                else:
+                    near = ch + 1
+                    far = ch
+                    mn = m1
+                    mf = m0
+                if mf <= best:                       # later, unless best has dropped below by then
+                    sn[sp] = far
+                    sd[sp] = mf
+                    sp += 1
+                if mn <= best:
+                    nd = near
+                else:
+                    break
+        if bi >= 0:
+            dist[q] = np.sqrt(best)
+            idx[q] = bi
+            hint = bi
+        else:
+            dist[q] = np.inf
+            idx[q] = m
 
 
 def _points_array(x, name: str) -> np.ndarray:

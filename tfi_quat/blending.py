@@ -179,85 +179,102 @@ def _layer_tile(col, nw, ln, lam0, lam1, act, a0, a1, acc, gpp, sp):
             col[n - 1, w] = 1.0
 
 
+@jit
+def _layer_task_i(xyz, s, lam0, lam1, out, t):
+    """Task ``t`` of :func:`_layer_dir_i`: LINES_PER_TASK lines (j, k) from ``t * LINES_PER_TASK`` on."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    nl = nj * nk
+    line = np.empty(ni)
+    res = np.empty(ni)
+    for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
+        j = jk % nj
+        k = jk // nj
+        l0 = lam0[j, k]
+        l1 = lam1[j, k]
+        if ni == 1:
+            out[0, j, k, 0] = 0.0
+            continue
+        if not _needs_layer(l0, l1):
+            continue                        # out already holds s
+        length = 0.0
+        for i in range(1, ni):
+            length += dist(xyz, i - 1, j, k, i, j, k)
+        for i in range(ni):
+            line[i] = s[i, j, k, 0]
+        _layer_line(line, length, l0, l1, res)
+        for i in range(ni):
+            out[i, j, k, 0] = res[i]
+
+
 @pjit
 def _layer_dir_i(xyz, s, lam0, lam1, out):
     """Direction i (lines contiguous in memory): tasks of LINES_PER_TASK lines (j, k)."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nl = nj * nk
-    ntask = (nl + LINES_PER_TASK - 1) // LINES_PER_TASK
-    for t in prange(ntask):
-        line = np.empty(ni)
-        res = np.empty(ni)
-        for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
-            j = jk % nj
-            k = jk // nj
-            l0 = lam0[j, k]
-            l1 = lam1[j, k]
-            if ni == 1:
-                out[0, j, k, 0] = 0.0
-                continue
-            if not _needs_layer(l0, l1):
-                continue                        # out already holds s
-            length = 0.0
-            for i in range(1, ni):
-                length += dist(xyz, i - 1, j, k, i, j, k)
-            for i in range(ni):
-                line[i] = s[i, j, k, 0]
-            _layer_line(line, length, l0, l1, res)
-            for i in range(ni):
-                out[i, j, k, 0] = res[i]
+    nl = xyz.shape[1] * xyz.shape[2]
+    for t in prange((nl + LINES_PER_TASK - 1) // LINES_PER_TASK):
+        _layer_task_i(xyz, s, lam0, lam1, out, np.int64(t))
+
+
+@jit
+def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_block`:
+    the plane of the third direction and tile of TILE lines i; compiled once per direction,
+    with the direction a constant, so the index arithmetic folds away."""
+    ni = xyz.shape[0]
+    axis = 2 if kdir is not None else 1
+    n = xyz.shape[axis]
+    c = t // nt
+    i0 = (t % nt) * TILE
+    nw = min(TILE, ni - i0)
+    u0 = np.uint64(i0)
+    if n == 1:
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), 0, c)
+            out[i, j, k, axis] = 0.0
+        return
+    l0 = np.empty(nw)
+    l1 = np.empty(nw)
+    act = np.empty(nw, dtype=np.bool_)
+    some = False
+    for w in range(nw):
+        l0[w] = lam0[at(u0, w), c]
+        l1[w] = lam1[at(u0, w), c]
+        act[w] = _needs_layer(l0[w], l1[w])
+        some = some or act[w]
+    if not some:
+        return                            # out already holds s
+    ln = np.zeros(nw)
+    for m in range(1, n):
+        for w in range(nw):
+            ia, ja, ka = line_point(axis, at(u0, w), m - 1, c)
+            ib, jb, kb = line_point(axis, at(u0, w), m, c)
+            ln[w] += dist(xyz, ia, ja, ka, ib, jb, kb)
+    col = np.empty((n, nw))
+    for m in range(n):
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), m, c)
+            col[m, w] = s[i, j, k, axis]
+    for w in range(nw):
+        act[w] = act[w] and ln[w] > 0.0
+    work = np.empty((5, nw))
+    _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
+    for m in range(n):
+        for w in range(nw):
+            if act[w]:
+                i, j, k = line_point(axis, at(u0, w), m, c)
+                out[i, j, k, axis] = col[m, w]
 
 
 def _make_layer_dir(axis: int):
     """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_block`: one task
-    per plane of the third direction and tile of TILE lines i (``axis`` is a closure
-    constant: its index arithmetic folds away)."""
+    per plane of the third direction and tile of TILE lines i (:func:`_layer_task_jk`; the
+    parallel loop only calls it, which keeps it quick to compile)."""
+    kdir = True if axis == 2 else None
+
     @pjit
     def layer_dir(xyz, s, lam0, lam1, out):
-        ni = xyz.shape[0]
-        n = xyz.shape[axis]
-        nt = (ni + TILE - 1) // TILE
+        nt = (xyz.shape[0] + TILE - 1) // TILE
         for t in prange(xyz.shape[3 - axis] * nt):
-            c = t // nt
-            i0 = (t % nt) * TILE
-            nw = min(TILE, ni - i0)
-            u0 = np.uint64(i0)
-            if n == 1:
-                for w in range(nw):
-                    i, j, k = line_point(axis, at(u0, w), 0, c)
-                    out[i, j, k, axis] = 0.0
-                continue
-            l0 = np.empty(nw)
-            l1 = np.empty(nw)
-            act = np.empty(nw, dtype=np.bool_)
-            some = False
-            for w in range(nw):
-                l0[w] = lam0[at(u0, w), c]
-                l1[w] = lam1[at(u0, w), c]
-                act[w] = _needs_layer(l0[w], l1[w])
-                some = some or act[w]
-            if not some:
-                continue                            # out already holds s
-            ln = np.zeros(nw)
-            for m in range(1, n):
-                for w in range(nw):
-                    ia, ja, ka = line_point(axis, at(u0, w), m - 1, c)
-                    ib, jb, kb = line_point(axis, at(u0, w), m, c)
-                    ln[w] += dist(xyz, ia, ja, ka, ib, jb, kb)
-            col = np.empty((n, nw))
-            for m in range(n):
-                for w in range(nw):
-                    i, j, k = line_point(axis, at(u0, w), m, c)
-                    col[m, w] = s[i, j, k, axis]
-            for w in range(nw):
-                act[w] = act[w] and ln[w] > 0.0
-            work = np.empty((5, nw))
-            _layer_tile(col, nw, ln, l0, l1, act, work[0], work[1], work[2], work[3], work[4])
-            for m in range(n):
-                for w in range(nw):
-                    if act[w]:
-                        i, j, k = line_point(axis, at(u0, w), m, c)
-                        out[i, j, k, axis] = col[m, w]
+            _layer_task_jk(xyz, s, lam0, lam1, out, np.int64(t), nt, kdir)
 
     return layer_dir
 
@@ -305,65 +322,83 @@ def _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c):
             _arc_tile_norm(col, cum, den, w)
 
 
+@jit
+def _arc_layer_task_i(xyz, rtol, lam0, lam1, out, t):
+    """Task ``t`` of :func:`_arc_layer_i`: LINES_PER_TASK lines (j, k) from ``t * LINES_PER_TASK`` on."""
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    nl = nj * nk
+    buf = np.empty(ni)
+    line = np.empty(ni)
+    res = np.empty(ni)
+    for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
+        j = jk % nj
+        k = jk // nj
+        if ni == 1:
+            out[0, j, k, 0] = 0.0
+            continue
+        length, a = arc_line_i(xyz, rtol, j, k, buf)
+        l0 = lam0[j, k]
+        l1 = lam1[j, k]
+        if _needs_layer(l0, l1):
+            for i in range(ni - 1):
+                line[i] = buf[i] / a
+            line[ni - 1] = 1.0
+            _layer_line(line, length, l0, l1, res)
+            for i in range(ni):
+                out[i, j, k, 0] = res[i]
+        else:
+            for i in range(ni - 1):
+                out[i, j, k, 0] = buf[i] / a
+            out[ni - 1, j, k, 0] = 1.0
+
+
 @pjit
 def _arc_layer_i(xyz, rtol, lam0, lam1, out):
     """Direction i of :func:`wall_layer_arclength`: each line's arclength, then its layer."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nl = nj * nk
+    nl = xyz.shape[1] * xyz.shape[2]
     for t in prange((nl + LINES_PER_TASK - 1) // LINES_PER_TASK):
-        buf = np.empty(ni)
-        line = np.empty(ni)
-        res = np.empty(ni)
-        for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
-            j = jk % nj
-            k = jk // nj
-            if ni == 1:
-                out[0, j, k, 0] = 0.0
-                continue
-            length, a = arc_line_i(xyz, rtol, j, k, buf)
-            l0 = lam0[j, k]
-            l1 = lam1[j, k]
-            if _needs_layer(l0, l1):
-                for i in range(ni - 1):
-                    line[i] = buf[i] / a
-                line[ni - 1] = 1.0
-                _layer_line(line, length, l0, l1, res)
-                for i in range(ni):
-                    out[i, j, k, 0] = res[i]
-            else:
-                for i in range(ni - 1):
-                    out[i, j, k, 0] = buf[i] / a
-                out[ni - 1, j, k, 0] = 1.0
+        _arc_layer_task_i(xyz, rtol, lam0, lam1, out, np.int64(t))
+
+
+@jit
+def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_arclength`:
+    the plane of the third direction and tile of TILE lines i; compiled once per direction,
+    with the direction a constant, so the index arithmetic folds away."""
+    ni = xyz.shape[0]
+    axis = 2 if kdir is not None else 1
+    n = xyz.shape[axis]
+    c = t // nt
+    i0 = (t % nt) * TILE
+    nw = min(TILE, ni - i0)
+    u0 = np.uint64(i0)
+    if n == 1:
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), 0, c)
+            out[i, j, k, axis] = 0.0
+        return
+    cum = np.empty((n, nw))
+    col = np.empty((n, nw))
+    ln = np.empty(nw)
+    den = np.empty(nw)
+    arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
+    _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c)
+    for m in range(n):
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), m, c)
+            out[i, j, k, axis] = col[m, w]
 
 
 def _make_arc_layer(axis: int):
     """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_arclength`: one
-    task per plane of the third direction and tile of TILE lines i."""
+    task per plane of the third direction and tile of TILE lines i (as :func:`_make_layer_dir`)."""
+    kdir = True if axis == 2 else None
+
     @pjit
     def arc_layer(xyz, rtol, lam0, lam1, out):
-        ni = xyz.shape[0]
-        n = xyz.shape[axis]
-        nt = (ni + TILE - 1) // TILE
+        nt = (xyz.shape[0] + TILE - 1) // TILE
         for t in prange(xyz.shape[3 - axis] * nt):
-            c = t // nt
-            i0 = (t % nt) * TILE
-            nw = min(TILE, ni - i0)
-            u0 = np.uint64(i0)
-            if n == 1:
-                for w in range(nw):
-                    i, j, k = line_point(axis, at(u0, w), 0, c)
-                    out[i, j, k, axis] = 0.0
-                continue
-            cum = np.empty((n, nw))
-            col = np.empty((n, nw))
-            ln = np.empty(nw)
-            den = np.empty(nw)
-            arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
-            _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c)
-            for m in range(n):
-                for w in range(nw):
-                    i, j, k = line_point(axis, at(u0, w), m, c)
-                    out[i, j, k, axis] = col[m, w]
+            _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, np.int64(t), nt, kdir)
 
     return arc_layer
 

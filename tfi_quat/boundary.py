@@ -184,19 +184,20 @@ def _angle_terms(ok, ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
     return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv
 
 
-@jit
-def _point_quaternion(Pu, Pd, ii, jj, curve, e):
+@jit(inline="always")
+def _point_quaternion(Pu, Pd, ii, jj, surf, e):
     """Q = Q2 ⊗ Q1 at padded index (ii, jj); returns (w, x, y, z, defined).
 
-    Pu and Pd have the same NaN pattern (checked by the driver), so an edge
-    exists in both or in neither.
+    ``surf``: None for a wall curve (in the plane of normal ``e``), True for a surface
+    (the type selects the code).  Pu and Pd have the same NaN pattern (checked by the
+    driver), so an edge exists in both or in neither.
     """
     # edges to the four neighbours, undeformed (e*) and deformed (f*)
     e1x, e1y, e1z, ok1 = _edge(Pu, ii, jj, 1, 0)
     e2x, e2y, e2z, ok2 = _edge(Pu, ii, jj, -1, 0)
     f1x, f1y, f1z = _edge_if(Pd, ii, jj, 1, 0, ok1)
     f2x, f2y, f2z = _edge_if(Pd, ii, jj, -1, 0, ok2)
-    if curve:
+    if surf is None:
         e3x, e3y, e3z, ok3 = 0.0, 0.0, 0.0, False
         e4x, e4y, e4z, ok4 = 0.0, 0.0, 0.0, False
         f3x, f3y, f3z = 0.0, 0.0, 0.0
@@ -212,11 +213,12 @@ def _point_quaternion(Pu, Pd, ii, jj, curve, e):
         bdx, bdy, bdz = _diff(f3x, f3y, f3z, ok3, f4x, f4y, f4z, ok4)
     aux, auy, auz = _diff(e1x, e1y, e1z, ok1, e2x, e2y, e2z, ok2)
     adx, ady, adz = _diff(f1x, f1y, f1z, ok1, f2x, f2y, f2z, ok2)
+    curve = surf is None
     ux, uy, uz, oku = _unit_normal(aux, auy, auz, bux, buy, buz, curve)
     dx, dy, dz, okd = _unit_normal(adx, ady, adz, bdx, bdy, bdz, curve)
     if not (oku and okd):
         return 1.0, 0.0, 0.0, 0.0, False
-    if curve:
+    if surf is None:
         # rotation about the plane normal by the signed angle n_u -> n_d
         cx = uy * dz - uz * dy
         cy = uz * dx - ux * dz
@@ -409,9 +411,10 @@ def _interior_quaternion(Pu, Pd, ii, jj):
 
 
 @jit
-def _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i):
-    """Row ``i`` of :func:`_motion_kernel` (one function call per row keeps the
-    parallel kernel small, which keeps compilation short)."""
+def _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf):
+    """Row ``i`` of the motion kernel of a wall curve (``surf`` None) or surface (True):
+    compiled once per kind, the other's code pruned before typing (one function call per
+    row keeps the parallel kernel small, which keeps compilation short)."""
     na = q.shape[0]
     nb = q.shape[1]
     have = False
@@ -419,17 +422,17 @@ def _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i):
     p1 = 0.0
     p2 = 0.0
     p3 = 0.0
-    inner_row = (not curve) and 0 < i < na - 1
     for j in range(nb):
         good = False
         w = 1.0
         x = 0.0
         y = 0.0
         z = 0.0
-        if inner_row and 0 < j < nb - 1:
-            w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
+        if surf is not None:
+            if 0 < i < na - 1 and 0 < j < nb - 1:
+                w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
         if not good:
-            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, curve, e)
+            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, surf, e)
         if good:
             if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
                 w = -w
@@ -449,22 +452,41 @@ def _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i):
         q[i, j, 2] = y
         q[i, j, 3] = z
         # delta = r_d - c - rot(q, r_u - c)
-        rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0], Pu[i + oi, j + oj, 1] - c[1],
-                            Pu[i + oi, j + oj, 2] - c[2])
+        rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0],
+                            Pu[i + oi, j + oj, 1] - c[1], Pu[i + oi, j + oj, 2] - c[2])
         delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
         delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
         delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
 
 
-@pjit
-def _motion_kernel(Pu, Pd, oi, oj, curve, e, c, q, delta, ok):
-    """Q, delta and the defined flag at every patch point; rows in parallel.
+def _make_motion_kernel(curve: bool):
+    """The motion kernel of a wall curve (``curve`` True) or surface (made on first use by
+    :func:`_motion_kernel`): a run compiles the code of the walls it has only."""
+    surf = None if curve else True
 
-    Interior surface points try the straight-line :func:`_interior_quaternion`
-    first; within a row the sign of q follows the previous defined point.
-    """
-    for i in prange(q.shape[0]):
-        _motion_row(Pu, Pd, oi, oj, curve, e, c, q, delta, ok, i)
+    @pjit
+    def motion(Pu, Pd, oi, oj, e, c, q, delta, ok):
+        """Q, delta and the defined flag at every patch point; rows in parallel.
+
+        Interior surface points try the straight-line :func:`_interior_quaternion`
+        first; within a row the sign of q follows the previous defined point.
+        """
+        for i in prange(q.shape[0]):
+            _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, np.int64(i), surf)
+
+    return motion
+
+
+_MOTION: dict = {}
+
+
+def _motion_kernel(curve: bool):
+    """The motion kernel for wall curves (``curve`` True) or surfaces, made on first use:
+    ``kernel(Pu, Pd, oi, oj, e, c, q, delta, ok)``."""
+    kern = _MOTION.get(bool(curve))
+    if kern is None:
+        kern = _MOTION[bool(curve)] = _make_motion_kernel(bool(curve))
+    return kern
 
 
 @jit
@@ -763,7 +785,7 @@ def motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb):
     q = np.empty((na, nb, 4))
     delta = np.empty((na, nb, 3))
     ok = np.empty((na, nb), dtype=np.uint8)
-    _motion_kernel(Pu, Pd, oi, oj, curve, e, c, q, delta, ok)
+    _motion_kernel(curve)(Pu, Pd, oi, oj, e, c, q, delta, ok)
     if not ok.all():
         _fill_degenerate(Pu, Pd, oi, oj, c, q, delta, ok)
         _align_rows_serial(q)

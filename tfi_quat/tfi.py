@@ -138,12 +138,24 @@ def _store_g_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw, qx, qy, qz
 
 
 @jit
-def _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-             fbM, fbN, hasn, hasb, lineB, gB, hB):
-    """Redo the points of row (j, k) whose blended Q is below QNORM_MIN, with the fallback.
+def _fix_rows(xyz, s, out, rows, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+              fbM, fbN, hasn, hasb, lineB, gB, hB):
+    """Redo the points of the rows ``rows`` (row ``j + nj k``) whose blended Q is below
+    QNORM_MIN, with the fallback (serial: the rare path, compiled only by a run that needs it).
 
     ``hasb``: about the based kernels' base point ``R_u + TFI(B)`` (tables ``lineB``,
     ``gB``, ``hB``; any tables of the right rank, never read, otherwise)."""
+    for r in range(rows.shape[0]):
+        j = rows[r] % xyz.shape[1]
+        k = rows[r] // xyz.shape[1]
+        _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+                 fbM, fbN, hasn, hasb, lineB, gB, hB)
+
+
+@jit(inline="always")
+def _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+             fbM, fbN, hasn, hasb, lineB, gB, hB):
+    """Row (j, k) of :func:`_fix_rows`."""
     for i in range(xyz.shape[0]):
         la, lb = face_coords(i, j, k, L)
         ma, mb = face_coords(i, j, k, M)
@@ -186,7 +198,7 @@ def _coherent(q):
                     q[a, b, c] = -q[a, b, c]
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def _prep_line(b, hasq, FL, QL, lineD, lineQ):
     """Line table of the leading direction, column ``b`` of face L."""
     for a in range(FL.shape[0]):
@@ -207,7 +219,7 @@ def _prep_line(b, hasq, FL, QL, lineD, lineQ):
             lineQ[a, b, 9] = sw
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def _prep_m(b, side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
     """Residuals ``F - U`` on column ``b`` of the M face ``side`` (index ``im``)."""
     for a in range(FM.shape[0]):
@@ -237,7 +249,7 @@ def _prep_m(b, side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM):
                 fbM[a, b, o + 4 + c] = sg * QM[a, b, c, side]
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def _prep_n(b, side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, hD, hQ, fbN):
     """Residuals ``F - V`` on column ``b`` of the N face ``side`` (index ``im``)."""
     for a in range(FN.shape[0]):
@@ -277,7 +289,6 @@ def _prep_n(b, side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM, h
                 fbN[a, b, o + 4 + c] = sg * QN[a, b, c, side]
 
 
-@pjit
 def _prep(SM, SN, nm, nn, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ,
           fbM, fbN):
     """Fill the surface tables of the fused kernels (see the module docstring).
@@ -287,21 +298,36 @@ def _prep(SM, SN, nm, nn, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, li
     already sign-coherent; likewise ``FM``, ``QM``, ``FN``, ``QN``, and the
     arclength parameters ``SM``, ``SN`` (na, nb, 3, 2) on the M and N faces;
     ``nm``, ``nn``: the block's point counts along M and N.
-    ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.  Parallel
-    over face columns; the phases run in order (M needs the lines, N needs M).
+    ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.  Runs the
+    kernel of that kind (:func:`_prep_kernel`).
     """
-    for bp in prange(lineD.shape[1]):
-        _prep_line(np.int64(bp), hasq, FL, QL, lineD, lineQ)
-    for side in range(2):
-        im = 0 if side == 0 else nm - 1
-        for bp in prange(gD.shape[1]):
-            _prep_m(np.int64(bp), side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM)
-    if hasn:
+    _prep_kernel(bool(hasn), bool(hasq))(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN,
+                                         lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+
+
+@functools.lru_cache(maxsize=None)
+def _prep_kernel(hasn: bool, hasq: bool):
+    """The set-up kernel of one kind (:func:`_prep` without ``hasn``, ``hasq``), made on first
+    use: the flags are closure constants, so a 2-D or baseline run compiles none of the
+    N-face or quaternion code.  The phases run in order (M needs the lines, N needs M).
+    Serial: the work is O(surface), and a parallel kernel costs seconds more to compile."""
+    @jit
+    def prep(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN, lineD, lineQ, gD, gQ, hD, hQ,
+             fbM, fbN):
+        for b in range(lineD.shape[1]):
+            _prep_line(b, hasq, FL, QL, lineD, lineQ)
         for side in range(2):
-            im = 0 if side == 0 else nn - 1
-            for bp in prange(hD.shape[1]):
-                _prep_n(np.int64(bp), side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM,
-                        hD, hQ, fbN)
+            im = 0 if side == 0 else nm - 1
+            for b in range(gD.shape[1]):
+                _prep_m(b, side, im, SM, L, M, hasq, FM, QM, lineD, lineQ, gD, gQ, fbM)
+        if hasn:
+            for side in range(2):
+                im = 0 if side == 0 else nn - 1
+                for b in range(hD.shape[1]):
+                    _prep_n(b, side, im, SN, L, M, N, hasq, FN, QN, lineD, lineQ, gD, gQ, fbM,
+                            hD, hQ, fbN)
+
+    return prep
 
 
 @jit(forceinline=True)
@@ -318,22 +344,21 @@ def _gather_col(b, gd, gq, hasq, idx, F, Q):
                     Q[a, b, c, side] = gq[g, c]
 
 
-@pjit
+@jit
 def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
     """Fill the pair tables that :func:`_prep` takes straight from global arrays.
 
     ``iL``/``iM``/``iN``: (≥ na, nb, 2) global rows of the two faces normal to
     L, M, N (last index: low, high face); ``hasn`` False: 2-D (``FN``/``QN``
     untouched); ``hasq`` False: baseline (``gq``, ``QL``.. untouched).  One
-    parallel loop over the face columns of all directions (one parallel
-    region: on a loaded machine each region can wait for a descheduled
-    thread); then the leading faces' quaternions are made sign-coherent in
-    place, as :func:`_tables` does.
+    loop over the face columns of all directions (serial, as :func:`_prep`);
+    then the leading faces' quaternions are made sign-coherent in place, as
+    :func:`_tables` does.
     """
     nl = FL.shape[1]
     nm = FM.shape[1]
     ncol = nl + nm + (FN.shape[1] if hasn else 0)
-    for bp in prange(ncol):
+    for bp in range(ncol):
         b = np.int64(bp)
         if b < nl:
             _gather_col(b, gd, gq, hasq, iL, FL, QL)
@@ -347,10 +372,12 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
 # =================================================================== volume kernels
 # One definition for the fused volume stage, specialised at compile time by
 # three flags (2-D or 3-D, quaternion or displacement only, based or not):
-# :func:`_point` and :func:`_row` take them as arguments, and each kernel made
-# by :func:`_volume_kernel` passes its own as closure constants, so numba/LLVM
-# fold the dead branches away (the row is compiled once per argument types
-# and inlined into every kernel, where the constants fold).
+# :func:`_point` and :func:`_row` take them as arguments, None (off) or True
+# (on), so that numba compiles the row once per kind with the other kinds'
+# branches pruned before typing (bool flags compiled all eight kinds' code into
+# every kernel: three times the compile time); the kernel made by
+# :func:`_volume_kernel` passes its kind's flags (closure constants) to the row
+# (inlined by LLVM).
 
 @jit(inline="always")
 def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
@@ -365,24 +392,24 @@ def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, 
            hD, hQ, na, nb, lineB, gB, hB, hasq, based):
     """Fused update of one point; returns 1 when the blended Q needs the fallback.
 
-    ``hasq`` False: the baseline, ``out = R_u + Δ`` (Q ≡ 1).  Otherwise
+    ``hasq`` None: the baseline, ``out = R_u + Δ`` (Q ≡ 1).  Otherwise
     ``out = R + Δ + (rot(Q, R - c) - (R - c))`` about the base point ``R``:
-    ``R_u``, or with ``based`` ``R_u + TFI(B)`` (tables ``lineB``, ``gB``,
+    ``R_u``, or with ``based`` True ``R_u + TFI(B)`` (tables ``lineB``, ``gB``,
     ``hB``).  A point that needs the fallback is stored as ``R`` itself (the
-    change scaled by 0, without a branch), so that :func:`_fix_row` still
+    change scaled by 0, without a branch), so that :func:`_fix_rows` still
     finds ``R_u`` there when ``out`` is ``xyz`` (in-place update).  (A select
     of Q = 1 and Δ = 0 instead cost 12 % of the loop's speed.)
     """
     t = np.float64(s[i, j, k, L])
     sm = np.float64(s[i, j, k, M])
     sn = np.float64(s[i, j, k, N])
-    if not hasq:
+    if hasq is None:
         dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
         out[i, j, k, 0] = xyz[i, j, k, 0] + dx
         out[i, j, k, 1] = xyz[i, j, k, 1] + dy
         out[i, j, k, 2] = xyz[i, j, k, 2] + dz
         return 0
-    if based:
+    if based is not None:
         x0, y0, z0 = _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
     else:
         x0, y0, z0 = xyz[i, j, k, 0], xyz[i, j, k, 1], xyz[i, j, k, 2]
@@ -399,16 +426,22 @@ def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, 
 @jit(forceinline=True)
 def _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
          lineB, gB, hB, hasn, hasq, based):
-    """Fused update of the row (j, k), i innermost (2-D: ``hasn`` False, k = 0, N = 2,
+    """Fused update of the row (j, k), i innermost (2-D: ``hasn`` None, k = 0, N = 2,
     ``hD``/``hQ`` zero dummies read at (0, 0)).
 
+    The kind flags ``hasn``, ``hasq``, ``based`` are None (off) or True (on): their
+    types select the code, numba prunes the ``is None`` branches before typing, and a
+    row is compiled once per kind (flags taken as bool values compiled every kind's
+    code into every kernel).
+
     The role whose direction is 0 (i) reads its table at a fixed (j, k); the
-    others read a contiguous run along i.  Points whose blended Q needs the
-    fallback are redone by :func:`_fix_row`.
+    others read a contiguous run along i.  Returns the number of points whose
+    blended Q needs the fallback (:func:`_run_volume` has them redone by
+    :func:`_fix_rows`).
     """
     ni = xyz.shape[0]
     nbad = 0
-    if hasn:
+    if hasn is not None:
         if L == 0:
             cm = k if M == 1 else j
             cn = k if N == 1 else j
@@ -435,19 +468,20 @@ def _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, f
         for i in range(ni):
             nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, i, 0,
                            gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
-    if hasq and nbad > 0:
-        _fix_row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                 fbM, fbN, hasn, based, lineB, gB, hB)
+    return nbad
 
 
 def _volume_kernel(hasn: bool, hasq: bool, based: bool):
     """The fused volume kernel of one kind (made on first use, then kept).
 
     Signature of every kind: ``(xyz, s, out, cx, cy, cz, L, M, N, lineD,
-    lineQ, gD, gQ, hD, hQ, fbM, fbN, lineB, gB, hB)``; 2-D (``hasn`` False):
+    lineQ, gD, gQ, hD, hQ, fbM, fbN, lineB, gB, hB, bad)``; 2-D (``hasn`` False):
     ``N = 2``, parallel over rows; 3-D: parallel over k-planes.  Tables a
     kind does not read are any tables of the right rank (the dummies of
-    :func:`_work_tables`; ``lineD, gD, hD`` for ``lineB, gB, hB``).
+    :func:`_work_tables`; ``lineD, gD, hD`` for ``lineB, gB, hB``).  ``bad``
+    (nj nk,) bool receives, per row ``j + nj k``, whether some point of the
+    row needs the fallback (left as R there; :func:`_run_volume` then calls
+    :func:`_fix_rows`, so runs that never need it never compile it).
     """
     key = (bool(hasn), bool(hasq), bool(based))
     kern = _VOLUME.get(key)
@@ -460,10 +494,15 @@ def _volume_kernel(hasn: bool, hasq: bool, based: bool):
 
 
 def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
-    # the flags are closure constants (numba keys its disk cache on them)
+    # the flags are closure constants (numba keys its disk cache on them); the row takes
+    # them as None or True (a closure over a compiled function would not be cached)
+    nflag = True if hasn else None
+    qflag = True if hasq else None
+    bflag = True if based else None
+
     @pjit
     def volume(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-               lineB, gB, hB):
+               lineB, gB, hB, bad):
         nj, nk = xyz.shape[1], xyz.shape[2]
         nouter = nk if hasn else nj
         ninner = nj if hasn else 1
@@ -472,8 +511,9 @@ def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
             for q in range(ninner):
                 j = q if hasn else pp
                 k = pp if hasn else 0
-                _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-                     fbM, fbN, lineB, gB, hB, hasn, hasq, based)
+                bad[j + nj * k] = _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD,
+                                       gQ, hD, hQ, fbM, fbN, lineB, gB, hB, nflag, qflag,
+                                       bflag) > 0
 
     volume.__doc__ = (f"Fused {'3' if hasn else '2'}-D {'quaternion' if hasq else 'baseline'} "
                       f"update{' about R_u + TFI(B)' if based else ''} (:func:`_volume_kernel`).")
@@ -492,9 +532,13 @@ def _run_volume(xyz, s, out, c, order, tables, hasq: bool, base=None) -> None:
     L, M, N = order if hasn else (order[0], order[1], 2)
     lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = tables
     lineB, gB, hB = (lineD, gD, hD) if base is None else base
+    bad = np.zeros(xyz.shape[1] * xyz.shape[2], dtype=np.bool_)
     _volume_kernel(hasn, hasq, base is not None)(
         xyz, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-        lineB, gB, hB)
+        lineB, gB, hB, bad)
+    if hasq and bad.any():
+        _fix_rows(xyz, s, out, np.flatnonzero(bad), c[0], c[1], c[2], L, M, N, lineD, lineQ,
+                  gD, gQ, hD, hQ, fbM, fbN, hasn, base is not None, lineB, gB, hB)
 
 
 @pjit
@@ -563,30 +607,58 @@ def _arc_tile_task(xyz, s, rtol, axis, t, nt):
         s[i, j, k, axis] = 1.0
 
 
+@jit
+def _arc_task_i(xyz, s, rtol, t):
+    """Task ``t`` of direction i: lines ``jk`` (``j = jk % nj``, ``k = jk // nj``) from
+    ``t * ARC_LINES`` on, ARC_LINES of them."""
+    ni, nj = xyz.shape[0], xyz.shape[1]
+    nl = nj * xyz.shape[2]
+    buf = np.empty(ni)
+    for jk in range(t * ARC_LINES, min(nl, (t + 1) * ARC_LINES)):
+        j = jk % nj
+        k = jk // nj
+        _, a = arc_line_i(xyz, rtol, j, k, buf)
+        for i in range(ni - 1):
+            s[i, j, k, 0] = buf[i] / a
+        s[ni - 1, j, k, 0] = 1.0
+
+
 @pjit
-def _arclength_kernel(xyz, s, rtol):
-    """Fill ``s`` (ni, nj, nk, 3) with the normalised cumulative arclength of every line."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    # direction i: ARC_LINES lines (j, k) per task
-    nl = nj * nk
+def _arc_dir_i(xyz, s, rtol):
+    """Direction i of :func:`arclength` (ni >= 2): ARC_LINES lines (j, k) per task."""
+    nl = xyz.shape[1] * xyz.shape[2]
     for t in prange((nl + ARC_LINES - 1) // ARC_LINES):
-        buf = np.empty(ni)
-        for jk in range(t * ARC_LINES, min(nl, (t + 1) * ARC_LINES)):
-            j = jk % nj
-            k = jk // nj
-            if ni == 1:
-                s[0, j, k, 0] = 0.0
-                continue
-            _, a = arc_line_i(xyz, rtol, j, k, buf)
-            for i in range(ni - 1):
-                s[i, j, k, 0] = buf[i] / a
-            s[ni - 1, j, k, 0] = 1.0
-    # directions j and k: tiles of ARC_TILE lines i
-    nt = (ni + ARC_TILE - 1) // ARC_TILE
-    for t in prange(nk * nt):
-        _arc_tile_task(xyz, s, rtol, 1, t, nt)
-    for t in prange(nj * nt):
-        _arc_tile_task(xyz, s, rtol, 2, t, nt)
+        _arc_task_i(xyz, s, rtol, np.int64(t))
+
+
+@jit
+def _arc_task_jk(xyz, s, rtol, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True): compiled once per
+    direction, with the direction a constant, so the tile walker's index arithmetic
+    folds away."""
+    axis = 2 if kdir is not None else 1
+    _arc_tile_task(xyz, s, rtol, axis, t, nt)
+
+
+def _make_arc_dir(axis: int):
+    """The kernel of direction ``axis`` (1: j, 2: k) of :func:`arclength`: one task per
+    plane of the third direction and tile of ARC_TILE lines i (:func:`_arc_task_jk`; the
+    parallel loop only calls it: a small parallel body compiles faster)."""
+    kdir = True if axis == 2 else None
+
+    @pjit
+    def arc_dir(xyz, s, rtol):
+        nt = (xyz.shape[0] + ARC_TILE - 1) // ARC_TILE
+        for t in prange(xyz.shape[3 - axis] * nt):
+            _arc_task_jk(xyz, s, rtol, np.int64(t), nt, kdir)
+
+    arc_dir.__doc__ = f"Direction {'jk'[axis - 1]} of :func:`arclength` (n >= 2)."
+    return arc_dir
+
+
+#: the arclength kernels of directions i, j, k, called only where a direction has
+#: lines of two points or more (a 2-D run compiles two)
+_ARC_DIR = (_arc_dir_i, _make_arc_dir(1), _make_arc_dir(2))
 
 
 @jit
@@ -777,7 +849,11 @@ def arclength(xyz, *, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
     """
     check_xyz(xyz, "xyz")
     s = np.empty(xyz.shape, dtype=S_DTYPE, order="F")
-    _arclength_kernel(xyz, s, float(rtol))
+    for d in range(3):
+        if xyz.shape[d] == 1:
+            s[..., d] = 0.0
+        else:
+            _ARC_DIR[d](xyz, s, float(rtol))
     return s
 
 

@@ -43,7 +43,7 @@ def hermite(s: np.ndarray) -> np.ndarray:
 
 
 @jit(inline="always")
-def fade_and_rebase(q, f, shift, k, one, tmp2, r):
+def fade_and_rebase(q, f, shift, k, r):
     """Two-level: ``q <- slerp(1, q, f)`` in place (exact at f = 0 and 1) and ``k += rot(q, shift)``
     (``k``, ``shift``: rows of K and of the re-basing shifts)."""
     if f <= 0.0:
@@ -72,10 +72,8 @@ def fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
     The two-level formulation also passes ``damp`` and ``shift`` (length G; empty
     otherwise): Q is then faded towards 1 by ``damp`` and K re-based by ``rot(Q, shift)``.
     """
-    one = np.array([1.0, 0.0, 0.0, 0.0])
     local = damp.shape[0] > 0
     tmp = np.empty(4)
-    tmp2 = np.empty(4)
     r = np.empty(3)
     for g in range(left.shape[0]):
         a = left[g]
@@ -89,7 +87,7 @@ def fill_gaps(K, gq, left, right, ptr, pts, s, use_q, damp, shift):
                 continue
             qa.kslerp(gq[a], gq[b], t, tmp)
             if local:
-                fade_and_rebase(tmp, damp[p], shift[p], K[p], one, tmp2, r)
+                fade_and_rebase(tmp, damp[p], shift[p], K[p], r)
             for c in range(4):
                 gq[p, c] = tmp[c]
 
@@ -283,50 +281,53 @@ def patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
         nl, nm = (na, nb) if lead == 0 else (nb, na)
         patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD[lo:lo + nm],
                       lineQ[lo:lo + nm], resD[ro:ro + nl], resQ[ro:ro + nl], fb[ro:ro + nl])
-    local = damp.shape[0] > 0
-    qmin = tfi.QNORM_MIN
     for tk in prange(tasks.shape[0]):
-        p = tasks[tk, 0]
-        m = tasks[tk, 1]
-        off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
-            meta[p, 5]
-        nl, nm = (na, nb) if lead == 0 else (nb, na)
-        lD = lineD[lo:lo + nm]
-        lQ = lineQ[lo:lo + nm]
-        rD = resD[ro:ro + nl]
-        rQ = resQ[ro:ro + nl]
-        fbp = fb[ro:ro + nl]
-        one = np.array([1.0, 0.0, 0.0, 0.0])
-        tmp2 = np.empty(4)
-        r = np.empty(3)
-        q = np.empty(4)
-        nofb = np.zeros((1, 1, 16))
-        for l in range(1, nl - 1):
-            f = off + lm_flat(lead, nb, l, m)
-            if not wf[f]:
-                continue
-            g = gidf[f]
-            t = sf[f, lead]
-            sm = sf[f, 1 - lead]
-            dx, dy, dz = kernels.v_d(lD, m, 0, t, rD, l, 0, sm)
-            gd[g, 0] = dx
-            gd[g, 1] = dy
-            gd[g, 2] = dz
-            if not use_q:
-                continue
-            qw, qx, qy, qz = kernels.v_q(lQ, m, 0, t, rQ, l, 0, sm)
+        patch_line(gd, gq, use_q, meta, gidf, sf, wf, work, damp, shift, tasks[tk, 0], tasks[tk, 1])
+
+
+@jit
+def patch_line(gd, gq, use_q, meta, gidf, sf, wf, work, damp, shift, p, m):
+    """Interior line ``m`` of patch ``p`` for :func:`patch_level` (a call from its parallel
+    loop keeps that loop small, which keeps it quick to compile)."""
+    lineD, lineQ, resD, resQ, fb = work
+    local = damp.shape[0] > 0
+    off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
+        meta[p, 5]
+    nl, nm = (na, nb) if lead == 0 else (nb, na)
+    lD = lineD[lo:lo + nm]
+    lQ = lineQ[lo:lo + nm]
+    rD = resD[ro:ro + nl]
+    rQ = resQ[ro:ro + nl]
+    fbp = fb[ro:ro + nl]
+    r = np.empty(3)
+    q = np.empty(4)
+    nofb = np.zeros((1, 1, 16))
+    for l in range(1, nl - 1):
+        f = off + lm_flat(lead, nb, l, m)
+        if not wf[f]:
+            continue
+        g = gidf[f]
+        t = sf[f, lead]
+        sm = sf[f, 1 - lead]
+        dx, dy, dz = kernels.v_d(lD, m, 0, t, rD, l, 0, sm)
+        gd[g, 0] = dx
+        gd[g, 1] = dy
+        gd[g, 2] = dz
+        if not use_q:
+            continue
+        qw, qx, qy, qz = kernels.v_q(lQ, m, 0, t, rQ, l, 0, sm)
+        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if n < tfi.QNORM_MIN:
+            qw, qx, qy, qz = kernels.fallback_q(lQ, m, 0, t, fbp, l, 0, sm, nofb, 0, 0, 0.0, False)
             n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-            if n < qmin:
-                qw, qx, qy, qz = kernels.fallback_q(lQ, m, 0, t, fbp, l, 0, sm, nofb, 0, 0, 0.0, False)
-                n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-            q[0] = qw / n
-            q[1] = qx / n
-            q[2] = qy / n
-            q[3] = qz / n
-            if local:
-                fade_and_rebase(q, damp[g], shift[g], gd[g], one, tmp2, r)
-            for c in range(4):
-                gq[g, c] = q[c]
+        q[0] = qw / n
+        q[1] = qx / n
+        q[2] = qy / n
+        q[3] = qz / n
+        if local:
+            fade_and_rebase(q, damp[g], shift[g], gd[g], r)
+        for c in range(4):
+            gq[g, c] = q[c]
 
 
 def level_pack(patches) -> tuple:
@@ -500,6 +501,9 @@ def patch_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None, damp: np.ndarray 
                 shift: np.ndarray = NONE3) -> None:
     """The derived patches (:func:`patch_level`); ``damp``/``shift``: the two-level fade and
     re-basing."""
+    meta, gidf, sf, wf, tasks, work = sk.patches.pack
+    if tasks.shape[0] == 0:                 # no interior lines (a 2-D grid): nothing is written,
+        return                              # and patch_level is not compiled for nothing
     use_q = gq is not None
     gqa = gq if use_q else np.empty((1, 4))
     with serial_below(PATCH_WORK * sk.patches.npoints):
