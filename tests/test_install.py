@@ -43,9 +43,9 @@ def _run(cmd, cwd, env=None, timeout=900):
 
 
 def build_install_and_run_demo(folder: Path) -> None:
-    """The job: ``folder/wheel/*.whl``, ``folder/env`` with it installed, ``folder/work/out``
-    written by its ``tfi-quat demo``; ``folder/where`` and ``folder/demo`` hold what the
-    installed package said."""
+    """The job, all inside ``folder``: the wheel in ``wheel``, the environment ``env`` with
+    it installed, the demo's output in ``out`` of the empty folder ``work`` it ran in;
+    the files ``where`` and ``demo`` hold what the installed package printed."""
     # built from a copy of the sources: setuptools' build/ folder in the checkout may hold
     # modules since removed, which an in-place build would ship
     src = folder / "src" / "tfi_quat"
