@@ -7,7 +7,10 @@ packages; the running interpreter's site folders are appended to its path by a `
 file so it finds numpy, numba, h5py, scipy and matplotlib without downloading them, and
 the test checks that ``tfi_quat`` is imported from the wheel, not from this checkout or
 from any other install.  The demo's first run compiles every numba kernel (the installed
-package has its own, empty, cache): about 3 minutes of CPU time.
+package has its own, empty, cache): minutes of CPU time, so the whole sequence (build,
+install, demo) is one early job (``tests/conftest.py``): this file run as a script, started
+when collection ends and running beside the rest of the suite; the tests below check what
+it left in its folder.
 """
 
 from __future__ import annotations
@@ -22,32 +25,80 @@ from pathlib import Path
 
 import pytest
 
+from conftest import early_job
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = sorted(p.name for p in (ROOT / "grids").iterdir() if p.suffix in (".x", ".toml"))
+DEMO_FILES = ("naca0012_tfi.x", "naca0012_samareh.x", "naca0012_quaternion.x", "demo.png", "demo.md",
+              "demo.json")
 
 
 def _run(cmd, cwd, env=None, timeout=900):
+    print("$", *cmd, flush=True)
     res = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert res.returncode == 0, f"{cmd} failed ({res.returncode}):\n{res.stdout}\n{res.stderr}"
+    print(res.stdout, res.stderr, sep="\n", flush=True)
+    if res.returncode != 0:
+        raise SystemExit(f"{cmd} failed ({res.returncode})")
     return res
 
 
-@pytest.fixture(scope="module")
-def wheel(tmp_path_factory) -> Path:
+def build_install_and_run_demo(folder: Path) -> None:
+    """The job, all inside ``folder``: the wheel in ``wheel``, the environment ``env`` with
+    it installed, the demo's output in ``out`` of the empty folder ``work`` it ran in;
+    the files ``where`` and ``demo`` hold what the installed package printed."""
     # built from a copy of the sources: setuptools' build/ folder in the checkout may hold
     # modules since removed, which an in-place build would ship
-    src = tmp_path_factory.mktemp("src") / "tfi_quat"
+    src = folder / "src" / "tfi_quat"
     shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(
         ".git", ".venv", "build", "dist", "*.egg-info", "__pycache__", ".pytest_cache", ".hypothesis",
         "demo_out", "out"))
-    out = tmp_path_factory.mktemp("wheel")
+    out = folder / "wheel"
+    out.mkdir()
     _run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(out), str(src)], cwd=out)
-    (whl,) = out.glob("tfi_quat-*.whl")
-    return whl
+    (wheel,) = out.glob("tfi_quat-*.whl")
+
+    env_dir = folder / "env"
+    venv.create(env_dir, with_pip=False, symlinks=os.name != "nt")
+    bindir = env_dir / ("Scripts" if os.name == "nt" else "bin")
+    python = bindir / ("python.exe" if os.name == "nt" else "python")
+    site = _run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                cwd=folder).stdout.strip()
+    (folder / "site").write_text(site)
+    # the running interpreter's site folders, after the fresh environment's own (numpy & co.,
+    # and pip to install the wheel with); .pth files inside them are not run, so an
+    # editable install of this checkout there stays invisible; a regular install there (as CI
+    # makes) is ignored by pip, so the wheel lands in the fresh environment, which comes first
+    here = [p for p in sys.path if p.endswith(("site-packages", "dist-packages")) and Path(p).is_dir()]
+    (Path(site) / "_tfi_quat_test_deps.pth").write_text("\n".join(here) + "\n")
+    _run([str(python), "-m", "pip", "install", "-q", "--no-deps", "--ignore-installed", str(wheel)],
+         cwd=folder)
+
+    work = folder / "work"
+    work.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
+    where = _run([str(python), "-c", "import tfi_quat, tfi_quat.demo as d; "
+                  "print(tfi_quat.__file__); print(d.default_grid_path())"], cwd=work, env=env).stdout
+    (folder / "where").write_text(where)
+    demo = _run([str(bindir / "tfi-quat"), "demo", "-o", "out"], cwd=work, env=env).stdout
+    (folder / "demo").write_text(demo)
 
 
-def test_wheel_holds_every_package_and_sample_grid(wheel):
-    names = set(zipfile.ZipFile(wheel).namelist())
+@early_job("install")
+def _install_job(folder: Path):
+    return [sys.executable, __file__, str(folder)], folder, dict(os.environ)
+
+
+@pytest.fixture(scope="module")
+def installed(early):
+    """The early job's folder, once it has ended (whatever its outcome)."""
+    return early("install")
+
+
+@pytest.mark.early("install")
+def test_wheel_holds_every_package_and_sample_grid(installed):
+    wheels = list((installed.folder / "wheel").glob("tfi_quat-*.whl"))
+    assert len(wheels) == 1, installed.output[-5000:]
+    names = set(zipfile.ZipFile(wheels[0]).namelist())
     packages = sorted(str(p.parent.relative_to(ROOT)).replace(os.sep, "/")
                       for p in (ROOT / "tfi_quat").rglob("__init__.py"))
     for pkg in packages:
@@ -58,33 +109,20 @@ def test_wheel_holds_every_package_and_sample_grid(wheel):
 
 
 @pytest.mark.slow
-def test_demo_runs_from_an_empty_folder_in_a_fresh_venv(wheel, tmp_path):
-    env_dir = tmp_path / "env"
-    venv.create(env_dir, with_pip=False, symlinks=os.name != "nt")
-    bindir = env_dir / ("Scripts" if os.name == "nt" else "bin")
-    python = bindir / ("python.exe" if os.name == "nt" else "python")
-    site = Path(_run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                     cwd=tmp_path).stdout.strip())
-    # the running interpreter's site folders, after the fresh environment's own (numpy & co.,
-    # and pip to install the wheel with); .pth files inside them are not run, so an
-    # editable install of this checkout there stays invisible; a regular install there (as CI
-    # makes) is ignored by pip, so the wheel lands in the fresh environment, which comes first
-    here = [p for p in sys.path if p.endswith(("site-packages", "dist-packages")) and Path(p).is_dir()]
-    (site / "_tfi_quat_test_deps.pth").write_text("\n".join(here) + "\n")
-    _run([str(python), "-m", "pip", "install", "-q", "--no-deps", "--ignore-installed", str(wheel)],
-         cwd=tmp_path)
-
-    work = tmp_path / "work"
-    work.mkdir()
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
-    where = _run([str(python), "-c", "import tfi_quat, tfi_quat.demo as d; "
-                  "print(tfi_quat.__file__); print(d.default_grid_path())"], cwd=work, env=env).stdout.split()
+@pytest.mark.early("install")
+def test_demo_runs_from_an_empty_folder_in_a_fresh_venv(installed):
+    assert installed.returncode == 0, installed.output[-5000:]
+    folder = installed.folder
+    site = Path((folder / "site").read_text())
+    where = (folder / "where").read_text().split()
     assert Path(where[0]).is_relative_to(site), where
     assert Path(where[1]).is_relative_to(site / "tfi_quat" / "grids"), where
-
-    res = _run([str(bindir / "tfi-quat"), "demo", "-o", "out"], cwd=work, env=env)
-    assert "quaternion TFI" in res.stdout
-    for name in ("naca0012_tfi.x", "naca0012_samareh.x", "naca0012_quaternion.x", "demo.png", "demo.md",
-                 "demo.json"):
+    assert "quaternion TFI" in (folder / "demo").read_text()
+    work = folder / "work"
+    for name in DEMO_FILES:
         assert (work / "out" / name).stat().st_size > 0, name
     assert sorted(p.name for p in work.iterdir()) == ["out"]
+
+
+if __name__ == "__main__":
+    build_install_and_run_demo(Path(sys.argv[1]))

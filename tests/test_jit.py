@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import early_job
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -47,17 +49,27 @@ def test_switch_off_gives_plain_python_kernels():
     assert res.stdout.strip() == "compiled"
 
 
-@pytest.mark.slow
-def test_kernel_tests_pass_uncompiled():
-    """The quaternion, boundary and TFI test files, run with every kernel as plain Python."""
-    files = ["tests/test_quaternion.py", "tests/test_boundary.py", "tests/test_tfi.py"]
+UNCOMPILED = ["tests/test_quaternion.py", "tests/test_boundary.py", "tests/test_tfi.py"]
+
+
+@early_job("uncompiled")
+def _uncompiled_job(folder):
     # the memory test needs a 128^3 block (minutes in plain Python) and measures numpy
     # allocations, which are the same compiled or not
-    res = _run(["-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", "not allocates_only_surface_tables",
-                *files], "0")
-    tail = (res.stdout + res.stderr)[-3000:]
+    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k",
+            "not allocates_only_surface_tables", *UNCOMPILED]
+    return argv, ROOT, dict(os.environ, TFI_QUAT_JIT="0")
+
+
+@pytest.mark.slow
+@pytest.mark.early("uncompiled")
+def test_kernel_tests_pass_uncompiled(early):
+    """The quaternion, boundary and TFI test files, run with every kernel as plain Python
+    (an early job: started when collection ends, beside the rest of the session)."""
+    res = early("uncompiled")
+    tail = res.output[-3000:]
     assert res.returncode == 0, tail
-    assert " passed" in res.stdout and "failed" not in res.stdout and "skipped" not in res.stdout, tail
+    assert " passed" in res.output and "failed" not in res.output and "skipped" not in res.output, tail
 
 
 def test_serial_below_runs_small_work_on_one_thread():
