@@ -56,7 +56,7 @@ UNCOMPILED = ["tests/test_quaternion.py", "tests/test_boundary.py", "tests/test_
 def _uncompiled_job(folder):
     # the memory test needs a 128^3 block (minutes in plain Python) and measures numpy
     # allocations, which are the same compiled or not
-    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k",
+    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0", "-k",
             "not allocates_only_surface_tables", *UNCOMPILED]
     return argv, ROOT, dict(os.environ, TFI_QUAT_JIT="0")
 
