@@ -57,6 +57,18 @@ from tfi_quat.quaternion import normalize  # noqa: E402
 
 
 @pjit
+
+def dfun(p):
+    """A smooth displacement field of the coordinates (face values that agree at the edges)."""
+    return 0.01 * np.sin(p)
+
+
+def qfun(p):
+    """A smooth unit-quaternion field of the coordinates (small rotations)."""
+    rv = 0.05 * np.cos(p)
+    ang = np.linalg.norm(rv, axis=-1, keepdims=True)
+    return normalize(np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * rv / np.maximum(ang, 1e-300)], -1))
+
 def _copy(src, dst):
     """Parallel copy (one flat ``prange``; a blocked loop ran at half the bandwidth)."""
     for m in prange(src.shape[0]):
@@ -397,14 +409,6 @@ def side_by_side(path, points, repeat, order):
     print(f"3-D block {n3}^3, 2-D block {n2}^2 x 1; threads {numba.get_num_threads()}; order {order}; "
           f"best of {repeat}, old and new alternating; load average {load:.1f} on {os.cpu_count()} CPUs")
 
-    def dfun(p):
-        return 0.01 * np.sin(p)
-
-    def qfun(p):
-        rv = 0.05 * np.cos(p)
-        ang = np.linalg.norm(rv, axis=-1, keepdims=True)
-        return normalize(np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * rv / np.maximum(ang, 1e-300)], -1))
-
     def bfun(p):
         return 0.003 * np.cos(2.0 * p)
 
@@ -508,14 +512,6 @@ def main(argv=None):
     xyz = make_block(n)
     b = Block(xyz)
     # face fields from one smooth volume function, so the edges agree
-    def dfun(p):
-        return 0.01 * np.sin(p)
-
-    def qfun(p):
-        rv = 0.05 * np.cos(p)
-        ang = np.linalg.norm(rv, axis=-1, keepdims=True)
-        return normalize(np.concatenate([np.cos(ang / 2), np.sin(ang / 2) * rv / np.maximum(ang, 1e-300)], -1))
-
     fd = [dfun(b.face(f)) for f in range(6)]
     fq = [qfun(b.face(f)) for f in range(6)]
     c = np.array([0.5, 0.5, 0.0])
