@@ -215,6 +215,15 @@ def w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn):
             z + un * hQ[na, nb, 3] + sn * hQ[na, nb, 7])
 
 
+@jit(inline="always")
+def _side_log(w, x, y, z, fb, o):
+    """``log(F') - log(U|)`` of one side in the tangent space at ``(w, x, y, z)``;
+    ``fb[o:o + 4]`` is the side's ``U|``, ``fb[o + 4:o + 8]`` its ``F'``."""
+    fx, fy, fz = rel_log(w, x, y, z, fb[o + 4], fb[o + 5], fb[o + 6], fb[o + 7])
+    ux, uy, uz = rel_log(w, x, y, z, fb[o], fb[o + 1], fb[o + 2], fb[o + 3])
+    return fx - ux, fy - uy, fz - uz
+
+
 @jit
 def fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn):
     """Boolean sum of rotation vectors in the tangent space at the slerp value U.
@@ -233,23 +242,16 @@ def fallback_q(lineQ, la, lb, t, fbM, ma, mb, sm, fbN, na, nb, sn, hasn):
     rz = 0.0
     for side in range(2):
         wt = (1.0 - sm) if side == 0 else sm
-        o = 8 * side
-        fx, fy, fz = rel_log(w, x, y, z, fbM[ma, mb, o + 4], fbM[ma, mb, o + 5],
-                              fbM[ma, mb, o + 6], fbM[ma, mb, o + 7])
-        ux, uy, uz = rel_log(w, x, y, z, fbM[ma, mb, o], fbM[ma, mb, o + 1],
-                              fbM[ma, mb, o + 2], fbM[ma, mb, o + 3])
-        rx += wt * (fx - ux)
-        ry += wt * (fy - uy)
-        rz += wt * (fz - uz)
+        dx, dy, dz = _side_log(w, x, y, z, fbM[ma, mb], 8 * side)
+        rx += wt * dx
+        ry += wt * dy
+        rz += wt * dz
         if hasn:
             wt = (1.0 - sn) if side == 0 else sn
-            fx, fy, fz = rel_log(w, x, y, z, fbN[na, nb, o + 4], fbN[na, nb, o + 5],
-                                  fbN[na, nb, o + 6], fbN[na, nb, o + 7])
-            ux, uy, uz = rel_log(w, x, y, z, fbN[na, nb, o], fbN[na, nb, o + 1],
-                                  fbN[na, nb, o + 2], fbN[na, nb, o + 3])
-            rx += wt * (fx - ux)
-            ry += wt * (fy - uy)
-            rz += wt * (fz - uz)
+            dx, dy, dz = _side_log(w, x, y, z, fbN[na, nb], 8 * side)
+            rx += wt * dx
+            ry += wt * dy
+            rz += wt * dz
     return exp_times(w, x, y, z, rx, ry, rz)
 
 
