@@ -36,7 +36,7 @@ import os
 import numba
 
 __all__ = ["jit", "pjit", "prange", "CACHE", "ENABLED", "numba", "serial_below", "SERIAL_BELOW",
-           "warm_up_in_background"]
+           "use_threads", "warm_up_in_background"]
 
 
 def _flag(name: str, default: str) -> bool:
@@ -94,6 +94,28 @@ def serial_below(work: int, limit: int = SERIAL_BELOW):
 def _one_thread():
     prev = numba.get_num_threads()
     numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(prev)
+
+
+def use_threads(n: int | None):
+    """Context: the parallel kernels called inside (by this thread) use at most ``n``
+    threads; ``None``: leave the setting as it is.  The previous setting is restored
+    on exit."""
+    if n is None or not ENABLED:
+        return contextlib.nullcontext()
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"threads must be >= 1, got {n}")
+    return _n_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+
+
+@contextlib.contextmanager
+def _n_threads(n: int):
+    prev = numba.get_num_threads()
+    numba.set_num_threads(min(n, prev) if prev else n)
     try:
         yield
     finally:
