@@ -38,7 +38,7 @@ import numpy as np
 
 from .. import quaternion as qa
 from ..errors import CaseError, DeformationError
-from ..grid import Block, Grid
+from ..grid import Block, Grid, face_ijk
 from ..spec import PatchSpec, as_patch_specs, parse_patch_spec
 from . import stages, twolevel
 from .skeleton import BLENDINGS, FIXED, WALL, ArclengthParams, boundary_points, build_skeleton
@@ -267,6 +267,7 @@ class Deformer:
         self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
         self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
         self._lock = threading.Lock()
+        self._surface_cache = None
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -280,6 +281,53 @@ class Deformer:
         :meth:`deform` passes them to a motion callable."""
         pts = self.skeleton.points
         return pts.P[pts.wall].copy()
+
+    def surface_ids(self) -> np.ndarray:
+        """Block and point indices of every wall point copy, in the solver's terms.
+
+        Returns
+        -------
+        ndarray, int64, shape (n, 4)
+            Rows ``(block, i, j, k)``, 0-based: the points of the wall patches
+            in the order of ``self.connectivity.patches``, each patch's points
+            in Fortran order of its running indices (the first fastest).  A
+            point shared by several patches or blocks (a wall edge, an
+            interface crossing a wall) appears once per copy.  2-D grids have
+            ``k = 0``.  :meth:`surface_points` gives their coordinates.
+        """
+        return self._surface()[0].copy()
+
+    def surface_points(self) -> np.ndarray:
+        """Undeformed coordinates ``(n, 3)`` of the wall point copies, in
+        :meth:`surface_ids` order."""
+        ids = self._surface()[0]
+        out = np.empty((ids.shape[0], 3))
+        for b, blk in enumerate(self.grid):
+            sel = ids[:, 0] == b
+            if sel.any():
+                i, j, k = ids[sel, 1], ids[sel, 2], ids[sel, 3]
+                out[sel] = blk.xyz[i, j, k]
+        return out
+
+    def _surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(ids (n, 4), gid (n,))``: :meth:`surface_ids` and each copy's global point id;
+        made on first use, then kept."""
+        got = self._surface_cache
+        if got is None:
+            ids, gids = [], []
+            pts = self.skeleton.points
+            for wp in self.skeleton.walls.patches:
+                spec = wp.spec
+                ijk = face_ijk(self.grid[spec.block].dims, spec.face, spec.range)
+                ijk = ijk.reshape(-1, 3, order="F")
+                ids.append(np.column_stack([np.full(ijk.shape[0], spec.block, np.int64), ijk]))
+                gids.append(pts.rect_gid(spec).reshape(-1, order="F").astype(np.int64))
+            got = (np.concatenate(ids) if ids else np.empty((0, 4), np.int64),
+                   np.concatenate(gids) if gids else np.empty(0, np.int64))
+            for a in got:
+                a.flags.writeable = False
+            self._surface_cache = got
+        return got
 
     def deform(self, moved, *, callback: Callable[[int, int], None] | None = None) -> Grid:
         """Deform the grid for new wall positions.
