@@ -27,8 +27,10 @@ interfaces), from --case, --nmf or --connectivity, and from
 override the others face part by face part; faces not named are fixed.
 The wall motion is either a moved grid
 (--moved, same dimensions, only its wall points are used) or a rigid motion
-of the walls (--rotate/--axis/--about/--translate), or the case file's
-[motion].  Prints the number of negative cells and the smallest cell-volume
+of the walls (--rotate/--axis/--about/--translate), or mode shapes on the
+walls with their amplitudes (--modes MODES.h5 --amplitudes A1,A2,...; the
+file's template is written by --write-surface, docs/coupling.md), or the
+case file's [motion].  Prints the number of negative cells and the smallest cell-volume
 ratio to the reference at the end.  A deformed grid with negative cells is
 not written (exit status 1, the count and the first cells on stderr)
 unless --allow-negative is given.  OUT is written in the input's format and
@@ -53,6 +55,14 @@ def add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--about", type=vector, default=None, metavar="X,Y,Z",
                    help="point on the rotation axis (default 0,0,0)")
     p.add_argument("--translate", type=vector, default=None, metavar="X,Y,Z", help="translate the walls")
+    p.add_argument("--modes", metavar="MODES.h5",
+                   help="mode shapes on the walls (a surface file, docs/coupling.md); the walls move "
+                        "by the sum of the --amplitudes times the shapes")
+    p.add_argument("--amplitudes", type=amplitudes, metavar="A1,A2,...",
+                   help="one amplitude per mode of --modes")
+    p.add_argument("--write-surface", metavar="SURF.h5",
+                   help="write the walls (their point ids and coordinates, no modes) as the template "
+                        "of a --modes file, and stop (no deformation, no -o)")
     p.add_argument("--method", choices=METHODS + ("quaternion",), metavar="{" + ",".join(METHODS) + "}",
                    help="quaternion TFI in the two-level formulation (default) or in the memo's "
                         "update (samareh), or plain TFI of displacements (tfi); docs/deformer.md")
@@ -68,10 +78,42 @@ def add_args(p: argparse.ArgumentParser) -> None:
     add_base_arg(p)
 
 
+def amplitudes(text: str) -> tuple[float, ...]:
+    """``A1,A2,...``: one or more finite numbers (an argparse type)."""
+    out = []
+    for part in text.split(","):
+        try:
+            out.append(finite(part.strip()))
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"expected finite numbers A1,A2,..., got {text!r}") from None
+    return tuple(out)
+
+
+def _check_modes(args) -> None:
+    """--modes and --amplitudes go together, without another motion; the file is read (and
+    checked) before the set-up."""
+    if args.amplitudes is not None and not args.modes:
+        raise CaseError("--amplitudes goes with --modes MODES.h5")
+    if not args.modes:
+        return
+    if args.amplitudes is None:
+        raise CaseError(f"--modes {args.modes}: give the amplitudes (--amplitudes A1,A2,...)")
+    if args.moved or any(v is not None for v in (args.rotate, args.axis, args.about, args.translate)):
+        raise CaseError("give either --modes or --moved or --rotate/--axis/--about/--translate, "
+                        "not more than one")
+    from ..io.surface import read_surface
+    n = read_surface(args.modes).n_modes
+    if n != len(args.amplitudes):
+        raise CaseError(f"{args.modes}: {n} mode(s), but {len(args.amplitudes)} amplitude(s) given")
+
+
 def _motion(args, case):
     from ..case import unit_vector
     from ..deform import rigid_motion
     given = any(v is not None for v in (args.rotate, args.axis, args.about, args.translate))
+    if args.modes:
+        values = ", ".join(f"{a:g}" for a in args.amplitudes)
+        return None, f"walls moved by the modes of {args.modes}, amplitudes {values}"
     if args.moved and given:
         raise CaseError("give either --moved or --rotate/--axis/--about/--translate, not both")
     if args.moved:
@@ -129,10 +171,17 @@ def run(args) -> int:
     from ..spec import parse_patch_spec
 
     case, path = case_and_grid(args)
-    out = args.output or (case.output if case is not None else None)
-    if out is None:
-        raise CaseError("no output file: give -o OUT")
-    check_output(out, args.force, inputs=[path, args.moved, args.case, args.nmf, args.connectivity])
+    inputs = [path, args.moved, args.case, args.nmf, args.connectivity, args.modes]
+    if args.write_surface:
+        if args.output or args.modes or args.moved:
+            raise CaseError("--write-surface writes the walls only: give no -o, --modes or --moved")
+        out = args.write_surface
+    else:
+        out = args.output or (case.output if case is not None else None)
+        if out is None:
+            raise CaseError("no output file: give -o OUT")
+        _check_modes(args)
+    check_output(out, args.force, inputs=inputs)
     if args.nmf and args.connectivity:
         raise CaseError("give --nmf or --connectivity, not both")
     walls = [parse_patch_spec(w) for w in args.wall]
@@ -150,7 +199,7 @@ def run(args) -> int:
     if case is not None and not (walls or sym or fixed):
         walls, sym, fixed = list(case.walls), list(case.symmetry), list(case.fixed)
     # none given, no map: a CGNS grid's own connectivity (Deformer's default), else connect()
-    moved, desc = _motion(args, case)
+    moved, desc = (None, "") if args.write_surface else _motion(args, case)
     t0 = time.perf_counter()
     method = _method(args)
     kw = {}
@@ -161,7 +210,18 @@ def run(args) -> int:
     deformer = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, connectivity=conn,
                         method=method, **kw)
     t1 = time.perf_counter()
-    result = deformer.deform(moved, callback=_Progress(not args.quiet and grid.npoints > 2_000_000))
+    if args.write_surface:
+        deformer.write_surface(out, overwrite=args.force)
+        n = deformer.surface_ids().shape[0]
+        print(f"wrote {out}: {n} wall point copies ({deformer.wall_points().shape[0]} distinct), "
+              f"their ids and coordinates, no modes; add /modes (n_modes, {n}, 3) for --modes "
+              "(docs/coupling.md)")
+        return 0
+    progress = _Progress(not args.quiet and grid.npoints > 2_000_000)
+    if args.modes:
+        result = deformer.modal(args.modes)(args.amplitudes, callback=progress)
+    else:
+        result = deformer.deform(moved, callback=progress)
     t2 = time.perf_counter()
     q = volume_ratio_summary(result, grid)
     print(f"{desc}; method {method}")

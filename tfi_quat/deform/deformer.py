@@ -465,6 +465,65 @@ class Deformer:
         ]
         return "\n".join(lines)
 
+    def write_surface(self, path, modes=None, names=None, *, overwrite: bool = False) -> None:
+        """Write the wall as a surface file (``MODES.h5``), with or without mode shapes.
+
+        The file holds :meth:`surface_ids`, :meth:`surface_points` and the
+        mode shapes (layout: :mod:`tfi_quat.io.surface`); written without
+        modes, it is the template a user fills from a structural model and
+        gives to :meth:`modal` or ``tfi-quat deform --modes``.
+
+        Parameters
+        ----------
+        path : str or path-like
+            Target, written atomically.
+        modes : array_like, float, shape (n_modes, n, 3), optional
+            Mode shapes (displacement per unit amplitude) in
+            :meth:`surface_ids` order; None: none (``modes`` of shape ``(0, n, 3)``).
+        names : sequence of str, optional
+            One name per mode.
+        overwrite : bool
+            Allow replacing the grid's own file (``grid.source_path``).
+        """
+        from ..io.surface import write_surface
+        ids = self._surface()[0]
+        write_surface(path, ids, self.surface_points(), modes, names, ndim=self.ndim,
+                      source="" if self.grid.source_path is None else str(self.grid.source_path),
+                      overwrite=overwrite, protect=[self.grid.source_path])
+
+    def modal(self, modes):
+        """A modal wall motion: a callable ``amplitudes -> deformed Grid``.
+
+        Parameters
+        ----------
+        modes : array_like (n_modes, n, 3), or str / path-like
+            Mode shapes (displacement per unit amplitude) in
+            :meth:`surface_ids` order, or a surface file (``MODES.h5``,
+            :meth:`write_surface`; its rows in any order, matched by their ids).
+
+        Returns
+        -------
+        tfi_quat.deform.modal.ModalMotion
+            ``motion(amplitudes, **kw)`` deforms the grid for the wall points
+            moved by ``Σ a_m φ_m`` (``kw`` as :meth:`deform`'s).
+
+        Raises
+        ------
+        GridFormatError
+            A surface file that cannot be read (named, with the dataset).
+        DeformationError
+            Ids that are not this Deformer's wall point copies (each exactly
+            once), points that are not this grid's, non-finite shapes, copies
+            of one point whose shapes differ by more than ``dup_tol``, no modes.
+        """
+        from .modal import ModalMotion, surface_modes
+        ids, gid = self._surface()
+        shapes, names, where = surface_modes(modes, ids, self.surface_points(), self.grid)
+        wall_pos = np.full(self.n_global, -1, dtype=np.int64)
+        wall = self.skeleton.points.wall
+        wall_pos[wall] = np.arange(wall.size)
+        return ModalMotion(self, shapes, names, wall_pos[gid], source=where)
+
 
 def _check_block_sizes(grid: Grid) -> None:
     if grid.ndim == 3:
