@@ -268,6 +268,17 @@ def test_bad_mode_arrays_and_amplitudes():
     _grids_equal(one(0.5), motion([0.5, 0.0]))
 
 
+def test_2d_mode_shapes_need_z_zero():
+    grid, walls, sym, fixed = G.o_grid()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    shapes = _shapes(d)
+    assert np.all(shapes[..., 2] == 0.0)
+    d.modal(shapes)
+    shapes[1, 3, 2] = 1e-3
+    with pytest.raises(DeformationError, match="2-D grid must have z = 0"):
+        d.modal(shapes)
+
+
 def test_write_surface_refuses_bad_input_and_keeps_the_grid_file(tmp_path):
     grid, walls, sym, fixed = G.o_grid()
     src = tmp_path / "grid.x"
