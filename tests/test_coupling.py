@@ -220,6 +220,14 @@ def test_bad_surface_files_are_named_errors(tmp_path):
     err(GridFormatError, r"root attribute format = 'tfi_quat-grid'", format="tfi_quat-grid")
     err(GridFormatError, r"layout version 2 is not supported", version=2)
     err(DeformationError, r"written for a 3-D grid", ndim=3)
+    # a chunked dataset with a chunk never written (HDF5 would read zeros)
+    with h5py.File(path, "w") as f:
+        f.attrs["format"], f.attrs["version"], f.attrs["ndim"] = "tfi_quat-surface", 1, 2
+        f["ids"], f["points"] = ids, pts
+        m = f.create_dataset("modes", shape=shapes.shape, dtype="f8", chunks=(1, 16, 3))
+        m[0] = shapes[0]
+    with pytest.raises(GridFormatError, match=r"dataset /modes: only \d+ of \d+ chunks are stored"):
+        d.modal(path)
     # copies of one point moving apart
     loc = {tuple(np.round(p, 9)): r for r, p in enumerate(pts)}
     twin = next(r for r, p in enumerate(pts) if loc[tuple(np.round(p, 9))] != r)

@@ -244,6 +244,12 @@ class _Reader:
         if ds.chunks is None and stored < need:
             raise self.fail(f"dataset /{key}: only {stored} of {need} bytes are stored "
                             "(incomplete dataset)")
+        if ds.chunks is not None and ds.size:
+            # HDF5 gives fill values for chunks that were never written
+            nchunks = int(np.prod([-(-s // c) for s, c in zip(ds.shape, ds.chunks)]))
+            if ds.id.get_num_chunks() < nchunks:
+                raise self.fail(f"dataset /{key}: only {ds.id.get_num_chunks()} of {nchunks} "
+                                "chunks are stored (incomplete dataset)")
         out = alloc(ds.shape, np.int64 if "i" in kinds else np.float64, self.path,
                     f"dataset /{key}", order="C")
         if out.size:
