@@ -182,7 +182,7 @@ class ModalMotion:
         # the copies of one point must move together
         diff = shapes - shapes[:, first[wall_of_copy]]
         dist = np.sqrt(np.max(np.sum(diff * diff, axis=2), axis=0))
-        tol = float(getattr(deformer, "dup_tol", 0.0))
+        tol = deformer.dup_tol
         over = dist > tol
         if over.any():
             r = int(np.argmax(dist))
@@ -237,12 +237,13 @@ class ModalMotion:
             One finite amplitude per mode.
         **kw
             Passed to :meth:`tfi_quat.Deformer.deform` (``out=``, ``check=``,
-            ``callback=``).
+            ``callback=``).  The grid is bit for bit the one of the callable
+            form ``deform(lambda p: p + motion.wall_displacements(a))``.
 
         Returns
         -------
         Grid
             What :meth:`~tfi_quat.Deformer.deform` returns.
         """
-        d = self.wall_displacements(amplitudes)
-        return self.deformer.deform(lambda p: p + d, **kw)
+        # the array form of deform, in surface_ids() order: the copies of a point are equal
+        return self.deformer.deform(self.displacements(amplitudes), displacement=True, **kw)
