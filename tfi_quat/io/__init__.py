@@ -85,8 +85,10 @@ def format_for(path=None, format: str | None = None, like=None) -> _Format:
     _ensure_loaded()
     if format is not None:
         key = str(format).lower()
-        if key not in FORMATS:
-            raise GridFormatError(f"unknown format {format!r}: expected one of {', '.join(sorted(FORMATS))}")
+        names = sorted(n for n, f in FORMATS.items() if not f.target)
+        if key not in names:
+            hint = f" (a grid file for a solver: target={key!r})" if key in TARGETS else ""
+            raise GridFormatError(f"unknown format {format!r}: expected one of {', '.join(names)}{hint}")
         return FORMATS[key]
     if like is not None:
         variant = getattr(like, "source_format", like)
@@ -96,7 +98,7 @@ def format_for(path=None, format: str | None = None, like=None) -> _Format:
     if path is not None:
         name = Path(os.fspath(path)).name.lower()
         for f in FORMATS.values():
-            if any(name.endswith(ext) for ext in f.extensions):
+            if any(name.endswith(ext) for ext in f.extensions):  # targets have none
                 return f
         if _has_hdf5_signature(path):
             return FORMATS["hdf5"]

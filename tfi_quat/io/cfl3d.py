@@ -57,8 +57,8 @@ from . import register
 from . import plot3d
 from .plot3d import Plot3DFormat
 
-__all__ = ["CFL3DFormat", "PLOT3D_VARIANT", "BCTYPES", "to_cfl3d", "from_cfl3d", "read", "write",
-           "input_deck"]
+__all__ = ["CFL3DFormat", "PLOT3D_VARIANT", "BCTYPES", "COLLAPSED_BCTYPE", "SPAN_BCTYPE", "to_cfl3d",
+           "from_cfl3d", "read", "write", "input_deck", "bctype_table"]
 
 #: the Plot3D variant CFL3D reads (PLOT3D-type grid, ``ngrid < 0``)
 PLOT3D_VARIANT = Plot3DFormat(encoding="fortran", endian="<", precision=8, ndim=3, multiblock=True,
@@ -356,7 +356,21 @@ def _has_cells(spec, ndim: int) -> bool:
     return a1 > a0 and (ndim == 2 or b1 > b0)
 
 
-def _check_bctypes(bctypes) -> dict:
+def bctype_table(bctypes: dict | None = None) -> dict:
+    """The bctype of every patch kind: :data:`BCTYPES` and ``"collapsed"``, with overrides.
+
+    Parameters
+    ----------
+    bctypes : dict, optional
+        Kind -> bctype; kinds ``"wall"``, ``"fixed"``, ``"symmetry"``,
+        ``"free"``, ``"collapsed"``; bctypes 1000, 1001, 1002, 1003, 1005,
+        1008, 1011, 1012, 1013 (no auxiliary data) and 2004 (no-slip wall).
+
+    Raises
+    ------
+    ConnectivityError
+        An unknown kind or a bctype outside that list.
+    """
     table = dict(BCTYPES)
     for kind, value in (bctypes or {}).items():
         if kind not in BCTYPES and kind != "collapsed":
@@ -400,7 +414,7 @@ def input_deck(conn, bctypes: dict | None = None) -> str:
     ConnectivityError
         An unknown kind or an unsupported bctype.
     """
-    table = _check_bctypes(bctypes)
+    table = bctype_table(bctypes)
     nd = conn.ndim
     ngrid = len(conn.dims)
     segs: dict[tuple[int, str], list] = {(n, f): [] for n in range(ngrid) for f in _CFL3D_FACES}
