@@ -365,3 +365,16 @@ def test_rotate_plus_about_z_is_nose_down_for_flow_along_x():
     assert np.degrees(np.arctan2(chord[1], chord[0])) == pytest.approx(10.0)
     rigid = tq.rigid_motion(10.0, axis=(0, 0, 1), about=(0.25, 0, 0))
     assert np.allclose(rigid(np.array([le, te])) + [0, 0.05, 0], [new_le, new_te])
+
+
+def test_to_and_from_cfl3d_in_memory():
+    g = tq.read(TWO_BLOCK)
+    mapped = cfl3d.to_cfl3d(g)
+    assert mapped.ndim == 3 and mapped.dims == [(2, 65, 17), (2, 17, 65)]
+    assert cfl3d.from_cfl3d(mapped) == g
+    box = tq.Grid([sheared_box()])
+    assert cfl3d.to_cfl3d(box) is box and cfl3d.from_cfl3d(box) is box
+    with pytest.raises(tq.GridValueError, match="needs the 3-D grid CFL3D indexes, got a 2-D grid"):
+        cfl3d.from_cfl3d(g)
+    with pytest.raises(tq.GridValueError, match="block 1: 1 x 5 points"):
+        cfl3d.to_cfl3d(tq.Grid([np.zeros((1, 5, 1, 3))], 2))

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConnectivityError, GridFormatError, GridValueError
-from ..grid import Block, Grid, face_axes, faces_of
+from ..grid import Block, Grid, face_axes
 from . import register
 from . import plot3d
 from .plot3d import Plot3DFormat
@@ -199,12 +199,18 @@ def from_cfl3d(grid: Grid, ndim: int | None = None, where: str = "grid") -> Grid
 
     Raises
     ------
+    GridValueError
+        Not a 3-D Grid, or a bad ``ndim``.
     GridFormatError
         ``ndim=2`` and a block is not two equal planes of constant,
         decreasing span coordinate (the block is named).
     """
     if ndim not in (None, 2, 3):
         raise GridValueError(f"ndim must be 2, 3 or None, got {ndim!r}")
+    if not isinstance(grid, Grid):
+        raise GridValueError(f"from_cfl3d needs a Grid, got {type(grid).__name__}")
+    if grid.ndim != 3:
+        raise GridValueError(f"from_cfl3d needs the 3-D grid CFL3D indexes, got a {grid.ndim}-D grid")
     mapped = [_mapped_2d(b) for b in grid]
     if ndim == 3 or (ndim is None and not all(mapped)):
         return grid
@@ -340,9 +346,8 @@ def _cfl3d_point(ijk, ndim: int, span: int) -> list[int]:
     return [int(v) + 1 for v in ijk]
 
 
-def _segment(spec, dims, ndim: int):
+def _segment(spec, ndim: int):
     """(CFL3D face, (sta1, end1, sta2, end2)) of a patch or interface side, 1-based."""
-    d, a, b = face_axes(spec.face)
     (a0, a1), (b0, b1) = spec.range
     face = (_FACE_2D if ndim == 2 else _FACE_3D)[spec.face]
     if ndim == 2:
@@ -420,12 +425,12 @@ def input_deck(conn, bctypes: dict | None = None) -> str:
     segs: dict[tuple[int, str], list] = {(n, f): [] for n in range(ngrid) for f in _CFL3D_FACES}
     for it in conn.interfaces:
         for side in (it.master, it.slave):
-            face, rng = _segment(side, conn.dims[side.block], nd)
+            face, rng = _segment(side, nd)
             segs[(side.block, face)].append((rng, 0, "1-1 interface"))
     for p in conn.patches:
         if not _has_cells(p.spec, nd):
             continue
-        face, rng = _segment(p.spec, conn.dims[p.spec.block], nd)
+        face, rng = _segment(p.spec, nd)
         key = "collapsed" if p.collapsed and p.kind == "free" else p.kind
         segs[(p.spec.block, face)].append((rng, table[key], key))
     for n, (ni, nj, nk) in enumerate(conn.dims):
