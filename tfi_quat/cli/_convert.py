@@ -169,6 +169,9 @@ def _convert(args) -> int:
         planes = " (2-D: as two planes)" if grid.ndim == 2 else ""
         print(f"wrote {args.output}: {describe_variant(CFL3DFormat(grid.ndim))}, "
               f"{grid.nblocks} block(s), {grid.npoints:,} points{planes}")
+        if grid.connectivity is not None:
+            print(f"note: the boundary conditions and interfaces of {args.input} are not written "
+                  f"(CFL3D takes them from its input deck: 'tfi-quat connect GRID --for {fmt}')")
         return 0
     if fmt == "plot3d":
         if args.compress or args.compression_level is not None:
