@@ -338,11 +338,14 @@ def test_cli_convert_for_and_from_cfl3d(tmp_path, capsys):
     assert not (tmp_path / "x.x").exists()
 
 
-def test_cli_connect_for_cfl3d(capsys):
+def test_cli_connect_for_cfl3d(tmp_path, capsys):
     rc, text, err = run_cli(capsys, "connect", CGRID, "--wall", "1:jmin:65-193", "--for", "cfl3d",
                             "--bc", "wall=2004")
     assert rc == 0 and err == ""
     assert text == cfl3d.input_deck(connect(tq.read(CGRID), walls=["1:jmin:65-193"]), {"wall": 2004})
+    rc, text, err = run_cli(capsys, "connect", CGRID, "--for", "cfl3d", "-o", tmp_path / "map.json")
+    assert rc == 0 and text.splitlines()[-1] == f"# wrote {tmp_path / 'map.json'}"
+    assert (tmp_path / "map.json").exists()
     rc, text, err = run_cli(capsys, "connect", CGRID, "--bc", "wall=2004")
     assert rc == 2 and "--bc applies to --for cfl3d" in err
     rc, text, err = run_cli(capsys, "connect", CGRID, "--for", "cfl3d", "--bc", "wall")

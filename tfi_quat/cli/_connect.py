@@ -79,7 +79,8 @@ def connect_grid(grid, args, out=None) -> int:
             conn.to_json(target, overwrite=args.force)
         else:
             conn.to_nmf(target, overwrite=args.force, convention=args.nmf_faces)
-        print(f"\nwrote {target}", file=out)
+        # after deck sections, a '#' comment line (the sections stay pasteable)
+        print(f"# wrote {target}" if args.target else f"\nwrote {target}", file=out)
     return 0
 
 

@@ -302,7 +302,11 @@ def read(path, *, ndim: int | None = None, allow_nonfinite: bool = False,
         unformatted, little-endian, 4-byte markers, int32, float64,
         multi-block, 3-D, one record per block), or ``ndim=2`` and a block
         is not a mapped 2-D block; the message names the file.
+    GridValueError
+        ``ndim`` is not 2, 3 or None.
     """
+    if ndim not in (None, 2, 3):
+        raise GridValueError(f"ndim must be 2, 3 or None, got {ndim!r}")
     try:
         raw = plot3d.read(path, format=PLOT3D_VARIANT, allow_nonfinite=allow_nonfinite,
                           max_points=max_points)
