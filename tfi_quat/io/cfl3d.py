@@ -444,7 +444,7 @@ def input_deck(conn, bctypes: dict | None = None) -> str:
     for key in segs:
         segs[key].sort(key=lambda s: (s[0][2], s[0][0], s[0][3], s[0][1]))
 
-    lines = [f"# CFL3D input-deck sections (tfi-quat connect --for cfl3d): {ngrid} grid(s), "
+    lines = [f"# CFL3D input-deck sections written by tfi_quat: {ngrid} grid(s), "
              f"{len(conn.interfaces)} 1-1 interface(s); '#' lines are not part of the deck"]
     if nd == 2:
         lines.append("# index mapping (2-D): CFL3D (i, j, k) = (span, our i, our j); X = x, Z = y, "
