@@ -381,3 +381,12 @@ def test_to_and_from_cfl3d_in_memory():
         cfl3d.from_cfl3d(g)
     with pytest.raises(tq.GridValueError, match="block 1: 1 x 5 points"):
         cfl3d.to_cfl3d(tq.Grid([np.zeros((1, 5, 1, 3))], 2))
+
+
+def test_cli_from_cfl3d_takes_no_variant_options(tmp_path, capsys):
+    out = tmp_path / "c.cfl3d"
+    tq.write(out, tq.read(CGRID), target="cfl3d")
+    rc, text, err = run_cli(capsys, "convert", out, tmp_path / "b.x", "--from", "cfl3d", "--in-endian", "big")
+    assert rc == 2 and "--from cfl3d reads one fixed variant; --in-endian do not apply" in err
+    rc, text, err = run_cli(capsys, "info", out, "--from", "cfl3d", "--format", "plot3d")
+    assert rc == 2 and "--format do not apply" in err

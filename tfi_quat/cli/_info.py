@@ -163,8 +163,10 @@ def read_input(args, path, prefix: str = "") -> Grid:
         raise FileNotFoundError(2, "no such file", str(path))
     target = getattr(args, "in_target", None)
     if target is not None:
-        given = [f"--{prefix}{suffix}" for dest, suffix, *_ in _INPUT_OVERRIDES if getattr(args, dest, None) is not None]
-        given += [f"--{prefix}{name}" for name in ("format", "base") if getattr(args, f"in_{name}", None) is not None]
+        given = [f"--{prefix}{suffix}" for dest, suffix, *_ in _INPUT_OVERRIDES
+                 if getattr(args, dest, None) is not None]
+        given += [f"--{prefix}{name}" for name in ("format", "base")
+                  if getattr(args, f"in_{name}", None) is not None]
         if given:
             raise GridFormatError(f"{path}: --from {target} reads one fixed variant; {', '.join(given)} "
                                   "do not apply")
