@@ -8,6 +8,8 @@ input but the coordinates.  A CGNS output gets the input's boundary
 conditions and interfaces (a CGNS input's), or those ``--connect`` finds
 (:func:`tfi_quat.topology.connect`) or ``--connectivity``/``--nmf`` loads.
 An existing OUT (the input included) is replaced only with ``--force``.
+``--for cfl3d`` writes the grid file NASA's CFL3D reads
+(:mod:`tfi_quat.io.cfl3d`); ``--from cfl3d`` reads one back.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 
 from .. import write
 from ..errors import CaseError, GridFormatError, OverwriteError
-from ..io import format_for
+from ..io import TARGETS, format_for
 from ._info import add_input_args, describe_variant, format_name, one_line_errors, read_input
 
 HELP = "convert a grid to another format or file variant (Plot3D, HDF5, CGNS)"
@@ -32,7 +34,11 @@ input but the coordinates.  A CGNS output holds boundary conditions and
 (walls as --wall marks them, planar faces next to a wall symmetry, the rest
 fixed), or a map --connectivity MAP.json or --nmf MAP.nmf gives; Plot3D and
 HDF5 outputs hold none.  OUT is never replaced unless --force is given (the
-input file included)."""
+input file included).  --for cfl3d writes the grid file CFL3D reads: Fortran
+unformatted, float64, 4-byte little-endian markers, multi-block; a 2-D grid
+as one block of two i planes in CFL3D's x-z plane (X = x, Z = y, Y = 0 and
+-1), a 3-D grid as it is ('tfi-quat connect GRID --for cfl3d' prints the
+matching input-deck sections); --from cfl3d reads such a file back."""
 
 #: output options: (destination, option text, Plot3DFormat field)
 _PLOT3D_OUTPUT = (
@@ -52,6 +58,8 @@ def add_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("output", metavar="OUT", help="output grid file")
     parser.add_argument("--format", choices=("plot3d", "hdf5", "cgns"),
                         help="output format (default: from OUT's extension, else the input's)")
+    parser.add_argument("--for", dest="target", choices=TARGETS,
+                        help="write the grid file this solver reads (no other output option applies)")
     parser.add_argument("-f", "--force", action="store_true",
                         help="replace OUT if it exists (even when it is the input)")
     g = parser.add_argument_group("Plot3D output", "default: the input's variant when it is "
@@ -112,6 +120,8 @@ def add_args(parser: argparse.ArgumentParser) -> None:
 
 
 def _output_format(args, in_format: str, plot3d_opts: dict) -> str:
+    if args.target:
+        return args.target
     if args.format:
         return args.format
     try:
@@ -152,6 +162,17 @@ def _convert(args) -> int:
     in_format = format_name(grid.source_format)
     fmt = _output_format(args, in_format, plot3d_opts)
     kw: dict = {}
+    if fmt in TARGETS:      # --for, or a --from input written back to a file of no known extension
+        _check_target_options(args, plot3d_opts, fmt)
+        write(args.output, grid, target=fmt, overwrite=args.force)
+        from ..io.cfl3d import CFL3DFormat
+        planes = " (2-D: as two planes)" if grid.ndim == 2 else ""
+        print(f"wrote {args.output}: {describe_variant(CFL3DFormat(grid.ndim))}, "
+              f"{grid.nblocks} block(s), {grid.npoints:,} points{planes}")
+        if grid.connectivity is not None:
+            print(f"note: the boundary conditions and interfaces of {args.input} are not written "
+                  f"(CFL3D takes them from its input deck: 'tfi-quat connect GRID --for {fmt}')")
+        return 0
     if fmt == "plot3d":
         if args.compress or args.compression_level is not None:
             raise GridFormatError(f"{args.output}: --compress/--compression-level apply to HDF5 "
@@ -196,6 +217,23 @@ def _convert(args) -> int:
         print(f"note: the boundary conditions and interfaces of {args.input} are not written "
               f"(a {fmt} file holds none)")
     return 0
+
+
+def _check_target_options(args, plot3d_opts: dict, target: str) -> None:
+    """--for fixes the output completely: refuse every other output option."""
+    bad = [text for dest, text, _ in _PLOT3D_OUTPUT if getattr(args, dest) is not None]
+    if args.format is not None and args.format != "plot3d":
+        bad.append(f"--format {args.format}")
+    if args.compress is not None or args.compression_level is not None:
+        bad.append("--compress/--no-compress/--compression-level")
+    if args.connect or args.connectivity or args.nmf or args.wall or args.symmetry or args.fixed \
+            or args.no_auto_symmetry:
+        bad.append("--connect/--connectivity/--nmf/--wall/--symmetry/--fixed/--no-auto-symmetry "
+                   f"(the {target} input deck holds the boundary conditions: "
+                   f"'tfi-quat connect GRID --for {target}')")
+    if bad:
+        raise GridFormatError(f"{args.output}: --for {target} writes one fixed variant; "
+                              f"{', '.join(bad)} do not apply")
 
 
 def _connectivity(args, grid, fmt: str):
@@ -249,6 +287,9 @@ def _written_variant(path, fmt: str, grid, kw: dict) -> str:
     if fmt == "hdf5":
         from ..io.hdf5 import info
         return describe_variant(info(path).format)
+    if fmt in TARGETS:
+        from ..io.cfl3d import CFL3DFormat
+        return describe_variant(CFL3DFormat(grid.ndim))
     if fmt == "cgns":
         from ..io.cgns import CGNSFormat, info
         i = info(path)

@@ -26,6 +26,7 @@ from .. import read
 from .._jit import jit
 from ..errors import GridFormatError, TfiQuatError
 from ..grid import Grid
+from ..io import TARGETS
 
 HELP = "describe a grid file: variant, blocks, points, bounding box, cell edge lengths"
 DESCRIPTION = """\
@@ -81,6 +82,9 @@ def add_input_args(parser: argparse.ArgumentParser, prefix: str = "") -> None:
         "Plot3D variant options override automatic detection")
     g.add_argument(f"{p}format", dest="in_format", choices=("plot3d", "hdf5", "cgns"),
                    help="input file format")
+    g.add_argument("--from", dest="in_target", choices=TARGETS,
+                   help="the file was written for this solver (tfi-quat convert --for): read exactly "
+                        "its variant and undo its index mapping")
     g.add_argument(f"{p}base", dest="in_base", metavar="NAME",
                    help="CGNS: the base to read (default the first; info lists them)")
     g.add_argument(f"{p}encoding", dest="in_encoding", choices=("ascii", "binary", "fortran"),
@@ -157,6 +161,16 @@ def read_input(args, path, prefix: str = "") -> Grid:
     """Read the input grid with the options of :func:`add_input_args`."""
     if not Path(path).exists():
         raise FileNotFoundError(2, "no such file", str(path))
+    target = getattr(args, "in_target", None)
+    if target is not None:
+        given = [f"--{prefix}{suffix}" for dest, suffix, *_ in _INPUT_OVERRIDES
+                 if getattr(args, dest, None) is not None]
+        given += [f"--{prefix}{name}" for name in ("format", "base")
+                  if getattr(args, f"in_{name}", None) is not None]
+        if given:
+            raise GridFormatError(f"{path}: --from {target} reads one fixed variant; {', '.join(given)} "
+                                  "do not apply")
+        return read(path, target=target, allow_nonfinite=args.allow_nonfinite)
     fmt = input_format(path, args.in_format)
     overrides = input_overrides(args)
     if fmt != "plot3d" and overrides:

@@ -12,6 +12,13 @@ format       extensions
 ``hdf5``     ``.h5 .hdf5 .hdf``
 ``cgns``     ``.cgns`` (CGNS/HDF5)
 ===========  ===============================================
+
+A *target* names a solver whose grid files are one fixed variant of a
+format plus an index mapping: ``target="cfl3d"`` (:mod:`tfi_quat.io.cfl3d`)
+writes the Fortran Plot3D file NASA's CFL3D reads, 2-D grids mapped to two
+planes in its x-z plane, and reads such a file back with the mapping
+undone.  A target is never chosen by extension; a grid read with one is
+written for it again by ``like=grid``.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from typing import Callable
 
 from ..errors import GridFormatError
 
-__all__ = ["read", "write", "register", "format_for", "check_readable", "FORMATS"]
+__all__ = ["read", "write", "register", "format_for", "check_readable", "FORMATS", "TARGETS"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +41,8 @@ class _Format:
     writer: Callable
     #: class of the variant object a reader stores in ``grid.source_format``
     variant_type: type | None = None
+    #: a solver target (``target=``): a fixed variant of another format with an index mapping
+    target: bool = False
 
 
 #: the registered formats: name -> (name, extensions, reader, writer, variant type), filled by
@@ -41,15 +50,23 @@ class _Format:
 FORMATS: dict[str, _Format] = {}
 
 
+#: names of the registered solver targets (``read(..., target=)``, ``write(..., target=)``)
+TARGETS: tuple[str, ...] = ("cfl3d",)
+
+
 def register(name, extensions, reader, writer, variant_type=None) -> None:
-    """Register a format: ``reader(path, **kw) -> Grid``, ``writer(path, grid, **kw)``."""
-    FORMATS[name] = _Format(name, tuple(e.lower() for e in extensions), reader, writer, variant_type)
+    """Register a format: ``reader(path, **kw) -> Grid``, ``writer(path, grid, **kw)``.
+
+    A name in :data:`TARGETS` registers a solver target (no extensions).
+    """
+    FORMATS[name] = _Format(name, tuple(e.lower() for e in extensions), reader, writer, variant_type,
+                            name in TARGETS)
 
 
 def _ensure_loaded() -> None:
     # every format module registers itself on import; importing is idempotent, and a
     # module imported directly (e.g. tfi_quat.io.hdf5) must not hide the others
-    from . import cgns, hdf5, plot3d  # noqa: F401
+    from . import cfl3d, cgns, hdf5, plot3d  # noqa: F401
 
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -68,8 +85,10 @@ def format_for(path=None, format: str | None = None, like=None) -> _Format:
     _ensure_loaded()
     if format is not None:
         key = str(format).lower()
-        if key not in FORMATS:
-            raise GridFormatError(f"unknown format {format!r}: expected one of {', '.join(sorted(FORMATS))}")
+        names = sorted(n for n, f in FORMATS.items() if not f.target)
+        if key not in names:
+            hint = f" (a grid file for a solver: target={key!r})" if key in TARGETS else ""
+            raise GridFormatError(f"unknown format {format!r}: expected one of {', '.join(names)}{hint}")
         return FORMATS[key]
     if like is not None:
         variant = getattr(like, "source_format", like)
@@ -79,7 +98,7 @@ def format_for(path=None, format: str | None = None, like=None) -> _Format:
     if path is not None:
         name = Path(os.fspath(path)).name.lower()
         for f in FORMATS.values():
-            if any(name.endswith(ext) for ext in f.extensions):
+            if any(name.endswith(ext) for ext in f.extensions):  # targets have none
                 return f
         if _has_hdf5_signature(path):
             return FORMATS["hdf5"]
@@ -101,7 +120,18 @@ def check_readable(path) -> None:
         pass
 
 
-def read(path, format: str | None = None, **kw):
+def _target(target, format) -> _Format:
+    """The registry entry of a solver target; ``format`` may only name the format it writes."""
+    _ensure_loaded()
+    key = str(target).lower()
+    if key not in TARGETS:
+        raise GridFormatError(f"unknown target {target!r}: expected one of {', '.join(TARGETS)}")
+    if format is not None and str(format).lower() not in ("plot3d", key):
+        raise GridFormatError(f"target={target!r} is a Plot3D file; format={format!r} contradicts it")
+    return FORMATS[key]
+
+
+def read(path, format: str | None = None, *, target: str | None = None, **kw):
     """Read a grid file.
 
     Parameters
@@ -109,6 +139,10 @@ def read(path, format: str | None = None, **kw):
     path : str or path-like
     format : {"plot3d", "hdf5", "cgns"}, optional
         Default: from the extension.
+    target : {"cfl3d"}, optional
+        The file was written for this solver: read exactly its variant and
+        undo its index mapping (:func:`tfi_quat.io.cfl3d.read`; ``ndim=``
+        forces 2 or 3).
     **kw
         Passed on to the format's reader (e.g. Plot3D variant overrides,
         the CGNS ``base``, ``allow_nonfinite``, ``max_points``: refuse a file
@@ -127,14 +161,17 @@ def read(path, format: str | None = None, **kw):
         The path is missing, a folder, or not readable (the path in the
         message), whatever the format.
     GridFormatError
-        The file is not a grid of the format, or declares one too large.
+        The file is not a grid of the format (or of the target's variant),
+        or declares one too large.
     """
     p = Path(os.fspath(path))
     check_readable(p)
-    return format_for(p, format).reader(p, **kw)
+    fmt = _target(target, format) if target is not None else format_for(p, format)
+    return fmt.reader(p, **kw)
 
 
-def write(path, grid, format: str | None = None, *, like=None, overwrite: bool = False, **kw) -> None:
+def write(path, grid, format: str | None = None, *, like=None, target: str | None = None,
+          overwrite: bool = False, **kw) -> None:
     """Write a grid file atomically.
 
     Parameters
@@ -147,12 +184,22 @@ def write(path, grid, format: str | None = None, *, like=None, overwrite: bool =
         Default: the format of ``like``, else the extension.
     like : Grid or variant, optional
         Write the same variant as this grid was read in (its
-        ``source_format``), or as this variant object.
+        ``source_format``), or as this variant object (a grid read with a
+        ``target`` is written for that target again).
+    target : {"cfl3d"}, optional
+        Write the file this solver reads (:func:`tfi_quat.io.cfl3d.write`:
+        Fortran unformatted float64 multi-block Plot3D, 2-D grids as two
+        planes in CFL3D's x-z plane); takes no variant options, no ``like``.
     overwrite : bool
         Allow writing over the grid's own input file (``grid.source_path``).
     **kw
         Variant options of the format's writer (override ``like``).
     """
+    if target is not None:
+        fmt = _target(target, format)
+        if like is not None:
+            raise GridFormatError(f"{path}: target={target!r} fixes the file variant; do not give like= too")
+        return fmt.writer(path, grid, overwrite=overwrite, **kw)
     fmt = format_for(path, format, like)
     variant = getattr(like, "source_format", like) if like is not None else None
     if variant is not None and fmt.variant_type is not None and not isinstance(variant, fmt.variant_type):
