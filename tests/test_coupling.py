@@ -358,3 +358,5 @@ def test_cli_modes_and_write_surface(tmp_path, capsys):
           match=f"{tmp_path / 'none.h5'}: No such file")
     fails("--write-surface", str(surf), match=f"{surf}: exists; refusing to overwrite it")
     fails("--write-surface", str(tmp_path / "s2.h5"), *o, match="--write-surface writes the walls only")
+    fails("--write-surface", str(tmp_path / "s2.h5"), "--amplitudes", "1",
+          match="--write-surface writes the walls only")

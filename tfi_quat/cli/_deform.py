@@ -173,8 +173,9 @@ def run(args) -> int:
     case, path = case_and_grid(args)
     inputs = [path, args.moved, args.case, args.nmf, args.connectivity, args.modes]
     if args.write_surface:
-        if args.output or args.modes or args.moved:
-            raise CaseError("--write-surface writes the walls only: give no -o, --modes or --moved")
+        if args.output or args.modes or args.moved or args.amplitudes is not None:
+            raise CaseError("--write-surface writes the walls only: give no -o, --modes, "
+                            "--amplitudes or --moved")
         out = args.write_surface
     else:
         out = args.output or (case.output if case is not None else None)
