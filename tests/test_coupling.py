@@ -228,6 +228,14 @@ def test_bad_surface_files_are_named_errors(tmp_path):
         m[0] = shapes[0]
     with pytest.raises(GridFormatError, match=r"dataset /modes: only \d+ of \d+ chunks are stored"):
         d.modal(path)
+    # a declared size that cannot be held: refused before anything is allocated
+    with h5py.File(path, "w") as f:
+        f.attrs["format"], f.attrs["version"], f.attrs["ndim"] = "tfi_quat-surface", 1, 2
+        f["ids"], f["points"] = ids, pts
+        f.create_dataset("modes", shape=(10**9, n, 3), dtype="f8", chunks=(1, n, 3))
+    assert path.stat().st_size < 1 << 20
+    with pytest.raises(GridFormatError, match=r"dataset /modes: declares [\d,]+ points"):
+        d.modal(path)
     # copies of one point moving apart
     loc = {tuple(np.round(p, 9)): r for r, p in enumerate(pts)}
     twin = next(r for r, p in enumerate(pts) if loc[tuple(np.round(p, 9))] != r)
