@@ -51,6 +51,7 @@ node (e.g. ``/wing/inner/ZoneBC/wall1/PointRange``).  ADF-format CGNS files
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -194,6 +195,18 @@ def _open(path) -> h5py.File:
         raise GridFormatError(f"{p}: cannot open as HDF5: {exc}") from None
 
 
+@contextlib.contextmanager
+def _tree(path):
+    """The checked :class:`_Tree` of a CGNS file (guarded, opened, closed on leaving)."""
+    f = _open(path)
+    t = _Tree(Path(os.fspath(path)), f)
+    try:
+        yield t
+    finally:
+        t.release()
+        f.close()
+
+
 def _text(value) -> str:
     if isinstance(value, np.ndarray):
         value = value.tobytes() if value.dtype.kind in "iuS" else value[()]
@@ -203,123 +216,226 @@ def _text(value) -> str:
 
 
 class _Tree:
-    """Checked access to the CGNS nodes of an open file; errors name the file and node."""
+    """Checked access to the CGNS nodes of an open file; errors name the file and node.
+
+    Nodes are named by their paths (``/Base/zone/ZoneBC``; the root is ``""``).
+    The links of a whole base are listed by one ``H5Lvisit`` (:meth:`prefetch`),
+    every node is opened once and its label read once (cached): a CGNS tree has
+    hundreds of small nodes, and per-node lookups through h5py's high-level
+    objects cost ten times more.
+    """
 
     def __init__(self, path, f: h5py.File):
         self.path = path
         self.f = f
+        self._links: dict = {}    # node -> {child key: link type}, in the file's order
+        self._objs: dict = {}     # node -> its GroupID or DatasetID
+        self._labels: dict = {}
+        self._buf = np.zeros((), dtype=f"S{_ATTR_LEN}")
 
     def fail(self, node: str, msg: str):
         raise GridFormatError(f"{self.path}: {node}: {msg}")
 
-    # h5py's low-level calls throughout: a CGNS tree has hundreds of small nodes, and
-    # the high-level objects cost ten times more per node
+    # ------------------------------------------------------------------ links and objects
+    def prefetch(self, node: str) -> None:
+        """List the links of ``node`` and of every group below it in one pass."""
+        gid = self._group_id(node)
+        found: dict = {}
 
-    def attr(self, g, key: str, node: str) -> str:
-        kb = key.encode("ascii")
+        def seen(name, info):
+            parent, _, key = name.decode("utf-8", "surrogateescape").rpartition("/")
+            found.setdefault(f"{node}/{parent}" if parent else node, {})[key] = info.type
         try:
-            if not h5py.h5a.exists(g.id, kb):
+            # groups that do not track the creation order are listed by name (as h5py lists them)
+            gid.links.visit(seen, idx_type=h5py.h5.INDEX_CRT_ORDER, info=True)
+        except (RuntimeError, OSError, ValueError, KeyError):
+            return  # listed group by group instead (:meth:`links`), with their own errors
+        for key, links in found.items():
+            self._links.setdefault(key, links)
+
+    def links(self, node: str) -> dict:
+        """``{key: link type}`` of the children of group ``node``, in the file's order."""
+        links = self._links.get(node)
+        if links is None:
+            gid = self._group_id(node)
+            links = {}
+
+            def seen(name, info):
+                links[name.decode("utf-8", "surrogateescape")] = info.type
+            try:
+                try:
+                    gid.links.iterate(seen, idx_type=h5py.h5.INDEX_CRT_ORDER, info=True)
+                except RuntimeError:  # no creation order index: by name, as h5py lists them
+                    links.clear()
+                    gid.links.iterate(seen, idx_type=h5py.h5.INDEX_NAME, info=True)
+            except (RuntimeError, OSError, ValueError) as exc:
+                self.fail(node or "/", f"cannot list its children: {exc}")
+            self._links[node] = links
+        return links
+
+    def _group_id(self, node: str):
+        if node == "":
+            return self.f.id
+        oid = self.obj(node)
+        if not isinstance(oid, h5py.h5g.GroupID):
+            self.fail(node, "is not a CGNS node (not an HDF5 group)")
+        return oid
+
+    def obj(self, node: str):
+        """The GroupID or DatasetID at ``node`` (reached through hard links only)."""
+        oid = self._objs.get(node)
+        if oid is None:
+            parent, _, key = node.rpartition("/")
+            # relative to the parent (open already): one link lookup, not one per level
+            loc = self.f.id if parent == "" else self._objs.get(parent)
+            if loc is None:
+                loc, key = self.f.id, node
+            try:
+                oid = h5py.h5o.open(loc, key.encode("utf-8", "surrogateescape"))
+            except (OSError, KeyError, ValueError, RuntimeError) as exc:
+                self.fail(node, f"cannot open: {exc}")
+            self._objs[node] = oid
+        return oid
+
+    def release(self) -> None:
+        """Drop the objects held open (before the file closes: h5py's close walks those left)."""
+        self._objs.clear()
+
+    def _hard(self, g: str, key: str, sub: str) -> bool:
+        """Whether ``key`` is a child of ``g``; a soft or external link is an error."""
+        ltype = self.links(g).get(key)
+        if ltype is None:
+            return False
+        if ltype != h5py.h5l.TYPE_HARD:
+            self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
+        return True
+
+    # ------------------------------------------------------------------ attributes
+    def attr(self, g: str, key: str, node: str) -> str:
+        """A string attribute of any form (the general, slower way)."""
+        kb = key.encode("ascii")
+        oid = self._group_id(g)
+        try:
+            if not h5py.h5a.exists(oid, kb):
                 self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
-            aid = h5py.h5a.open(g.id, kb)
+            aid = h5py.h5a.open(oid, kb)
             tid = aid.get_type()
             if tid.get_class() != h5py.h5t.STRING or tid.is_variable_str() or aid.shape not in ((), (1,)):
-                return _text(g.attrs[key])
+                return _text(h5py.AttributeManager(h5py.Group(oid))[key])
             buf = np.zeros(aid.shape, dtype=f"S{tid.get_size()}")
             aid.read(buf)
             return _text(buf.reshape(-1)[0])
         except (OSError, TypeError, ValueError, KeyError) as exc:
             self.fail(node, f"cannot read attribute {key!r}: {exc}")
 
-    def label(self, g, node: str) -> str:
-        return self.attr(g, "label", node)
+    def label(self, g: str, node: str) -> str:
+        """The node's ``label`` attribute (read once)."""
+        have = self._labels.get(g)
+        if have is not None:
+            return have
+        oid = self._group_id(g)
+        try:
+            # the common form (a scalar fixed-length string) in one read; anything else the general way
+            h5py.h5a.open(oid, b"label").read(self._buf, mtype=_S_ATTR)
+            have = _text(self._buf[()])
+        except (OSError, TypeError, ValueError, KeyError, RuntimeError):
+            have = self.attr(g, "label", node)
+        self._labels[g] = have
+        return have
 
-    def _open(self, g, key: str, sub: str):
-        """The object behind a hard link ``key`` of ``g``: h5py.Group or h5py.Dataset; None if absent."""
-        kb = key.encode("utf-8", "surrogateescape")
-        if not g.id.links.exists(kb):
-            return None
-        if g.id.links.get_info(kb).type != h5py.h5l.TYPE_HARD:
-            self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
-        oid = h5py.h5o.open(g.id, kb)
-        if isinstance(oid, h5py.h5g.GroupID):
-            return h5py.Group(oid)
-        if isinstance(oid, h5py.h5d.DatasetID):
-            return h5py.Dataset(oid)
-        return False
-
-    def children(self, g, node: str, label: str | None = None):
-        """``(name, group, path)`` of the child nodes (hard-linked groups) with ``label``.
+    # ------------------------------------------------------------------ children
+    def children(self, g: str, node: str, label: str | None = None):
+        """``(name, path, path)`` of the child nodes (hard-linked groups) with ``label``.
 
         Links (CGNS ``LK`` nodes, soft or external HDF5 links) are not followed: the
-        guard vouches for this file only.
+        guard vouches for this file only; with a ``label`` they are an error.
         """
         out = []
-        for key in g:
+        for key, ltype in self.links(g).items():
             if key.startswith(" "):
                 continue
             sub = f"{node.rstrip('/')}/{key}"
-            if label is None and g.id.links.get_info(key.encode("utf-8", "surrogateescape")).type \
-                    != h5py.h5l.TYPE_HARD:
+            if ltype != h5py.h5l.TYPE_HARD:
+                if label is None:
+                    continue
+                self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
+            if not isinstance(self.obj(sub), h5py.h5g.GroupID):
                 continue
-            obj = self._open(g, key, sub)
-            if not isinstance(obj, h5py.Group):
-                continue
-            if label is None or self.label(obj, sub) == label:
-                out.append((key, obj, sub))
+            if label is None or self.label(sub, sub) == label:
+                out.append((key, sub, sub))
         return out
 
-    def child(self, g, key: str, node: str, label: str | None = None, required: bool = True):
+    def child(self, g: str, key: str, node: str, label: str | None = None, required: bool = True):
+        """``(path, path)`` of child ``key`` (``(None, path)`` when absent and not ``required``)."""
         sub = f"{node.rstrip('/')}/{key}"
-        obj = self._open(g, key, sub)
-        if obj is None:
+        if not self._hard(g, key, sub):
             if required:
                 self.fail(sub, "is missing")
             return None, sub
-        if not isinstance(obj, h5py.Group):
+        if not isinstance(self.obj(sub), h5py.h5g.GroupID):
             self.fail(sub, "is not a CGNS node (not an HDF5 group)")
         if label is not None:
-            have = self.label(obj, sub)
+            have = self.label(sub, sub)
             if have != label:
                 self.fail(sub, f"has label {have!r}, expected {label!r}")
-        return obj, sub
+        return sub, sub
 
-    def has(self, g, key: str) -> bool:
-        return g.id.links.exists(key.encode("utf-8", "surrogateescape"))
+    def has(self, g: str, key: str) -> bool:
+        return key in self.links(g)
 
-    def dataset(self, g, node: str) -> h5py.Dataset:
-        obj = self._open(g, " data", f"{node}/ data")
-        if obj is None:
+    # ------------------------------------------------------------------ values
+    def dataset(self, g: str, node: str):
+        """``(DatasetID, numpy dtype)`` of the node's ``" data"``."""
+        sub = f"{node}/ data"
+        if not self._hard(g, " data", sub):
             self.fail(node, "has no data")
-        if not isinstance(obj, h5py.Dataset):
+        dsid = self.obj(sub)
+        if not isinstance(dsid, h5py.h5d.DatasetID):
             self.fail(node, "its ' data' is not a dataset")
-        return obj
+        return dsid, self._dtype(dsid, node)
 
-    def data(self, g, node: str, max_values: int = 1 << 16) -> np.ndarray:
+    def _dtype(self, dsid, node: str) -> np.dtype:
+        """The native numpy type of a dataset of numbers (fails on anything else)."""
+        try:
+            tid = dsid.get_type()
+            cls, size = tid.get_class(), tid.get_size()
+            if cls == h5py.h5t.INTEGER and size in (1, 2, 4, 8):
+                return np.dtype(f"{'u' if tid.get_sign() == h5py.h5t.SGN_NONE else 'i'}{size}")
+            if cls == h5py.h5t.FLOAT and size in (2, 4, 8):
+                return np.dtype(f"f{size}")
+            try:
+                what = str(dsid.dtype)
+            except (TypeError, ValueError):
+                what = f"HDF5 class {cls}"
+        except (OSError, TypeError, ValueError, RuntimeError) as exc:
+            self.fail(node, f"cannot read the type of its data: {exc}")
+        self.fail(node, f"data of type {what} is not numbers or characters")
+
+    def data(self, g: str, node: str, max_values: int = 1 << 16) -> np.ndarray:
         """The node's value, at most ``max_values`` values (metadata, not coordinates)."""
-        ds = self.dataset(g, node)
-        dsid = ds.id
-        shape = dsid.shape
+        dsid, dtype = self.dataset(g, node)
+        try:
+            shape = dsid.shape
+        except (OSError, TypeError, ValueError, RuntimeError) as exc:
+            self.fail(node, f"cannot read the shape of its data: {exc}")
         size = int(np.prod(shape)) if shape else 1
         if size > max_values:
             self.fail(node, f"holds {size:,} values, more than the {max_values:,} expected")
-        dtype = dsid.dtype
-        if dtype.kind not in "iuf":
-            self.fail(node, f"data of type {dtype} is not numbers or characters")
         try:
-            out = np.empty(shape, dtype=dtype.newbyteorder("="))
+            out = np.empty(shape, dtype=dtype)
             if size:
-                dsid.read(h5py.h5s.ALL, h5py.h5s.ALL, out)
+                dsid.read(h5py.h5s.ALL, h5py.h5s.ALL, out, mtype=_mem_type(dtype))
             return out
-        except (OSError, TypeError, ValueError) as exc:
+        except (OSError, TypeError, ValueError, RuntimeError) as exc:
             self.fail(node, f"cannot read its data: {exc}")
 
-    def string(self, g, node: str) -> str:
+    def string(self, g: str, node: str) -> str:
         arr = self.data(g, node, 4096)
         if arr.dtype.kind not in "iu" or arr.dtype.itemsize != 1:
             self.fail(node, f"expected a character (C1) value, got {arr.dtype}")
         return _text(np.ascontiguousarray(arr).reshape(-1))
 
-    def ints(self, g, node: str, shape: tuple, max_values: int = 1 << 16) -> np.ndarray:
+    def ints(self, g: str, node: str, shape: tuple, max_values: int = 1 << 16) -> np.ndarray:
         arr = self.data(g, node, max_values)
         if arr.dtype.kind not in "iu" or arr.dtype.itemsize < 4:
             self.fail(node, f"expected integers (I4 or I8), got {arr.dtype}")
@@ -330,15 +446,31 @@ class _Tree:
         return arr.astype(np.int64)
 
 
+#: the memory type of the ``label`` read (longer labels are cut: no CGNS label is that long)
+_ATTR_LEN = 64
+_S_ATTR = h5py.h5t.C_S1.copy()
+_S_ATTR.set_size(_ATTR_LEN)
+_S_ATTR.set_strpad(h5py.h5t.STR_NULLTERM)
+_MEM_TYPES: dict = {}
+
+
+def _mem_type(dtype: np.dtype):
+    """The HDF5 memory type of a native numpy number type (made once)."""
+    tid = _MEM_TYPES.get(dtype)
+    if tid is None:
+        tid = _MEM_TYPES[dtype] = h5py.h5t.py_create(dtype)
+    return tid
+
+
 # ----------------------------------------------------------------------------- the base
 
 @dataclass
 class _Zone:
     name: str
     node: str
-    group: object
+    group: str          # its path in the file (as node)
     dims: tuple
-    coords: list        # (name, dataset) for X, Y[, Z]
+    coords: list        # (name, DatasetID, node, dtype) for X, Y[, Z]
 
 
 class _Base:
@@ -348,7 +480,7 @@ class _Base:
         self.tree = tree
         t = tree
         bases = []
-        for name, g, node in t.children(t.f, "", "CGNSBase_t"):
+        for name, g, node in t.children("", "", "CGNSBase_t"):
             dims = t.ints(g, node, (2,))
             bases.append((name, g, node, int(dims[0]), int(dims[1])))
         if not bases:
@@ -368,6 +500,7 @@ class _Base:
         if not self.cell_dim <= self.phys_dim <= 3:
             t.fail(self.node, f"physical dimension {self.phys_dim} with cell dimension {self.cell_dim}")
         self.idim = self.cell_dim
+        t.prefetch(self.node)
         self.zones = [self._zone(name, g, node) for name, g, node in t.children(self.group, self.node, "Zone_t")]
         if not self.zones:
             t.fail(self.node, "has no Zone_t node")
@@ -399,20 +532,26 @@ class _Base:
         shape = tuple(reversed(vert))
         for c in comps:
             cg, cnode = t.child(gc, c, gcnode, "DataArray_t")
-            ds = t.dataset(cg, cnode)
-            if ds.shape != shape:
-                t.fail(cnode, f"data of shape {' x '.join(map(str, ds.shape[::-1]))} (Fortran order) "
+            ds, dtype = t.dataset(cg, cnode)
+            try:
+                have = ds.shape
+                plist = ds.get_create_plist()
+                filtered, chunked = plist.get_nfilters(), plist.get_layout() == h5py.h5d.CHUNKED
+                stored = ds.get_storage_size()
+            except (OSError, TypeError, ValueError, RuntimeError) as exc:
+                t.fail(cnode, f"cannot read the header of its data: {exc}")
+            if have != shape:
+                t.fail(cnode, f"data of shape {' x '.join(map(str, have[::-1]))} (Fortran order) "
                               f"does not match the zone size {' x '.join(map(str, vert))}")
-            if ds.dtype.kind != "f" or ds.dtype.itemsize not in (4, 8):
-                t.fail(cnode, f"coordinates of type {ds.dtype}: expected R4 or R8")
-            plist = ds.id.get_create_plist()
-            if plist.get_nfilters():
+            if dtype.kind != "f" or dtype.itemsize not in (4, 8):
+                t.fail(cnode, f"coordinates of type {dtype}: expected R4 or R8")
+            if filtered:
                 t.fail(cnode, "compressed or filtered coordinates are not supported")
-            if ds.chunks is None:
-                stored, need = ds.id.get_storage_size(), ds.size * ds.dtype.itemsize
+            if not chunked:
+                need = int(np.prod(shape)) * dtype.itemsize
                 if stored < need:
                     t.fail(cnode, f"only {stored} of {need} bytes are stored (incomplete data)")
-            coords.append((c, ds, cnode))
+            coords.append((c, ds, cnode, dtype))
         return _Zone(name, node, g, dims, coords)
 
     # ------------------------------------------------------------------ records
@@ -658,11 +797,11 @@ class _Base:
             xyz = alloc(z.dims + (3,), np.float64, t.path, f"zone {z.name!r}")
             if len(z.coords) < 3:
                 xyz[..., 2] = 0.0
-            for c, (cname, ds, cnode) in enumerate(z.coords):
-                single = single or ds.dtype.itemsize == 4
+            for c, (cname, ds, cnode, dtype) in enumerate(z.coords):
+                single = single or dtype.itemsize == 4
                 view = xyz[..., c].T if self.idim == 3 else xyz[:, :, 0, c].T
                 try:
-                    ds.read_direct(view)
+                    ds.read(h5py.h5s.ALL, h5py.h5s.ALL, view, mtype=_mem_type(view.dtype))
                 except (OSError, TypeError, ValueError) as exc:
                     t.fail(cnode, f"cannot read: {exc}")
             if not allow_nonfinite:
@@ -721,8 +860,8 @@ def read(path, *, base: str | None = None, allow_nonfinite: bool = False,
         From the operating system, naming the path.
     """
     p = Path(os.fspath(path))
-    with _open(p) as f:
-        b = _Base(_Tree(p, f), base)
+    with _tree(p) as t:
+        b = _Base(t, base)
         blocks, single = b.blocks(allow_nonfinite, max_points)
         try:
             grid = Grid(blocks, b.ndim, source_format=CGNSFormat(b.name, single, os.path.abspath(p)), source_path=p)
@@ -747,13 +886,12 @@ def info(path, *, base: str | None = None) -> CGNSInfo:
     CGNSInfo
     """
     p = Path(os.fspath(path))
-    with _open(p) as f:
-        t = _Tree(p, f)
+    with _tree(p) as t:
         b = _Base(t, base)
         bases = []
         for name, g, node, cd, pd in b.all:
             bases.append((name, cd, pd, [z for z, *_ in t.children(g, node, "Zone_t")]))
-        zones = [(z.name, z.dims, "R4" if z.coords[0][1].dtype.itemsize == 4 else "R8") for z in b.zones]
+        zones = [(z.name, z.dims, "R4" if z.coords[0][3].itemsize == 4 else "R8") for z in b.zones]
         keep = ("zone", "name", "type", "family", "resolved", "kind", "face", "range", "node")
         bcs = [{k: r[k] for k in keep} for r in b.bcs()]
         ones, other = b.connectivity_records()
@@ -1003,8 +1141,8 @@ def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families)
     when ``conn`` is given)."""
     src_path = Path(fmt.source)
     w = _Writer()
-    with _open(src_path) as src:
-        t = _Tree(src_path, src)
+    with _tree(src_path) as t:
+        src = t.f
         b = _Base(t, fmt.base)
         if len(b.zones) != grid.nblocks or any(z.dims != blk.dims for z, blk in zip(b.zones, grid.blocks)):
             raise GridValueError(
@@ -1013,7 +1151,7 @@ def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families)
                 "write without like (keep=False) to make a new file")
         if b.ndim != grid.ndim:
             raise GridValueError(f"like={src_path}: base {fmt.base!r} is {b.ndim}-D, the grid {grid.ndim}-D")
-        zone_keys = {z.group.name: n for n, z in enumerate(b.zones)}
+        zone_keys = {z.group: n for n, z in enumerate(b.zones)}
         with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
             for a in src.attrs:
                 w._str_attr(f.id, a.encode(), _text(src.attrs[a]), w.s3 if a == "type" else w.s33,

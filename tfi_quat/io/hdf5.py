@@ -214,13 +214,15 @@ def _chunk_bound(chunk_bytes: int, filters) -> int:
     return n + (4 if _FLETCHER32 in filters else 0)
 
 
-def _chunk_infos(ds: h5py.Dataset) -> list:
-    """Offset, filter mask, file position and size of every stored chunk of ``ds``."""
+def _chunk_infos(ds) -> list:
+    """Offset, filter mask, file position and size of every stored chunk of ``ds``
+    (an h5py Dataset or its DatasetID)."""
+    dsid = ds.id if isinstance(ds, h5py.Dataset) else ds
     out = []
-    if hasattr(ds.id, "chunk_iter"):
-        ds.id.chunk_iter(out.append)
+    if hasattr(dsid, "chunk_iter"):
+        dsid.chunk_iter(out.append)
         return out
-    return [ds.id.get_chunk_info(i) for i in range(ds.id.get_num_chunks())]
+    return [dsid.get_chunk_info(i) for i in range(dsid.get_num_chunks())]
 
 
 def _walk_metadata(source, report) -> None:
@@ -232,48 +234,63 @@ def _walk_metadata(source, report) -> None:
     its filters can produce) and the value of string datasets.  ``report(where)``
     is called before each step, so that a crash can be placed.  Raises on the
     first problem.
+
+    h5py's low-level calls throughout, each object opened relative to its
+    parent and each attribute read as stored (no conversion to a numpy type):
+    a CGNS tree has hundreds of small groups with four attributes each, and
+    the high-level objects cost several times more per item.
     """
     report("the superblock")
     with h5py.File(source, "r") as f:
         eof = f.id.get_filesize()
+        groups = {b"": f.id}  # the groups met so far: their children are opened from them
 
         def attrs(oid, where):
-            # h5py's low-level calls: the walk of a CGNS tree (hundreds of small
-            # groups, four attributes each) takes a third of the high-level time
             report(f"the attribute list of {where}")
             names = []
             h5py.h5a.iterate(oid, lambda name, *_: names.append(name))
             for name in names:
                 report(f"attribute {name.decode('utf-8', 'replace')!r} of {where}")
                 aid = h5py.h5a.open(oid, name)
-                if aid.shape is None:  # an empty (null) dataspace holds no value
+                shape = aid.shape
+                if shape is None:  # an empty (null) dataspace holds no value
                     continue
-                try:
-                    value = np.empty(aid.shape, dtype=aid.dtype)
+                tid = aid.get_type()
+                cls = tid.get_class()
+                if cls != h5py.h5t.VLEN and not (cls == h5py.h5t.STRING and tid.is_variable_str()):
+                    # the stored bytes, in the stored type: HDF5 reads them without converting
+                    aid.read(np.empty(shape, dtype=f"V{tid.get_size()}"), mtype=tid)
+                    continue
+                try:  # variable-length data: through h5py, which frees what HDF5 allocates
+                    value = np.empty(shape, dtype=aid.dtype)
                 except TypeError:  # a type numpy cannot hold: read it as h5py would
                     f[where].attrs[name.decode("utf-8", "replace")]
                     continue
                 aid.read(value)
 
-        def dataset(ds, where):
+        def dataset(dsid, where):
             report(f"the header of dataset {where}")
-            ds.shape, ds.dtype, ds.chunks, ds.compression, ds.compression_opts
-            filters = _filters(ds)
+            dsid.get_space()  # the dataspace message
+            tid = dsid.get_type()
+            cls, itemsize = tid.get_class(), tid.get_size()
+            plist = dsid.get_create_plist()
+            chunks = plist.get_chunk() if plist.get_layout() == h5py.h5d.CHUNKED else None
+            filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
             report(f"the storage of dataset {where}")
-            stored = ds.id.get_storage_size()
-            if ds.chunks is None:
-                offset = ds.id.get_offset()
+            stored = dsid.get_storage_size()
+            if chunks is None:
+                offset = dsid.get_offset()
                 if offset is not None and offset + stored > eof:
                     raise ValueError(f"dataset {where}: its data (bytes {offset}..{offset + stored}) "
                                      f"lie beyond the end of the file ({eof} bytes)")
-                if ds.dtype.kind in "OSU":
+                if cls in (h5py.h5t.STRING, h5py.h5t.VLEN, h5py.h5t.REFERENCE):
                     report(f"the value of dataset {where}")
-                    ds[()]
+                    h5py.Dataset(dsid)[()]
                 return
             report(f"the chunk index of dataset {where}")
             known = all(c in _FILTER_NAMES for c in filters)
-            bound = _chunk_bound(int(np.prod(ds.chunks)) * ds.dtype.itemsize, filters)
-            for c in _chunk_infos(ds):
+            bound = _chunk_bound(int(np.prod(chunks)) * itemsize, filters)
+            for c in _chunk_infos(dsid):
                 if c.byte_offset + c.size > eof or (known and c.size > bound):
                     raise ValueError(f"dataset {where}: chunk {c.chunk_offset} of {c.size} bytes at "
                                      f"byte {c.byte_offset} does not fit (file of {eof} bytes, "
@@ -285,18 +302,24 @@ def _walk_metadata(source, report) -> None:
 
         def visit(name, info):
             where = "/" + name.decode("utf-8", "replace")
-            oid = h5py.h5o.open(f.id, name)
+            parent, _, key = name.rpartition(b"/")
+            loc = groups.get(parent)
+            oid = h5py.h5o.open(loc, key) if loc is not None else h5py.h5o.open(f.id, name)
             attrs(oid, where)
             if info.type == h5py.h5o.TYPE_GROUP:
+                groups[name] = oid
                 links(oid, where)
             elif info.type == h5py.h5o.TYPE_DATASET:
-                dataset(h5py.Dataset(oid), where)
+                dataset(oid, where)
 
-        attrs(f.id, "the root group")
-        report("the links of the root group")
-        f.id.links.iterate(lambda name, info: None, info=True)
-        report("the object tree")
-        h5py.h5o.visit(f.id, visit, info=True)
+        try:
+            attrs(f.id, "the root group")
+            report("the links of the root group")
+            f.id.links.iterate(lambda name, info: None, info=True)
+            report("the object tree")
+            h5py.h5o.visit(f.id, visit, info=True)
+        finally:
+            groups.clear()  # before the file closes: h5py's close walks the objects left open
 
 
 def _limit_child() -> None:
