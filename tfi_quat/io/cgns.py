@@ -455,7 +455,7 @@ _MEM_TYPES: dict = {}
 
 
 def _mem_type(dtype: np.dtype):
-    """The HDF5 memory type of a native numpy number type (made once)."""
+    """The HDF5 type of a numpy number type (made once: h5py's conversion is slow)."""
     tid = _MEM_TYPES.get(dtype)
     if tid is None:
         tid = _MEM_TYPES[dtype] = h5py.h5t.py_create(dtype)
@@ -909,7 +909,11 @@ def _tid(size: int):
 
 
 class _Writer:
-    """Creates CGNS nodes with the attributes of the CGNS/HDF5 mapping."""
+    """Creates CGNS nodes with the attributes of the CGNS/HDF5 mapping.
+
+    Works on h5py's low-level identifiers (FileID, GroupID): a CGNS tree has
+    hundreds of small nodes, and the high-level objects cost more per node.
+    """
 
     def __init__(self):
         self.s33, self.s3 = _tid(33), _tid(3)
@@ -922,23 +926,23 @@ class _Writer:
         self.dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
         self.dcpl.set_obj_track_times(False)
 
-    def group(self, parent, name: str) -> h5py.Group:
-        """A new child group (h5py's low-level calls: a CGNS tree has many small nodes)."""
-        return h5py.Group(h5py.h5g.create(parent.id, name.encode("ascii"), gcpl=self.gcpl))
+    def group(self, parent, name: str):
+        """A new child group of ``parent`` (a FileID or GroupID): its GroupID."""
+        return h5py.h5g.create(parent, name.encode("ascii"), gcpl=self.gcpl)
 
     def data(self, g, arr: np.ndarray, key: bytes = b" data") -> None:
         """Dataset ``key`` of ``g`` holding the C-contiguous ``arr`` (contiguous layout)."""
         arr = np.ascontiguousarray(arr)
         space = h5py.h5s.create_simple(arr.shape) if arr.shape else self.scalar
-        ds = h5py.h5d.create(g.id, key, h5py.h5t.py_create(arr.dtype), space, dcpl=self.dcpl)
-        ds.write(h5py.h5s.ALL, h5py.h5s.ALL, arr)
+        tid = _mem_type(arr.dtype)  # the native type, stored as it is
+        ds = h5py.h5d.create(g, key, tid, space, dcpl=self.dcpl)
+        ds.write(h5py.h5s.ALL, h5py.h5s.ALL, arr, mtype=tid)
 
     def _str_attr(self, gid, key: bytes, text: str, tid, size: int):
         aid = h5py.h5a.create(gid, key, tid, self.scalar)
         aid.write(np.array(text.encode("ascii")[:size - 1].ljust(size, b"\0"), dtype=f"S{size}"))
 
-    def attrs(self, g, name: str, label: str, dtype: str, flags: bool = True):
-        gid = g.id
+    def attrs(self, gid, name: str, label: str, dtype: str, flags: bool = True):
         self._str_attr(gid, b"name", name, self.s33, 33)
         self._str_attr(gid, b"label", label, self.s33, 33)
         self._str_attr(gid, b"type", dtype, self.s3, 3)
@@ -1039,7 +1043,7 @@ def _write_records(w: _Writer, base_g, zone_groups, names, conn: Connectivity, f
                 fam_types[fam] = _PLAIN[bc_kind(bctype)]
         bc_rows[p.spec.block].append((p, bctype, fam))
     for fam, bctype in fam_types.items():
-        if fam in base_g:  # a family of the copied file: kept as it is
+        if base_g.links.exists(fam.encode("ascii")):  # a family of the copied file: kept as it is
             continue
         fg = w.node(base_g, fam, "Family_t")
         w.node(fg, "FamilyBC", "FamilyBC_t", bctype)
@@ -1065,9 +1069,9 @@ def _write_records(w: _Writer, base_g, zone_groups, names, conn: Connectivity, f
 
     def conn_group(zn):
         if zn not in zgc:
-            g = zone_groups[zn].get("ZoneGridConnectivity")
-            zgc[zn] = g if g is not None else w.node(zone_groups[zn], "ZoneGridConnectivity",
-                                                     "ZoneGridConnectivity_t")
+            zg = zone_groups[zn]
+            zgc[zn] = h5py.h5o.open(zg, b"ZoneGridConnectivity") if zg.links.exists(b"ZoneGridConnectivity") \
+                else w.node(zg, "ZoneGridConnectivity", "ZoneGridConnectivity_t")
         return zgc[zn]
 
     for n, it in enumerate(conn.interfaces):
@@ -1109,7 +1113,8 @@ def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
     w = _Writer()
     ndim = grid.ndim
     names = _zone_names(grid)
-    with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
+    with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as fh:
+        f = fh.id
         _root(w, f)
         w.node(f, "CGNSLibraryVersion", "CGNSLibraryVersion_t", np.array([LIBRARY_VERSION], dtype=np.float32))
         bg = w.node(f, base, "CGNSBase_t", np.array([ndim, ndim], dtype=np.int32))
@@ -1125,24 +1130,45 @@ def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
             _write_records(w, bg, zgs, names, conn, families, ndim)
 
 
-def _copy_attrs_node(w, src, dst_parent, key):
+def _copy_attrs_node(w: _Writer, t: _Tree, src: str, dst_parent, key: str):
+    """A new group ``key`` of ``dst_parent`` with the name, label, type (and flags) of node ``src``."""
     g = w.group(dst_parent, key)
+    sid = t.obj(src)
     for a in ("name", "label", "type"):
         size = 3 if a == "type" else 33
-        w._str_attr(g.id, a.encode(), _text(src.attrs[a]) if a in src.attrs else "", w.s3 if size == 3 else w.s33,
-                    size)
-    if "flags" in src.attrs:
-        h5py.h5a.create(g.id, b"flags", h5py.h5t.NATIVE_INT32, w.one).write(w.flag)
+        text = t.attr(src, a, src) if h5py.h5a.exists(sid, a.encode()) else ""
+        w._str_attr(g, a.encode(), text, w.s3 if size == 3 else w.s33, size)
+    if h5py.h5a.exists(sid, b"flags"):
+        h5py.h5a.create(g, b"flags", h5py.h5t.NATIVE_INT32, w.one).write(w.flag)
     return g
+
+
+def _copy(t: _Tree, src: str, key: str, dst) -> None:
+    """Copy child ``key`` of node ``src`` (and everything below it) into ``dst`` (``H5Ocopy``),
+    or the link itself when it is a soft or external one."""
+    loc = t.f.id if src == "" else t.obj(src)
+    kb = key.encode("utf-8", "surrogateescape")
+    ltype = t.links(src)[key]
+    if ltype == h5py.h5l.TYPE_HARD:
+        h5py.h5o.copy(loc, kb, dst, kb)
+    elif ltype == h5py.h5l.TYPE_SOFT:
+        dst.links.create_soft(kb, loc.links.get_val(kb))
+    elif ltype == h5py.h5l.TYPE_EXTERNAL:
+        filename, obj = loc.links.get_val(kb)
+        dst.links.create_external(kb, filename, obj)
 
 
 def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families):
     """Copy the tree of ``fmt.source``, replacing the coordinates of ``fmt.base`` (and the records
-    when ``conn`` is given)."""
+    when ``conn`` is given).
+
+    Every subtree that stays as it is (other bases, families, flow solutions,
+    ``ZoneBC`` without ``conn``, ...) is copied whole by HDF5 (``H5Ocopy``);
+    only the base, its zones and their ``GridCoordinates`` are made anew.
+    """
     src_path = Path(fmt.source)
     w = _Writer()
     with _tree(src_path) as t:
-        src = t.f
         b = _Base(t, fmt.base)
         if len(b.zones) != grid.nblocks or any(z.dims != blk.dims for z, blk in zip(b.zones, grid.blocks)):
             raise GridValueError(
@@ -1152,81 +1178,69 @@ def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families)
         if b.ndim != grid.ndim:
             raise GridValueError(f"like={src_path}: base {fmt.base!r} is {b.ndim}-D, the grid {grid.ndim}-D")
         zone_keys = {z.group: n for n, z in enumerate(b.zones)}
-        with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
-            for a in src.attrs:
-                w._str_attr(f.id, a.encode(), _text(src.attrs[a]), w.s3 if a == "type" else w.s33,
-                            3 if a == "type" else 33)
-            for key in src:
-                link = src.get(key, getlink=True)
-                if not isinstance(link, h5py.HardLink):
-                    _copy_link(src, f, key, link)
+        with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as fh:
+            f = fh.id
+            names = []
+            h5py.h5a.iterate(t.f.id, lambda name, *_: names.append(name))
+            for a in names:
+                key = a.decode("utf-8", "replace")
+                w._str_attr(f, a, t.attr("", key, "/"), w.s3 if key == "type" else w.s33,
+                            3 if key == "type" else 33)
+            for key, ltype in t.links("").items():
+                if ltype != h5py.h5l.TYPE_HARD or key != fmt.base:
+                    _copy(t, "", key, f)
                     continue
-                if key != fmt.base:
-                    src.copy(src[key], f, name=key)
-                    continue
-                bsrc = src[key]
-                bdst = _copy_attrs_node(w, bsrc, f, key)
+                bsrc = b.node
+                bdst = _copy_attrs_node(w, t, bsrc, f, key)
                 zgs = []
-                for ck in bsrc:
-                    clink = bsrc.get(ck, getlink=True)
-                    if not isinstance(clink, h5py.HardLink):
-                        _copy_link(bsrc, bdst, ck, clink)
+                for ck, cltype in t.links(bsrc).items():
+                    zsrc = f"{bsrc}/{ck}"
+                    if cltype != h5py.h5l.TYPE_HARD or zsrc not in zone_keys:
+                        _copy(t, bsrc, ck, bdst)
                         continue
-                    obj = bsrc[ck]
-                    if obj.name not in zone_keys:
-                        bsrc.copy(obj, bdst, name=ck)
-                        continue
-                    n = zone_keys[obj.name]
-                    zdst = _copy_attrs_node(w, obj, bdst, ck)
-                    for zk in obj:
-                        zlink = obj.get(zk, getlink=True)
-                        if not isinstance(zlink, h5py.HardLink):
-                            _copy_link(obj, zdst, zk, zlink)
-                            continue
-                        if zk == "GridCoordinates":
-                            _replace_coords(w, obj[zk], zdst, grid.blocks[n], grid.ndim, single)
+                    n = zone_keys[zsrc]
+                    zdst = _copy_attrs_node(w, t, zsrc, bdst, ck)
+                    for zk, zltype in t.links(zsrc).items():
+                        if zltype != h5py.h5l.TYPE_HARD:
+                            _copy(t, zsrc, zk, zdst)
+                        elif zk == "GridCoordinates":
+                            _replace_coords(w, t, f"{zsrc}/{zk}", zdst, grid.blocks[n], grid.ndim, single)
                         elif conn is not None and zk == "ZoneBC":
                             continue
                         elif conn is not None and zk == "ZoneGridConnectivity":
-                            zsrc = obj[zk]
-                            zg = _copy_attrs_node(w, zsrc, zdst, zk)
-                            for ck2 in zsrc:
-                                node = zsrc[ck2]
-                                if isinstance(node, h5py.Group) and \
-                                        _text(node.attrs.get("label", b"")) == "GridConnectivity1to1_t":
+                            gsrc = f"{zsrc}/{zk}"
+                            zg = _copy_attrs_node(w, t, gsrc, zdst, zk)
+                            for ck2, ltype2 in t.links(gsrc).items():
+                                node = f"{gsrc}/{ck2}"
+                                if ltype2 == h5py.h5l.TYPE_HARD and isinstance(t.obj(node), h5py.h5g.GroupID) \
+                                        and t.label(node, node) == "GridConnectivity1to1_t":
                                     continue
-                                zsrc.copy(node, zg, name=ck2)
+                                _copy(t, gsrc, ck2, zg)
                         else:
-                            obj.copy(obj[zk], zdst, name=zk)
+                            _copy(t, zsrc, zk, zdst)
                     zgs.append(zdst)
                 if conn is not None:
                     _write_records(w, bdst, zgs, [z.name for z in b.zones], conn, families, grid.ndim)
 
 
-def _copy_link(src, dst, key, link):
-    if isinstance(link, h5py.SoftLink):
-        dst[key] = h5py.SoftLink(link.path)
-    elif isinstance(link, h5py.ExternalLink):
-        dst[key] = h5py.ExternalLink(link.filename, link.path)
-
-
-def _replace_coords(w: _Writer, gsrc, zdst, block: Block, ndim: int, single: bool):
-    gdst = _copy_attrs_node(w, gsrc, zdst, "GridCoordinates")
+def _replace_coords(w: _Writer, t: _Tree, gsrc: str, zdst, block: Block, ndim: int, single: bool):
+    gdst = _copy_attrs_node(w, t, gsrc, zdst, "GridCoordinates")
     names = ("CoordinateX", "CoordinateY", "CoordinateZ")[:ndim]
-    for key in gsrc:
-        if key in names:
-            continue
-        gsrc.copy(gsrc[key], gdst, name=key)
+    links = t.links(gsrc)
+    for key in links:
+        if key not in names:
+            _copy(t, gsrc, key, gdst)
     xyz = block.xyz
     for c, cname in enumerate(names):
         view = xyz[..., c].T if ndim == 3 else xyz[:, :, 0, c].T
         g = w.group(gdst, cname)
         w.attrs(g, cname, "DataArray_t", "R4" if single else "R8")
         w.data(g, view.astype(np.float32) if single else view)
-        if cname in gsrc:
-            for extra in gsrc[cname]:  # DataClass, DimensionalUnits, ... of the coordinate
+        csrc = f"{gsrc}/{cname}"
+        if links.get(cname) == h5py.h5l.TYPE_HARD and isinstance(t.obj(csrc), h5py.h5g.GroupID):
+            for extra in t.links(csrc):  # DataClass, DimensionalUnits, ... of the coordinate
                 if extra != " data":
-                    gsrc[cname].copy(gsrc[cname][extra], g, name=extra)
+                    _copy(t, csrc, extra, g)
 
 
 def write(path, grid: Grid, *, like=None, overwrite: bool = False, connectivity=None, families=None,
