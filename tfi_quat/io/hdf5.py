@@ -64,6 +64,7 @@ from __future__ import annotations
 import datetime as _dt
 import faulthandler
 import functools
+import gc
 import json
 import mmap
 import os
@@ -225,6 +226,11 @@ def _chunk_infos(ds) -> list:
     return [dsid.get_chunk_info(i) for i in range(dsid.get_num_chunks())]
 
 
+#: classes of attribute types whose values have a fixed size and refer to nothing else in the file
+_PLAIN_CLASSES = frozenset((h5py.h5t.INTEGER, h5py.h5t.FLOAT, h5py.h5t.BITFIELD, h5py.h5t.OPAQUE,
+                            h5py.h5t.ENUM, h5py.h5t.TIME))
+
+
 def _walk_metadata(source, report) -> None:
     """Read every piece of metadata the reader may use; what the guard's child runs.
 
@@ -251,14 +257,18 @@ def _walk_metadata(source, report) -> None:
             h5py.h5a.iterate(oid, lambda name, *_: names.append(name))
             for name in names:
                 report(f"attribute {name.decode('utf-8', 'replace')!r} of {where}")
+                # opening decodes the attribute's message: its type, its shape and its value
+                # (from the object header or the dense attribute storage)
                 aid = h5py.h5a.open(oid, name)
+                tid = aid.get_type()
+                cls = tid.get_class()
+                if cls in _PLAIN_CLASSES or (cls == h5py.h5t.STRING and not tid.is_variable_str()):
+                    continue  # a value of fixed size, in memory now: reading it reads no more of the file
                 shape = aid.shape
                 if shape is None:  # an empty (null) dataspace holds no value
                     continue
-                tid = aid.get_type()
-                cls = tid.get_class()
-                if cls != h5py.h5t.VLEN and not (cls == h5py.h5t.STRING and tid.is_variable_str()):
-                    # the stored bytes, in the stored type: HDF5 reads them without converting
+                if cls != h5py.h5t.VLEN and cls != h5py.h5t.STRING:
+                    # compound, array, reference: the stored bytes in the stored type
                     aid.read(np.empty(shape, dtype=f"V{tid.get_size()}"), mtype=tid)
                     continue
                 try:  # variable-length data: through h5py, which frees what HDF5 allocates
@@ -348,6 +358,8 @@ def _limit_child() -> None:
 #: bytes of the shared page in which the guard's child records its step count and current step
 _PROGRESS_BYTES = 4096
 _WHERE_MAX = _PROGRESS_BYTES - 16
+#: wall-clock seconds between two settings of the guard child's CPU limit
+_REARM_SECONDS = 0.1
 
 
 def _guard_child(source, size: int, wfd, progress) -> None:
@@ -360,26 +372,36 @@ def _guard_child(source, size: int, wfd, progress) -> None:
     """
     status = 3
     try:
+        # no cyclic garbage collection here: a full collection writes to every object of the
+        # parent's heap, and each page it writes to is copied (the walk makes little garbage,
+        # and the child ends soon)
+        gc.disable()
         steps = 0
         # every step of the walk reads at least a few bytes of metadata
         max_steps = 100 + size // 4
         cpu_hard = resource.getrlimit(resource.RLIMIT_CPU)[1]
+        rearm = -1.0
 
         def report(where):
-            # each step gets its own CPU allowance: the limit follows the progress
-            nonlocal steps
+            nonlocal steps, rearm
             steps += 1
             if steps > max_steps:
                 raise ValueError(f"more than {max_steps} metadata items, more than the file can hold")
-            use = resource.getrusage(resource.RUSAGE_SELF)
-            soft = int(use.ru_utime + use.ru_stime + GUARD_CPU_SECONDS) + 1
-            if cpu_hard != resource.RLIM_INFINITY:
-                soft = min(soft, cpu_hard)
-            resource.setrlimit(resource.RLIMIT_CPU, (soft, cpu_hard))
+            # each step gets its own CPU allowance: the limit follows the progress.  It is set
+            # again once per _REARM_SECONDS of wall-clock time (two system calls; a CGNS tree has
+            # thousands of small steps), with that much more allowance: the child has one
+            # thread and cannot use more CPU time than wall-clock time meanwhile, so every step
+            # still gets at least GUARD_CPU_SECONDS
+            now = time.monotonic()
+            if now >= rearm:
+                use = resource.getrusage(resource.RUSAGE_SELF)
+                soft = int(use.ru_utime + use.ru_stime + GUARD_CPU_SECONDS + _REARM_SECONDS) + 1
+                if cpu_hard != resource.RLIM_INFINITY:
+                    soft = min(soft, cpu_hard)
+                resource.setrlimit(resource.RLIMIT_CPU, (soft, cpu_hard))
+                rearm = now + _REARM_SECONDS
             text = where.encode("utf-8", "replace")[:_WHERE_MAX]
-            progress[16:16 + len(text)] = text
-            progress[8:16] = len(text).to_bytes(8, "little")
-            progress[0:8] = steps.to_bytes(8, "little")
+            progress[0:16 + len(text)] = steps.to_bytes(8, "little") + len(text).to_bytes(8, "little") + text
 
         try:
             _limit_child()
