@@ -940,7 +940,7 @@ class _Writer:
 
     def _str_attr(self, gid, key: bytes, text: str, tid, size: int):
         aid = h5py.h5a.create(gid, key, tid, self.scalar)
-        aid.write(np.array(text.encode("ascii")[:size - 1].ljust(size, b"\0"), dtype=f"S{size}"))
+        aid.write(np.array(text.encode("ascii")[:size - 1].ljust(size, b"\0"), dtype=f"S{size}"), mtype=tid)
 
     def attrs(self, gid, name: str, label: str, dtype: str, flags: bool = True):
         self._str_attr(gid, b"name", name, self.s33, 33)
@@ -948,7 +948,7 @@ class _Writer:
         self._str_attr(gid, b"type", dtype, self.s3, 3)
         if flags:
             aid = h5py.h5a.create(gid, b"flags", h5py.h5t.NATIVE_INT32, self.one)
-            aid.write(self.flag)
+            aid.write(self.flag, mtype=h5py.h5t.NATIVE_INT32)
 
     def node(self, parent, name: str, label: str, data=None, dtype: str | None = None):
         """Create a node; ``data`` a str (C1), an int array (I4/I8) or float array (R4/R8)."""
@@ -1139,7 +1139,7 @@ def _copy_attrs_node(w: _Writer, t: _Tree, src: str, dst_parent, key: str):
         text = t.attr(src, a, src) if h5py.h5a.exists(sid, a.encode()) else ""
         w._str_attr(g, a.encode(), text, w.s3 if size == 3 else w.s33, size)
     if h5py.h5a.exists(sid, b"flags"):
-        h5py.h5a.create(g, b"flags", h5py.h5t.NATIVE_INT32, w.one).write(w.flag)
+        h5py.h5a.create(g, b"flags", h5py.h5t.NATIVE_INT32, w.one).write(w.flag, mtype=h5py.h5t.NATIVE_INT32)
     return g
 
 
