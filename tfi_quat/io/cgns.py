@@ -52,6 +52,7 @@ node (e.g. ``/wing/inner/ZoneBC/wall1/PointRange``).  ADF-format CGNS files
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -316,8 +317,12 @@ class _Tree:
         kb = key.encode("ascii")
         oid = self._group_id(g)
         try:
-            if not h5py.h5a.exists(oid, kb):
-                self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
+            exists = h5py.h5a.exists(oid, kb)
+        except (OSError, TypeError, ValueError, KeyError, RuntimeError) as exc:
+            self.fail(node, f"cannot read attribute {key!r}: {exc}")
+        if not exists:
+            self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
+        try:
             aid = h5py.h5a.open(oid, kb)
             tid = aid.get_type()
             if tid.get_class() != h5py.h5t.STRING or tid.is_variable_str() or aid.shape not in ((), (1,)):
@@ -325,7 +330,7 @@ class _Tree:
             buf = np.zeros(aid.shape, dtype=f"S{tid.get_size()}")
             aid.read(buf)
             return _text(buf.reshape(-1)[0])
-        except (OSError, TypeError, ValueError, KeyError) as exc:
+        except (OSError, TypeError, ValueError, KeyError, RuntimeError) as exc:
             self.fail(node, f"cannot read attribute {key!r}: {exc}")
 
     def label(self, g: str, node: str) -> str:
@@ -336,7 +341,10 @@ class _Tree:
         oid = self._group_id(g)
         try:
             # the common form (a scalar fixed-length string) in one read; anything else the general way
-            h5py.h5a.open(oid, b"label").read(self._buf, mtype=_S_ATTR)
+            aid = h5py.h5a.open(oid, b"label")
+            if aid.shape != ():  # h5py does not check the buffer's size against the attribute's
+                raise TypeError("not a scalar")
+            aid.read(self._buf, mtype=_S_ATTR)
             have = _text(self._buf[()])
         except (OSError, TypeError, ValueError, KeyError, RuntimeError):
             have = self.attr(g, "label", node)
@@ -418,7 +426,9 @@ class _Tree:
             shape = dsid.shape
         except (OSError, TypeError, ValueError, RuntimeError) as exc:
             self.fail(node, f"cannot read the shape of its data: {exc}")
-        size = int(np.prod(shape)) if shape else 1
+        if shape is None:
+            self.fail(node, "its data has an empty (null) dataspace")
+        size = math.prod(shape)
         if size > max_values:
             self.fail(node, f"holds {size:,} values, more than the {max_values:,} expected")
         try:
@@ -540,6 +550,8 @@ class _Base:
                 stored = ds.get_storage_size()
             except (OSError, TypeError, ValueError, RuntimeError) as exc:
                 t.fail(cnode, f"cannot read the header of its data: {exc}")
+            if have is None:
+                t.fail(cnode, "its data has an empty (null) dataspace")
             if have != shape:
                 t.fail(cnode, f"data of shape {' x '.join(map(str, have[::-1]))} (Fortran order) "
                               f"does not match the zone size {' x '.join(map(str, vert))}")
@@ -548,7 +560,7 @@ class _Base:
             if filtered:
                 t.fail(cnode, "compressed or filtered coordinates are not supported")
             if not chunked:
-                need = int(np.prod(shape)) * dtype.itemsize
+                need = math.prod(shape) * dtype.itemsize
                 if stored < need:
                     t.fail(cnode, f"only {stored} of {need} bytes are stored (incomplete data)")
             coords.append((c, ds, cnode, dtype))
