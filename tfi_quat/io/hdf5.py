@@ -234,17 +234,18 @@ _PLAIN_CLASSES = frozenset((h5py.h5t.INTEGER, h5py.h5t.FLOAT, h5py.h5t.BITFIELD,
 def _walk_metadata(source, report) -> None:
     """Read every piece of metadata the reader may use; what the guard's child runs.
 
-    Opens the file; reads every attribute of every object, every group's links,
-    every dataset's type, shape, layout and filters, the whole chunk index of a
-    chunked dataset (each chunk must lie inside the file and not exceed what
-    its filters can produce) and the value of string datasets.  ``report(where)``
-    is called before each step, so that a crash can be placed.  Raises on the
-    first problem.
+    Opens the file; reads every attribute of every object (opening one decodes
+    its type, shape and value; variable-length values are then read from the
+    heap, compound, array and reference values read as stored), every group's
+    links, every dataset's type, shape, layout and filters, the whole chunk
+    index of a chunked dataset (each chunk must lie inside the file and not
+    exceed what its filters can produce) and the value of string datasets.
+    ``report(where)`` is called before each step, so that a crash can be
+    placed.  Raises on the first problem.
 
     h5py's low-level calls throughout, each object opened relative to its
-    parent and each attribute read as stored (no conversion to a numpy type):
-    a CGNS tree has hundreds of small groups with four attributes each, and
-    the high-level objects cost several times more per item.
+    parent: a CGNS tree has hundreds of small groups with four attributes
+    each, and the high-level objects cost several times more per item.
     """
     report("the superblock")
     with h5py.File(source, "r") as f:
