@@ -61,6 +61,7 @@ hyperslab selections and never loads the rest of the file.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import faulthandler
 import functools
@@ -231,7 +232,7 @@ _PLAIN_CLASSES = frozenset((h5py.h5t.INTEGER, h5py.h5t.FLOAT, h5py.h5t.BITFIELD,
                             h5py.h5t.ENUM, h5py.h5t.TIME))
 
 
-def _walk_metadata(source, report) -> None:
+def _walk_metadata(source, report, close: bool = True) -> None:
     """Read every piece of metadata the reader may use; what the guard's child runs.
 
     Opens the file; reads every attribute of every object (opening one decodes
@@ -241,14 +242,17 @@ def _walk_metadata(source, report) -> None:
     index of a chunked dataset (each chunk must lie inside the file and not
     exceed what its filters can produce) and the value of string datasets.
     ``report(where)`` is called before each step, so that a crash can be
-    placed.  Raises on the first problem.
+    placed.  Raises on the first problem.  ``close=False`` leaves the file
+    open (the guard's child exits at once: closing would only free HDF5's
+    metadata cache, entry by entry).
 
     h5py's low-level calls throughout, each object opened relative to its
     parent: a CGNS tree has hundreds of small groups with four attributes
     each, and the high-level objects cost several times more per item.
     """
     report("the superblock")
-    with h5py.File(source, "r") as f:
+    f = h5py.File(source, "r")
+    with f if close else contextlib.nullcontext(f):
         eof = f.id.get_filesize()
         groups = {b"": f.id}  # the groups met so far: their children are opened from them
 
@@ -406,7 +410,7 @@ def _guard_child(source, size: int, wfd, progress) -> None:
 
         try:
             _limit_child()
-            _walk_metadata(source, report)
+            _walk_metadata(source, report, close=False)
             outcome = "="
         except MemoryError:
             outcome = f"!needs more than {GUARD_MEMORY / 2**20:.0f} MiB of memory"
