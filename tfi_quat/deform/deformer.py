@@ -191,13 +191,17 @@ class Deformer:
     max_idw_sources : int
         At most this many (evenly sampled) wall points serve as sources of the
         vertex blend.
+    dup_tol : float
+        The array form of :meth:`deform`: copies of one wall point (a point
+        listed more than once) may differ by at most this distance (default
+        0: they must be equal); the first copy given is used.
     """
 
     def __init__(self, grid: Grid, walls=(), symmetry=(), fixed=(), connectivity=None,
                  method: str = "two-level", formulation: str | None = None, centre=None,
                  tol: float | None = None, blending: str | None = None,
                  rotation_length: float | None = None, idw_power: float = 3.0,
-                 max_idw_sources: int = 2000):
+                 max_idw_sources: int = 2000, dup_tol: float = 0.0):
         if not isinstance(grid, Grid):
             raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
         method = resolve_method(method, formulation)
@@ -217,6 +221,14 @@ class Deformer:
                 raise CaseError(f"rotation_length must be a positive number, got {rotation_length!r}")
             if not two:
                 raise CaseError("rotation_length applies to method='two-level' only")
+        try:
+            dup_tol = float(dup_tol)
+        except (TypeError, ValueError):
+            dup_tol = math.nan
+        if not (math.isfinite(dup_tol) and dup_tol >= 0.0):
+            raise CaseError(f"dup_tol must be a finite number >= 0, got {dup_tol!r}")
+        #: the largest distance allowed between copies of one wall point (:meth:`deform`)
+        self.dup_tol = dup_tol
         t0 = time.perf_counter()
         self.grid = grid
         self.ndim = grid.ndim
@@ -268,6 +280,7 @@ class Deformer:
         self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
         self._lock = threading.Lock()
         self._surface_cache = None
+        self._wall_keys = None
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -329,18 +342,155 @@ class Deformer:
             self._surface_cache = got
         return got
 
-    def deform(self, moved, *, callback: Callable[[int, int], None] | None = None) -> Grid:
+    def _wall_lookup(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(keys, gid)``: the flat keys (block offset + Fortran index) of every copy of every
+        wall point, ascending, and its global id; made on first use, then kept."""
+        got = self._wall_keys
+        if got is None:
+            pts = self.skeleton.points
+            on_wall = pts.kind[pts.copies_gid] == WALL
+            got = (pts.copies_key[on_wall], pts.copies_gid[on_wall])
+            self._wall_keys = got
+        return got
+
+    def _copy_name(self, b: int, i: int, j: int, k: int) -> str:
+        name = self.grid[b].name
+        return f"(block, i, j, k) = ({b}, {i}, {j}, {k})" + (f" [{name}]" if name else "")
+
+    def _array_targets(self, xs, ids, displacement: bool, rd: np.ndarray) -> np.ndarray:
+        """The array form of :meth:`deform`: wall targets from rows of ``xs`` at the copies
+        ``ids`` (None: :meth:`surface_ids`), checked, into the wall rows of ``rd``."""
+        pts = self.skeleton.points
+        xs = np.asarray(xs)
+        if xs.ndim != 2 or xs.shape[1] != 3:
+            raise DeformationError(f"xs must have shape (n, 3), got {xs.shape}")
+        if not (np.issubdtype(xs.dtype, np.floating) or np.issubdtype(xs.dtype, np.integer)):
+            raise DeformationError(f"xs must hold real numbers, got dtype {xs.dtype}")
+        xs = np.asarray(xs, dtype=np.float64)
+        m = xs.shape[0]
+        if ids is None:
+            sid, gid = self._surface()
+            if m != sid.shape[0]:
+                raise DeformationError(
+                    f"xs has {m} rows; without ids it must have one row per wall point copy of "
+                    f"surface_ids(), {sid.shape[0]} (or give ids)")
+            copy_of = sid
+        else:
+            copy_of = self._check_ids(ids, m)
+            keys, kgid = self._wall_lookup()
+            b, i, j, k = copy_of.T
+            flat = self._flat_keys(b, i, j, k)
+            at = np.minimum(np.searchsorted(keys, flat), keys.size - 1)
+            hit = keys[at] == flat
+            if not hit.all():
+                r = int(np.flatnonzero(~hit)[0])
+                raise DeformationError(f"ids row {r}: {self._copy_name(*copy_of[r])} (0-based) is "
+                                       f"not a wall point ({int((~hit).sum())} such row(s))")
+            gid = kgid[at]
+        bad = ~np.isfinite(xs)
+        if bad.any():
+            r = int(np.flatnonzero(bad.any(axis=1))[0])
+            raise DeformationError(f"xs row {r} ({self._copy_name(*copy_of[r])}, 0-based) is not "
+                                   f"finite ({int(bad.any(axis=1).sum())} such row(s))")
+        # one row per distinct point, the first copy given; the others must agree with it
+        order = np.argsort(gid, kind="stable")
+        g_sorted = gid[order]
+        start = np.ones(m, dtype=bool)
+        start[1:] = g_sorted[1:] != g_sorted[:-1]
+        first = order[start]
+        lead = order[np.maximum.accumulate(np.where(start, np.arange(m), 0))]
+        dist = np.sqrt(np.sum((xs[order] - xs[lead]) ** 2, axis=1))
+        over = dist > self.dup_tol
+        if over.any():
+            r = int(np.argmax(np.where(over, dist, -1.0)))
+            a, c = int(lead[r]), int(order[r])
+            raise DeformationError(
+                f"rows {a} and {c} of xs are copies of one wall point, {self._copy_name(*copy_of[a])} "
+                f"and {self._copy_name(*copy_of[c])} (0-based), and differ by {dist[r]:.6g} > "
+                f"dup_tol = {self.dup_tol:g} ({int(over.sum())} copy(ies) disagree with their "
+                f"first; Deformer(dup_tol=...) sets the tolerance)")
+        g_first = gid[first]
+        seen = np.zeros(pts.n_global, dtype=bool)
+        seen[g_first] = True
+        missing = pts.wall[~seen[pts.wall]]
+        if missing.size:
+            b, flat = self._key_to_copy(int(pts.rep_key[missing[0]]))
+            raise DeformationError(f"{missing.size} wall point(s) have no row in xs, e.g. "
+                                   f"{self._copy_name(b, *flat)} (0-based)")
+        rd[g_first] = xs[first]
+        if displacement:
+            rd[g_first] += pts.P[g_first]
+        if self.ndim == 2 and np.any(rd[pts.wall, 2] != 0.0):
+            what = "displacements" if displacement else "wall points"
+            raise DeformationError(f"the {what} of a 2-D grid must have z = 0")
+        return rd
+
+    def _check_ids(self, ids, m: int) -> np.ndarray:
+        """``ids`` as an (m, 4) int64 array of existing points, else a DeformationError naming
+        the row."""
+        a = np.asarray(ids)
+        if a.ndim != 2 or a.shape[1] != 4:
+            raise DeformationError(f"ids must have shape (m, 4) (block, i, j, k, 0-based), got "
+                                   f"{a.shape}")
+        if a.shape[0] != m:
+            raise DeformationError(f"ids has {a.shape[0]} rows, xs {m}: one id per row of xs")
+        if not np.issubdtype(a.dtype, np.integer):
+            raise DeformationError(f"ids must be integers, got dtype {a.dtype}")
+        a = a.astype(np.int64, copy=False)
+        nb = len(self.grid)
+        bad = (a[:, 0] < 0) | (a[:, 0] >= nb)
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            raise DeformationError(f"ids row {r}: block {a[r, 0]} out of range 0..{nb - 1} "
+                                   f"(0-based)")
+        dims = np.array(self.grid.dims, dtype=np.int64)[a[:, 0]]
+        bad = ((a[:, 1:] < 0) | (a[:, 1:] >= dims)).any(axis=1)
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            raise DeformationError(f"ids row {r}: {self._copy_name(*a[r])} (0-based) is outside "
+                                   f"the block's {tuple(int(v) for v in dims[r])} points")
+        return a
+
+    def _flat_keys(self, b, i, j, k) -> np.ndarray:
+        """Flat keys (block offset + Fortran index) of points (block, i, j, k)."""
+        dims = np.array(self.grid.dims, dtype=np.int64)[b]
+        return self.skeleton.points.offsets[b] + i + dims[:, 0] * (j + dims[:, 1] * k)
+
+    def _key_to_copy(self, key: int) -> tuple[int, tuple[int, int, int]]:
+        off = self.skeleton.points.offsets
+        b = int(np.searchsorted(off, key, side="right") - 1)
+        ni, nj, _ = self.grid[b].dims
+        r = key - int(off[b])
+        return b, (r % ni, (r // ni) % nj, r // (ni * nj))
+
+    def deform(self, moved, *, ids=None, displacement: bool = False,
+               callback: Callable[[int, int], None] | None = None) -> Grid:
         """Deform the grid for new wall positions.
 
         Parameters
         ----------
-        moved : callable, Grid or mapping
+        moved : ndarray, callable, Grid or mapping
+            * an array ``xs`` (n, 3): the new position (``displacement``:
+              the displacement) of every wall point copy, in the order of
+              :meth:`surface_ids`, or with ``ids`` of the copies ``ids``;
             * a callable ``f(points (n, 3)) -> (n, 3)`` giving the new
               position of each wall point (see :meth:`wall_points`);
             * a Grid with the reference's dimensions whose wall points hold
               the new positions (other points are ignored);
             * a mapping ``PatchSpec or "B:FACE[:range]" -> array (na, nb, 3)``
               covering every wall point.
+        ids : array_like of int, shape (m, 4), optional
+            With an array ``xs`` (m, 3): the ``(block, i, j, k)`` (0-based)
+            of the point each row moves, in any order (a solver's own wall
+            list).  Every distinct wall point must be given at least once;
+            a point may be listed several times (once per block that holds
+            it, say): its copies must agree within ``dup_tol``
+            (:class:`Deformer`) and the first is used.  Any copy of a wall
+            point counts, also one :meth:`surface_ids` does not list (a
+            block touching the wall at an edge only).
+        displacement : bool
+            With an array: its rows are displacements from the reference
+            positions (:meth:`surface_points`) instead of positions.
         callback : callable(done, total), optional
             Called after each block kernel (progress reporting).
 
@@ -351,11 +501,27 @@ class Deformer:
             ``connectivity`` (so ``write(path, out, like=reference)`` writes
             the reference's file variant, a CGNS file with its boundary
             conditions); the reference is not modified.  Every call starts
-            from the reference, so repeated steps do not drift.
+            from the reference, so repeated steps do not drift.  The array
+            form gives bit for bit the grid of a callable returning the
+            same positions.
+
+        Raises
+        ------
+        DeformationError
+            Bad input, before anything is computed: wrong shapes, ids out of
+            range or not on a wall (the message names the row), wall points
+            not covered (it names how many and one), copies of a point that
+            disagree (it names both and their distance), non-finite values.
         """
         with self._lock:
             t0 = time.perf_counter()
-            rd = _wall_targets(self.skeleton, self.grid, moved, self._work.rd)
+            if isinstance(moved, np.ndarray):
+                rd = self._array_targets(moved, ids, bool(displacement), self._work.rd)
+            else:
+                if ids is not None or displacement:
+                    raise DeformationError("ids= and displacement= go with an array of wall points "
+                                           f"(n, 3) as the first argument, got {type(moved).__name__}")
+                rd = _wall_targets(self.skeleton, self.grid, moved, self._work.rd)
             if self.two_level is not None:
                 outs, pos, ts, t1, t3 = self._two_level_step(rd, callback)
             else:
