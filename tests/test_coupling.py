@@ -206,3 +206,230 @@ def test_2d_wall_rows_need_z_zero():
     xs[:, 2] = 0.1
     with pytest.raises(DeformationError, match="z = 0"):
         d.deform(xs)
+
+
+# ------------------------------------------------------------------ out=
+def _layouts(d):
+    """Every out layout: a Grid, Fortran and C arrays, separate x, y, z (both orders),
+    a strided view."""
+    strided = [np.zeros(b.dims[::-1] + (3,)).transpose(2, 1, 0, 3) for b in d.grid]
+    return {"grid": d.new_grid(), "F": [b.xyz for b in d.new_grid()],
+            "C": d.new_grid("C"), "xyz-F": d.new_grid("F", separate=True),
+            "xyz-C": d.new_grid("C", separate=True), "strided": strided}
+
+
+def _as_blocks(out):
+    if hasattr(out, "blocks"):
+        return [b.xyz for b in out]
+    return [np.stack(o, axis=-1) if isinstance(o, tuple) else o for o in out]
+
+
+def test_out_in_every_layout_gives_the_same_bits(any_deformer):
+    d = any_deformer
+    move = _motion(d)
+    want = d.deform(move)
+    xs = move(d.surface_points())
+    for name, out in _layouts(d).items():
+        got = d.deform(xs, out=out)
+        for b, (a, w) in enumerate(zip(_as_blocks(out), want)):
+            assert np.array_equal(a, w.xyz), (name, b)
+        if name == "grid":
+            assert got is out
+        elif name == "F":
+            assert all(np.shares_memory(g.xyz, a) for g, a in zip(got, out))
+            assert got.connectivity is d.grid.connectivity and got.ndim == d.ndim
+        else:
+            assert got is None
+    # the other forms into out too; the reference untouched
+    ref = d.grid.copy()
+    out = d.new_grid("C")
+    d.deform(move, out=out)
+    assert all(np.array_equal(a, w.xyz) for a, w in zip(out, want))
+    assert d.grid == ref
+
+
+def test_new_grid_buffers_hold_the_reference():
+    grid, walls, sym, fixed = G.box_pair()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    g = d.new_grid()
+    assert g == d.grid and not np.shares_memory(g[0].xyz, d.grid[0].xyz)
+    c = d.new_grid("C")
+    assert c[1].flags.c_contiguous and np.array_equal(c[1], grid[1].xyz)
+    x, y, z = d.new_grid("F", separate=True)[1]
+    assert x.flags.f_contiguous and x.shape == grid[1].dims and np.array_equal(z, grid[1].xyz[..., 2])
+    with pytest.raises(Exception, match="order"):
+        d.new_grid("K")
+
+
+def test_bad_out_is_a_clear_error_and_nothing_is_written():
+    grid, walls, sym, fixed = G.box_pair()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    xs = d.surface_points() + 0.01
+
+    def parts(out):
+        if not isinstance(out, list):
+            return []
+        return [p for o in out for p in (o if isinstance(o, tuple) else (o,))
+                if isinstance(p, np.ndarray)]
+
+    def err(match, out):
+        keep = [a.copy() for a in parts(out)]
+        with pytest.raises(DeformationError, match=match):
+            d.deform(xs, out=out)
+        for a, k in zip(parts(out), keep):
+            assert np.array_equal(a, k)
+    good = d.new_grid("C")
+    err("out has 1 entries, the grid 2 blocks", good[:1])
+    err(r"out\[1\]: shape", [good[0], good[1][:, :-1]])
+    err(r"out\[0\]: dtype float32", [good[0].astype(np.float32), good[1]])
+    ro = good[1].copy()
+    ro.flags.writeable = False
+    err(r"out\[1\]: the array is read-only", [good[0], ro])
+    sep = d.new_grid("F", separate=True)
+    err(r"out\[1\] \(x, y, z\): shape", [sep[0], (sep[1][0], sep[1][1], sep[1][2][:-1])])
+    err(r"out\[0\]: expected an array", [3, good[1]])
+    err("reference grid", d.grid)
+    err(r"out\[0\]: shares memory with the reference", [grid[0].xyz, good[1]])
+    err("out must be a Grid or a list", good[0])
+
+
+def _box_with_small_wall(n=81):
+    s = np.linspace(0.0, 1.0, n)
+    xyz = np.stack(np.meshgrid(s, s ** 1.3, s, indexing="ij"), -1)
+    from tfi_quat import Block, Grid
+    return Grid([Block(np.asfortranarray(xyz))]), ["1:jmin:30-50,30-50"]
+
+
+@pytest.mark.parametrize("method", ["two-level", "samareh"])
+def test_a_step_into_out_allocates_nothing_grid_sized(method):
+    import tracemalloc
+    grid, walls = _box_with_small_wall()
+    d = Deformer(grid, walls=walls, method=method)
+    xs = d.surface_points()
+    xs[:, 1] += 0.01 * np.sin(3.0 * xs[:, 0])
+    nbytes = sum(b.xyz.nbytes for b in grid)
+    for out in (d.new_grid(), d.new_grid("C"), d.new_grid("F", separate=True)):
+        d.deform(xs, out=out)                  # compiled, scratch made
+        tracemalloc.start()
+        try:
+            d.deform(xs, out=out)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 0.05 * nbytes, (type(out), peak / nbytes)
+    # without out, a step makes its grid
+    tracemalloc.start()
+    try:
+        d.deform(xs)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak >= nbytes
+
+
+# ------------------------------------------------------------------ check=
+def _corner_dets(x):
+    """Per cell and corner, the Jacobian (the determinant of the edges leaving the corner
+    along +i, +j, +k; 2-D: +i, +j), numpy whole-array code: (ncells..., 8 or 4)."""
+    if x.shape[2] == 1:
+        p = x[:, :, 0, :2]
+        di = p[1:] - p[:-1]
+        dj = p[:, 1:] - p[:, :-1]
+        out = []
+        for a in (0, 1):
+            for b in (0, 1):
+                u = di[:, b:b + dj.shape[1]]
+                v = dj[a:a + di.shape[0]]
+                out.append(u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0])
+        return np.stack(out, -1)
+    di, dj, dk = x[1:] - x[:-1], x[:, 1:] - x[:, :-1], x[:, :, 1:] - x[:, :, :-1]
+    ni, nj, nk = x.shape[:3]
+    out = []
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                u = di[:, b:b + nj - 1, c:c + nk - 1]
+                v = dj[a:a + ni - 1, :, c:c + nk - 1]
+                w = dk[a:a + ni - 1, b:b + nj - 1]
+                out.append(np.einsum("...i,...i->...", np.cross(u, v), w))
+    return np.stack(out, -1)
+
+
+def _cell_ratio(grid, ref, b, i, j, k):
+    cell = (i, j) if grid.ndim == 2 else (i, j, k)
+    jr = _corner_dets(ref[b].xyz)[cell]
+    return np.where(jr != 0.0, _corner_dets(grid[b].xyz)[cell] / jr, np.inf).min()
+
+
+def _oracle(grid, ref):
+    """(min ratio, negative-Jacobian cells) in numpy."""
+    lo, nj = np.inf, 0
+    for b, r in zip(grid, ref):
+        jd, jr = _corner_dets(b.xyz), _corner_dets(r.xyz)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = np.where(jr != 0.0, jd / jr, np.inf).min(axis=-1)
+        lo = min(lo, q.min())
+        nj += int((q <= 0.0).sum())
+    return lo, nj
+
+
+def _fold(d, angle):
+    c = d.wall_points().mean(axis=0)
+    return rigid_motion(angle, about=c, axis=(0.0, 0.0, 1.0) if d.ndim == 2 else (1.0, 0.3, 0.2))
+
+
+@pytest.mark.parametrize("angle", [5.0, 120.0])
+def test_check_agrees_with_negative_cells_and_a_numpy_jacobian(any_deformer, angle):
+    from tfi_quat.quality import CellCheck, negative_cells
+    d = any_deformer
+    move = _fold(d, angle)
+    g = d.deform(move, check=True)
+    rep = g.quality
+    assert isinstance(rep, CellCheck) and d.quality is rep
+    assert rep.negative == sum(len(c) for _, c in negative_cells(g, d.grid))
+    lo, nj = _oracle(g, d.grid)
+    assert rep.min_ratio == pytest.approx(lo, rel=1e-9, abs=1e-12)
+    assert rep.negative_jacobian == nj
+    assert rep.ok == (rep.negative == 0 and nj == 0)
+    assert _cell_ratio(g, d.grid, *rep.min_at) == pytest.approx(rep.min_ratio, rel=1e-9, abs=1e-12)
+    neg = {(b, *map(int, c)) for b, cc in negative_cells(g, d.grid) for c in cc}
+    if d.ndim == 2:
+        neg = {t + (0,) for t in neg}
+    for cell in rep.first:
+        assert _cell_ratio(g, d.grid, *cell) <= 0.0 or cell in neg
+    # a check changes nothing in the grid
+    _same(g, d.deform(move))
+    assert d.deform(move).quality is None and d.quality is None
+
+
+def test_a_small_motion_checks_valid_and_no_motion_to_ratio_one():
+    grid, walls, sym, fixed = G.box_pair()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    rep = d.deform(lambda p: p + [0.0, 0.01, 0.0], check=True).quality
+    assert rep.ok and rep.negative == 0 and rep.first == () and 0.5 < rep.min_ratio < 1.0
+    rep = d.deform(lambda p: p, check=True).quality
+    assert rep.ok and rep.min_ratio == 1.0
+
+
+def test_check_raise_names_the_cells_and_leaves_the_buffers_alone():
+    grid, walls, sym, fixed = G.o_grid()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    move = _fold(d, 150.0)
+    rep = d.deform(move, check=True).quality
+    assert not rep.ok and rep.first
+    for out in _layouts(d).values():
+        before = [a.copy() for a in _as_blocks(out)]
+        with pytest.raises(DeformationError, match=r"invalid cells.*first: \(0, \d+, \d+, 0\)"):
+            d.deform(move, out=out, check="raise")
+        for a, k in zip(_as_blocks(out), before):
+            assert np.array_equal(a, k)
+    with pytest.raises(DeformationError, match="invalid cells"):
+        d.deform(move, check="raise")
+    # a valid step into the same buffers passes and fills them
+    ok = _motion(d)
+    want = d.deform(ok)
+    for out in _layouts(d).values():
+        d.deform(ok, out=out, check="raise")
+        assert all(np.array_equal(a, w.xyz) for a, w in zip(_as_blocks(out), want))
+    with pytest.raises(DeformationError, match="check must be"):
+        d.deform(ok, check="yes")

@@ -37,8 +37,10 @@ from typing import Callable, Mapping
 import numpy as np
 
 from .. import quaternion as qa
+from .._jit import serial_below
 from ..errors import CaseError, DeformationError
 from ..grid import Block, Grid, face_ijk
+from ..quality import CellCheck, check_block
 from ..spec import PatchSpec, as_patch_specs, parse_patch_spec
 from . import stages, twolevel
 from .skeleton import BLENDINGS, FIXED, WALL, ArclengthParams, boundary_points, build_skeleton
@@ -281,6 +283,11 @@ class Deformer:
         self._lock = threading.Lock()
         self._surface_cache = None
         self._wall_keys = None
+        self._scratch = None
+        self._scratch_grid = None
+        #: the check of the last :meth:`deform` step (:class:`tfi_quat.quality.CellCheck`), or
+        #: None when it was not checked
+        self.quality = None
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -320,6 +327,39 @@ class Deformer:
             if sel.any():
                 i, j, k = ids[sel, 1], ids[sel, 2], ids[sel, 3]
                 out[sel] = blk.xyz[i, j, k]
+        return out
+
+    def new_grid(self, order: str = "F", separate: bool = False):
+        """Buffers for :meth:`deform`'s ``out`` (and :meth:`velocity`'s), holding a copy of
+        the reference coordinates.
+
+        Parameters
+        ----------
+        order : {"F", "C"}
+            Memory order of each block's arrays.
+        separate : bool
+            Three arrays ``x, y, z`` of shape ``(ni, nj, nk)`` per block
+            (as Fortran solvers keep them) instead of one ``(ni, nj, nk, 3)``.
+
+        Returns
+        -------
+        Grid or list
+            ``order="F"``, not separate: a Grid (its blocks are Fortran
+            ``(ni, nj, nk, 3)`` arrays, which :meth:`deform` writes with no
+            copy).  Otherwise a list with per block an array
+            ``(ni, nj, nk, 3)`` in ``order``, or a tuple ``(x, y, z)``.
+        """
+        if order not in ("F", "C"):
+            raise CaseError(f"order must be 'F' or 'C', got {order!r}")
+        ref = self.grid
+        if order == "F" and not separate:
+            return ref.copy()
+        out = []
+        for blk in ref:
+            if separate:
+                out.append(tuple(np.array(blk.xyz[..., c], order=order) for c in range(3)))
+            else:
+                out.append(np.array(blk.xyz, order=order))
         return out
 
     def _surface(self) -> tuple[np.ndarray, np.ndarray]:
@@ -398,12 +438,15 @@ class Deformer:
         start = np.ones(m, dtype=bool)
         start[1:] = g_sorted[1:] != g_sorted[:-1]
         first = order[start]
-        lead = order[np.maximum.accumulate(np.where(start, np.arange(m), 0))]
-        dist = np.sqrt(np.sum((xs[order] - xs[lead]) ** 2, axis=1))
+        # the repeated copies (rows of xs) and the first copy of their point
+        rep = np.flatnonzero(~start)
+        lead = order[np.maximum.accumulate(np.where(start, np.arange(m), 0))[rep]]
+        rep = order[rep]
+        dist = np.sqrt(np.sum((xs[rep] - xs[lead]) ** 2, axis=1))
         over = dist > self.dup_tol
         if over.any():
             r = int(np.argmax(np.where(over, dist, -1.0)))
-            a, c = int(lead[r]), int(order[r])
+            a, c = int(lead[r]), int(rep[r])
             raise DeformationError(
                 f"rows {a} and {c} of xs are copies of one wall point, {self._copy_name(*copy_of[a])} "
                 f"and {self._copy_name(*copy_of[c])} (0-based), and differ by {dist[r]:.6g} > "
@@ -463,7 +506,7 @@ class Deformer:
         r = key - int(off[b])
         return b, (r % ni, (r // ni) % nj, r // (ni * nj))
 
-    def deform(self, moved, *, ids=None, displacement: bool = False,
+    def deform(self, moved, *, ids=None, displacement: bool = False, out=None, check=False,
                callback: Callable[[int, int], None] | None = None) -> Grid:
         """Deform the grid for new wall positions.
 
@@ -491,19 +534,55 @@ class Deformer:
         displacement : bool
             With an array: its rows are displacements from the reference
             positions (:meth:`surface_points`) instead of positions.
+        out : Grid or list, optional
+            Buffers the step writes into instead of making a new grid (a
+            coupled solver's own arrays; :meth:`new_grid` makes them): a
+            Grid with the reference's dimensions, or a list with, per
+            block, an array ``(ni, nj, nk, 3)`` float64 in Fortran or C
+            order (any strides), or a tuple of three ``(ni, nj, nk)``
+            arrays ``x, y, z`` (2-D grids: ``nk = 1``; give a
+            ``(ni, nj)`` array as its view ``a[:, :, None]``).  They are
+            checked (shape, dtype, writeable, not the reference) before
+            anything is written; the step allocates nothing the size of
+            the grid.  Fortran-ordered ``(ni, nj, nk, 3)`` arrays (a
+            Grid's blocks) are written by the compiled kernels directly;
+            the other layouts go, block by block, through one scratch
+            array the size of the largest block that the Deformer keeps,
+            and are copied from it (the kernels are compiled for Fortran
+            arrays only: a specialisation per layout would add its
+            compile time to every cold start, and the x, y, z triple
+            cannot be one array).
+        check : {False, True, "raise"}
+            Check every cell of the result against the reference as each
+            block is made (:func:`tfi_quat.quality.check_block`: the
+            smallest corner-Jacobian ratio, negative and negative-Jacobian
+            cells, their first locations), a pass that costs a fraction of
+            the block kernels and allocates nothing grid-sized.  The report
+            (:class:`tfi_quat.quality.CellCheck`) is the result grid's
+            ``quality`` and the Deformer's :attr:`quality`.  ``"raise"``:
+            a :class:`DeformationError` naming the first invalid cells when
+            a cell is negative or has a corner ratio <= 0; with ``out``, the
+            step then computes into a scratch grid that the Deformer keeps
+            (made on the first such call: memory the size of the grid) and
+            copies it into ``out`` only when the grid is valid, so that the
+            buffers are left unchanged by a failed step.
         callback : callable(done, total), optional
             Called after each block kernel (progress reporting).
 
         Returns
         -------
-        Grid
-            A new grid with the reference's ``source_format`` and
-            ``connectivity`` (so ``write(path, out, like=reference)`` writes
-            the reference's file variant, a CGNS file with its boundary
-            conditions); the reference is not modified.  Every call starts
-            from the reference, so repeated steps do not drift.  The array
-            form gives bit for bit the grid of a callable returning the
-            same positions.
+        Grid or None
+            Without ``out``: a new grid with the reference's
+            ``source_format`` and ``connectivity`` (so ``write(path, out,
+            like=reference)`` writes the reference's file variant, a CGNS
+            file with its boundary conditions).  With ``out`` a Grid: that
+            grid; with a list of Fortran-ordered arrays: a Grid whose
+            blocks view them; with other layouts: None (the values are in
+            ``out``).  The reference is not modified; every call starts
+            from it, so repeated steps do not drift.  Every form and
+            every ``out`` layout gives the same bits; the array form
+            gives bit for bit the grid of a callable returning the same
+            positions.
 
         Raises
         ------
@@ -515,6 +594,9 @@ class Deformer:
         """
         with self._lock:
             t0 = time.perf_counter()
+            if not (check is False or check is True or check == "raise"):
+                raise DeformationError(f"check must be False, True or 'raise', got {check!r}")
+            dests = None if out is None else self._check_out(out)
             if isinstance(moved, np.ndarray):
                 rd = self._array_targets(moved, ids, bool(displacement), self._work.rd)
             else:
@@ -523,16 +605,17 @@ class Deformer:
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
                 rd = _wall_targets(self.skeleton, self.grid, moved, self._work.rd)
             if self.two_level is not None:
-                outs, pos, ts, t1, t3 = self._two_level_step(rd, callback)
+                passes, ts, t1, t3 = self._two_level_fields(rd)
             else:
-                outs, pos, ts, t1, t3 = self._samareh_step(rd, callback)
-            grid = _assemble(self.skeleton, self.grid, outs, pos)
+                passes, ts, t1, t3 = self._samareh_fields(rd)
+            grid = self._volumes(passes, dests, out, callback, check)
             t4 = time.perf_counter()
             self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=t3 - t1 - ts, volumes=t4 - t3)
             return grid
 
-    def _samareh_step(self, rd, callback):
-        """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q)."""
+    def _samareh_fields(self, rd):
+        """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q) on the
+        boundary points; returns the volume pass (:meth:`_volumes`)."""
         sk = self.skeleton
         wall = sk.points.wall
         c = self.centre
@@ -564,13 +647,12 @@ class Deformer:
         stages.onto_symmetry(sk, pos)
         pos[wall] = rd[wall]
         t3 = time.perf_counter()
-        outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
-        stages.volumes(sk, self.grid, [blk.xyz for blk in self.grid], gdelta, gq, c, outs, callback)
-        return outs, pos, ts, t1, t3
+        return [(gdelta, gq, c, None)], ts, t1, t3
 
-    def _two_level_step(self, rd, callback):
+    def _two_level_fields(self, rd):
         """The residual motion (:func:`twolevel.local_fields`) where the walls deform, then
-        the bodies' rigid motions (:func:`twolevel.rigid_fields`) where they move."""
+        the bodies' rigid motions (:func:`twolevel.rigid_fields`) where they move; returns
+        the volume passes (:meth:`_volumes`)."""
         sk = self.skeleton
         two = self.two_level
         wall = sk.points.wall
@@ -595,19 +677,146 @@ class Deformer:
         stages.onto_symmetry(sk, pos)
         pos[wall] = rd[wall]
         t3 = time.perf_counter()
-        grid = self.grid
-        outs = [np.empty_like(blk.xyz, order="F") for blk in grid]
-        total = len(grid) * (int(local) + int(rigid))
-        if local:
-            stages.volumes(sk, grid, [blk.xyz for blk in grid], w.K, w.ql, _ORIGIN, outs, callback,
-                           0, total, base_tables=two.base)
-        else:
-            for out, blk in zip(outs, grid):
-                np.copyto(out, blk.xyz)
+        # the residual motion about the arms' base points, or the reference copied; then the
+        # rigid motion in place
+        passes = [(w.K, w.ql, _ORIGIN, two.base) if local else None]
         if rigid:
-            stages.volumes(sk, grid, outs, w.gd, w.qg, self.centre, outs, callback,
-                           len(grid) * int(local), total)
-        return outs, pos, ts, t1, t3
+            passes.append((w.gd, w.qg, self.centre, None))
+        return passes, ts, t1, t3
+
+    def _volumes(self, passes, dests, out, callback, check):
+        """The block kernels of a step's ``passes`` (each ``(Δ or K, Q, centre, base tables)``
+        applied to the previous one's result, the first to the reference; None: copy the
+        reference), every boundary copy from the positions, into the buffers ``dests``
+        (:meth:`_check_out`; None: new arrays), each block checked after it is made when
+        ``check``; returns the result grid."""
+        sk = self.skeleton
+        grid = self.grid
+        pos = self._work.pos
+        total = len(grid) * sum(p is not None for p in passes)
+        done = 0
+        arrays = []
+        # check="raise" into buffers: every block into the kept scratch first, so that a
+        # folded grid leaves the buffers as they were
+        hold = check == "raise" and dests is not None
+        reports = []
+        for b, blk in enumerate(grid):
+            dest = None if dests is None else dests[b]
+            if dest is None:
+                dst = np.empty_like(blk.xyz, order="F")
+            elif hold:
+                dst = self._grid_scratch()[b]
+            elif _is_kernel_array(dest):
+                dst = dest
+            else:
+                dst = self._block_scratch(b)
+            base = blk.xyz
+            for p in passes:
+                if p is None:
+                    np.copyto(dst, base)
+                else:
+                    gd, gq, c, tables = p
+                    stages.volume(sk, grid, b, base, gd, gq, c, dst,
+                                  None if tables is None else tables[b])
+                    done += 1
+                    if callback is not None:
+                        callback(done, total)
+                base = dst
+            local, gid = sk.scatter[b]
+            stages.scatter_rows(pos, gid, local, dst.reshape(-1, 3, order="F"))
+            if sk.ndim == 2:
+                dst[..., 2] = 0.0
+            if check:
+                with serial_below(blk.npoints):
+                    reports.append(check_block(dst, blk.xyz, sk.ndim, b))
+            if dst is not dest and dest is not None and not hold:
+                _copy_out(dst, dest)
+            arrays.append(dst if dest is None else dest)
+        report = CellCheck.merge(reports) if check else None
+        self.quality = report
+        if check == "raise" and not report.ok:
+            raise DeformationError(f"the deformed grid has invalid cells: {report}" +
+                                   ("; the out buffers are unchanged" if hold else ""))
+        if hold:
+            for b, dest in enumerate(dests):
+                _copy_out(self._grid_scratch()[b], dest)
+        if isinstance(out, Grid):
+            result = out
+        elif not all(_is_kernel_array(a) for a in arrays):
+            return None
+        else:
+            blocks = [Block(a, blk.iblank, blk.name, allow_nonfinite=True)
+                      for a, blk in zip(arrays, grid)]
+            result = Grid(blocks, grid.ndim, source_format=grid.source_format,
+                          connectivity=grid.connectivity)
+        result.quality = report
+        return result
+
+    def _grid_scratch(self) -> list:
+        """One Fortran (ni, nj, nk, 3) array per block (``check="raise"`` into buffers), made
+        on first use and kept."""
+        if self._scratch_grid is None:
+            self._scratch_grid = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
+        return self._scratch_grid
+
+    def _block_scratch(self, b: int) -> np.ndarray:
+        """A Fortran (ni, nj, nk, 3) array for block ``b``: a view of one buffer the size of
+        the largest block, made on first use and kept (the next block's scratch reuses it)."""
+        if self._scratch_grid is not None:
+            return self._scratch_grid[b]
+        dims = self.grid[b].dims
+        n = 3 * self.grid[b].npoints
+        flat = self._scratch
+        if flat is None:
+            flat = self._scratch = np.empty(3 * max(blk.npoints for blk in self.grid))
+        return flat[:n].reshape(dims + (3,), order="F")
+
+    def _check_out(self, out) -> list:
+        """The buffers of ``out`` per block: a (ni, nj, nk, 3) float64 array or a tuple of three
+        (ni, nj, nk) ones, checked (shape, dtype, writeable, not the reference's memory)."""
+        grid = self.grid
+        nb = len(grid)
+        if isinstance(out, Grid):
+            if out is grid:
+                raise DeformationError("out is the reference grid: give a buffer of its own "
+                                       "(Deformer.new_grid())")
+            if len(out) != nb:
+                raise DeformationError(f"out has {len(out)} blocks, the grid {nb}")
+            items = [blk.xyz for blk in out]
+        elif isinstance(out, (list, tuple)):
+            if len(out) != nb:
+                raise DeformationError(f"out has {len(out)} entries, the grid {nb} blocks: one "
+                                       "per block")
+            items = list(out)
+        else:
+            raise DeformationError(f"out must be a Grid or a list with one entry per block, got "
+                                   f"{type(out).__name__}")
+        dests = []
+        for b, (item, blk) in enumerate(zip(items, grid)):
+            dims = blk.dims
+            if isinstance(item, np.ndarray):
+                parts, want, what = [item], dims + (3,), f"out[{b}]"
+            elif isinstance(item, (tuple, list)) and len(item) == 3:
+                parts, want, what = list(item), dims, f"out[{b}] (x, y, z)"
+            else:
+                raise DeformationError(f"out[{b}]: expected an array (ni, nj, nk, 3) or a tuple of "
+                                       f"three (ni, nj, nk) arrays x, y, z, got "
+                                       f"{type(item).__name__}")
+            for part in parts:
+                if not isinstance(part, np.ndarray):
+                    raise DeformationError(f"{what}: expected numpy arrays, got "
+                                           f"{type(part).__name__}")
+                if part.shape != want:
+                    raise DeformationError(f"{what}: shape {part.shape}, expected {want} for "
+                                           f"block {b} (0-based)")
+                if part.dtype != np.float64:
+                    raise DeformationError(f"{what}: dtype {part.dtype}, expected float64")
+                if not part.flags.writeable:
+                    raise DeformationError(f"{what}: the array is read-only")
+                if np.may_share_memory(part, blk.xyz):
+                    raise DeformationError(f"{what}: shares memory with the reference grid")
+            dests.append(item if isinstance(item, np.ndarray) else tuple(item))
+        return dests
 
     def summary(self) -> str:
         """A few lines describing the skeleton (for the CLI and logs)."""
@@ -699,16 +908,18 @@ def _wall_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
     return rd
 
 
-def _assemble(sk, ref: Grid, outs, pos) -> Grid:
-    """The result grid: the block kernels' outputs with every boundary copy from ``pos``."""
-    blocks = []
-    for b, (blk, out) in enumerate(zip(ref, outs)):
-        local, gid = sk.scatter[b]
-        stages.scatter_rows(pos, gid, local, out.reshape(-1, 3, order="F"))
-        if sk.ndim == 2:
-            out[..., 2] = 0.0
-        blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
-    return Grid(blocks, ref.ndim, source_format=ref.source_format, connectivity=ref.connectivity)
+def _is_kernel_array(a) -> bool:
+    """Whether the volume kernels write ``a`` straight: a Fortran-ordered (ni, nj, nk, 3) array."""
+    return isinstance(a, np.ndarray) and a.ndim == 4 and a.flags.f_contiguous
+
+
+def _copy_out(src: np.ndarray, dest) -> None:
+    """A block's result (Fortran (ni, nj, nk, 3)) into the caller's layout ``dest``."""
+    if isinstance(dest, np.ndarray):
+        np.copyto(dest, src)
+    else:
+        for c in range(3):
+            np.copyto(dest[c], src[..., c])
 
 
 def deformer_from_case(case, grid: Grid | None = None, **kw) -> Deformer:
