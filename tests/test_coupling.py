@@ -294,10 +294,12 @@ def test_bad_out_is_a_clear_error_and_nothing_is_written():
 
 
 def _box_with_small_wall(n=81):
+    """One n^3 block; the wall: the middle quarter of jmin (its faces: fixed)."""
     s = np.linspace(0.0, 1.0, n)
     xyz = np.stack(np.meshgrid(s, s ** 1.3, s, indexing="ij"), -1)
     from tfi_quat import Block, Grid
-    return Grid([Block(np.asfortranarray(xyz))]), ["1:jmin:30-50,30-50"]
+    lo, hi = 3 * n // 8, 5 * n // 8
+    return Grid([Block(np.asfortranarray(xyz))]), [f"1:jmin:{lo}-{hi},{lo}-{hi}"]
 
 
 @pytest.mark.parametrize("method", ["two-level", "samareh"])
@@ -433,3 +435,72 @@ def test_check_raise_names_the_cells_and_leaves_the_buffers_alone():
         assert all(np.array_equal(a, w.xyz) for a, w in zip(_as_blocks(out), want))
     with pytest.raises(DeformationError, match="check must be"):
         d.deform(ok, check="yes")
+
+
+# ------------------------------------------------------------------ threads=, velocity
+def test_threads_apply_inside_the_deformers_calls_only(monkeypatch):
+    import numba
+    from tfi_quat import _jit
+    seen = []
+    real = _jit.use_threads
+
+    def spy(n):
+        seen.append(n)
+        return real(n)
+    monkeypatch.setattr("tfi_quat.deform.deformer.use_threads", spy)
+    grid, walls, sym, fixed = G.o_grid()
+    before = numba.get_num_threads()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, threads=1)
+    g1 = d.deform(_motion(d))
+    assert seen == [1, 1] and numba.get_num_threads() == before
+    d.velocity(d.grid, g1, 0.1)
+    assert seen == [1, 1, 1]
+    # the same bits with every thread count
+    _same(Deformer(grid, walls=walls, symmetry=sym, fixed=fixed).deform(_motion(d)), g1)
+    for bad in (0, -2, 1.5, True, "2"):
+        with pytest.raises(Exception, match="threads must be"):
+            Deformer(grid, walls=walls, threads=bad)
+
+
+def test_velocity_in_every_layout():
+    grid, walls, sym, fixed = G.box_pair()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    g1 = d.deform(_motion(d))
+    dt = 0.3
+    want = [(b.xyz - r.xyz) / dt for b, r in zip(g1, d.grid)]
+    v = d.velocity(d.grid, g1, dt)
+    assert all(np.array_equal(a, w) and a.flags.f_contiguous for a, w in zip(v, want))
+    for name, out in _layouts(d).items():
+        cur = _layouts(d)[name]
+        d.deform(_motion(d), out=cur)
+        got = d.velocity(d.grid, cur, dt, out=out)
+        assert got is out
+        assert all(np.array_equal(a, w) for a, w in zip(_as_blocks(out), want)), name
+        new = d.velocity(d.grid, cur, dt)          # in the layout of cur
+        assert all(np.array_equal(a, w) for a, w in zip(_as_blocks(new), want)), name
+    # in place, into cur
+    cur = d.new_grid("C")
+    d.deform(_motion(d), out=cur)
+    d.velocity(d.grid, cur, dt, out=cur)
+    assert all(np.array_equal(a, w) for a, w in zip(cur, want))
+    with pytest.raises(DeformationError, match="dt must be"):
+        d.velocity(d.grid, g1, 0.0)
+    with pytest.raises(DeformationError, match=r"cur\[1\]: shape"):
+        d.velocity(d.grid, [g1[0].xyz, g1[1].xyz[:-1]], dt)
+    with pytest.raises(DeformationError, match="reference grid"):
+        d.velocity(d.grid, g1, dt, out=d.grid)
+
+
+def test_velocity_allocates_nothing_grid_sized_with_out():
+    import tracemalloc
+    grid, walls = _box_with_small_wall()
+    d = Deformer(grid, walls=walls)
+    cur = d.new_grid("C", separate=True)
+    out = d.new_grid()
+    tracemalloc.start()
+    try:
+        d.velocity(d.grid, cur, 0.1, out=out)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 0.05 * sum(b.xyz.nbytes for b in grid)

@@ -37,7 +37,7 @@ from typing import Callable, Mapping
 import numpy as np
 
 from .. import quaternion as qa
-from .._jit import serial_below
+from .._jit import serial_below, use_threads
 from ..errors import CaseError, DeformationError
 from ..grid import Block, Grid, face_ijk
 from ..quality import CellCheck, check_block
@@ -193,6 +193,14 @@ class Deformer:
     max_idw_sources : int
         At most this many (evenly sampled) wall points serve as sources of the
         vertex blend.
+    threads : int, optional
+        The most threads the Deformer's compiled kernels use, in its own calls
+        only (set-up, :meth:`deform`, :meth:`velocity`); the setting of the
+        calling thread is restored after each.  Default: all
+        (``numba.config.NUMBA_NUM_THREADS``; more are capped to that).  In a
+        coupled run give the Deformer the cores the flow solver leaves idle
+        while it waits for the grid, e.g. ``threads=1`` when every core runs
+        a solver rank, so that the two do not compete.
     dup_tol : float
         The array form of :meth:`deform`: copies of one wall point (a point
         listed more than once) may differ by at most this distance (default
@@ -203,7 +211,7 @@ class Deformer:
                  method: str = "two-level", formulation: str | None = None, centre=None,
                  tol: float | None = None, blending: str | None = None,
                  rotation_length: float | None = None, idw_power: float = 3.0,
-                 max_idw_sources: int = 2000, dup_tol: float = 0.0):
+                 max_idw_sources: int = 2000, dup_tol: float = 0.0, threads: int | None = None):
         if not isinstance(grid, Grid):
             raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
         method = resolve_method(method, formulation)
@@ -231,65 +239,68 @@ class Deformer:
             raise CaseError(f"dup_tol must be a finite number >= 0, got {dup_tol!r}")
         #: the largest distance allowed between copies of one wall point (:meth:`deform`)
         self.dup_tol = dup_tol
-        t0 = time.perf_counter()
-        self.grid = grid
-        self.ndim = grid.ndim
-        self.method = method
-        self._use_q = method != "tfi"
-        self.blending = None if two else (blending or "hermite")
-        _check_block_sizes(grid)
-        walls = as_patch_specs(walls, "walls")
-        symmetry = as_patch_specs(symmetry, "symmetry")
-        fixed = as_patch_specs(fixed, "fixed")
-        from .. import topology
-        own = connectivity is None and grid.connectivity is not None
-        if own:
-            # the file's kinds, the given ones over them, the rest as connect() classifies it
-            # (fixed, planar next to a wall: symmetry), in connect()'s patch order
-            connectivity = topology.classify(grid.connectivity, grid, walls=walls, symmetry=symmetry,
-                                             fixed=fixed)
-        elif connectivity is None:
-            connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
-        elif walls or symmetry or fixed:
-            connectivity = topology.classify(connectivity, grid, walls=walls, symmetry=symmetry,
-                                             fixed=fixed)
-        self.connectivity = connectivity
-        lo, hi = grid.bbox()
-        diag = float(np.linalg.norm(hi - lo)) or 1.0
-        self._scale = diag
-        self.tol = float(tol) if tol is not None else 1e-10 * diag
-        if not (math.isfinite(self.tol) and self.tol >= 0.0):
-            raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
-        pts = boundary_points(grid, connectivity, self.tol)
-        if not pts.wall.size:
-            src = ""
+        #: the most threads the Deformer's own calls use (None: all)
+        self.threads = _check_threads(threads)
+        with use_threads(self.threads):
+            t0 = time.perf_counter()
+            self.grid = grid
+            self.ndim = grid.ndim
+            self.method = method
+            self._use_q = method != "tfi"
+            self.blending = None if two else (blending or "hermite")
+            _check_block_sizes(grid)
+            walls = as_patch_specs(walls, "walls")
+            symmetry = as_patch_specs(symmetry, "symmetry")
+            fixed = as_patch_specs(fixed, "fixed")
+            from .. import topology
+            own = connectivity is None and grid.connectivity is not None
             if own:
-                src = f" (the boundary conditions of {grid.source_path or 'the grid'} name no wall)"
-            raise CaseError(f"no wall points{src}: give at least one wall patch")
-        self.centre = _centre(pts, centre)
-        if two:
-            layer = twolevel.wall_layer(pts, rotation_length, diag)
-            params = layer
-            self.rotation_length = layer.ell
-        else:
-            params = ArclengthParams(BLENDINGS[self.blending])
-            self.rotation_length = None
-        #: the frozen skeleton (:class:`tfi_quat.deform.skeleton.Skeleton`)
-        self.skeleton = build_skeleton(grid, connectivity, pts, params, tol=self.tol,
-                                       idw_power=idw_power, max_idw_sources=max_idw_sources)
-        #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
-        self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
-        self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
-        self._lock = threading.Lock()
-        self._surface_cache = None
-        self._wall_keys = None
-        self._scratch = None
-        self._scratch_grid = None
-        #: the check of the last :meth:`deform` step (:class:`tfi_quat.quality.CellCheck`), or
-        #: None when it was not checked
-        self.quality = None
-        self.setup_seconds = time.perf_counter() - t0
-        self.timings = StepTimings()
+                # the file's kinds, the given ones over them, the rest as connect() classifies it
+                # (fixed, planar next to a wall: symmetry), in connect()'s patch order
+                connectivity = topology.classify(grid.connectivity, grid, walls=walls, symmetry=symmetry,
+                                                 fixed=fixed)
+            elif connectivity is None:
+                connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
+            elif walls or symmetry or fixed:
+                connectivity = topology.classify(connectivity, grid, walls=walls, symmetry=symmetry,
+                                                 fixed=fixed)
+            self.connectivity = connectivity
+            lo, hi = grid.bbox()
+            diag = float(np.linalg.norm(hi - lo)) or 1.0
+            self._scale = diag
+            self.tol = float(tol) if tol is not None else 1e-10 * diag
+            if not (math.isfinite(self.tol) and self.tol >= 0.0):
+                raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
+            pts = boundary_points(grid, connectivity, self.tol)
+            if not pts.wall.size:
+                src = ""
+                if own:
+                    src = f" (the boundary conditions of {grid.source_path or 'the grid'} name no wall)"
+                raise CaseError(f"no wall points{src}: give at least one wall patch")
+            self.centre = _centre(pts, centre)
+            if two:
+                layer = twolevel.wall_layer(pts, rotation_length, diag)
+                params = layer
+                self.rotation_length = layer.ell
+            else:
+                params = ArclengthParams(BLENDINGS[self.blending])
+                self.rotation_length = None
+            #: the frozen skeleton (:class:`tfi_quat.deform.skeleton.Skeleton`)
+            self.skeleton = build_skeleton(grid, connectivity, pts, params, tol=self.tol,
+                                           idw_power=idw_power, max_idw_sources=max_idw_sources)
+            #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
+            self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
+            self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
+            self._lock = threading.Lock()
+            self._surface_cache = None
+            self._wall_keys = None
+            self._scratch = None
+            self._scratch_grid = None
+            #: the check of the last :meth:`deform` step (:class:`tfi_quat.quality.CellCheck`), or
+            #: None when it was not checked
+            self.quality = None
+            self.setup_seconds = time.perf_counter() - t0
+            self.timings = StepTimings()
 
     @property
     def n_global(self) -> int:
@@ -592,7 +603,7 @@ class Deformer:
             not covered (it names how many and one), copies of a point that
             disagree (it names both and their distance), non-finite values.
         """
-        with self._lock:
+        with self._lock, use_threads(self.threads):
             t0 = time.perf_counter()
             if not (check is False or check is True or check == "raise"):
                 raise DeformationError(f"check must be False, True or 'raise', got {check!r}")
@@ -771,52 +782,110 @@ class Deformer:
             flat = self._scratch = np.empty(3 * max(blk.npoints for blk in self.grid))
         return flat[:n].reshape(dims + (3,), order="F")
 
-    def _check_out(self, out) -> list:
+    def _check_out(self, out, what: str = "out", writeable: bool = True) -> list:
         """The buffers of ``out`` per block: a (ni, nj, nk, 3) float64 array or a tuple of three
-        (ni, nj, nk) ones, checked (shape, dtype, writeable, not the reference's memory)."""
+        (ni, nj, nk) ones, checked (shape, dtype; with ``writeable``: writeable and not the
+        reference's memory).  ``what``: the argument's name in messages."""
         grid = self.grid
         nb = len(grid)
         if isinstance(out, Grid):
-            if out is grid:
-                raise DeformationError("out is the reference grid: give a buffer of its own "
+            if out is grid and writeable:
+                raise DeformationError(f"{what} is the reference grid: give a buffer of its own "
                                        "(Deformer.new_grid())")
             if len(out) != nb:
-                raise DeformationError(f"out has {len(out)} blocks, the grid {nb}")
+                raise DeformationError(f"{what} has {len(out)} blocks, the grid {nb}")
             items = [blk.xyz for blk in out]
         elif isinstance(out, (list, tuple)):
             if len(out) != nb:
-                raise DeformationError(f"out has {len(out)} entries, the grid {nb} blocks: one "
-                                       "per block")
+                raise DeformationError(f"{what} has {len(out)} entries, the grid {nb} blocks: "
+                                       "one per block")
             items = list(out)
         else:
-            raise DeformationError(f"out must be a Grid or a list with one entry per block, got "
-                                   f"{type(out).__name__}")
+            raise DeformationError(f"{what} must be a Grid or a list with one entry per block, "
+                                   f"got {type(out).__name__}")
         dests = []
         for b, (item, blk) in enumerate(zip(items, grid)):
             dims = blk.dims
             if isinstance(item, np.ndarray):
-                parts, want, what = [item], dims + (3,), f"out[{b}]"
+                parts, want, name = [item], dims + (3,), f"{what}[{b}]"
             elif isinstance(item, (tuple, list)) and len(item) == 3:
-                parts, want, what = list(item), dims, f"out[{b}] (x, y, z)"
+                parts, want, name = list(item), dims, f"{what}[{b}] (x, y, z)"
             else:
-                raise DeformationError(f"out[{b}]: expected an array (ni, nj, nk, 3) or a tuple of "
+                raise DeformationError(f"{what}[{b}]: expected an array (ni, nj, nk, 3) or a tuple of "
                                        f"three (ni, nj, nk) arrays x, y, z, got "
                                        f"{type(item).__name__}")
             for part in parts:
                 if not isinstance(part, np.ndarray):
-                    raise DeformationError(f"{what}: expected numpy arrays, got "
+                    raise DeformationError(f"{name}: expected numpy arrays, got "
                                            f"{type(part).__name__}")
                 if part.shape != want:
-                    raise DeformationError(f"{what}: shape {part.shape}, expected {want} for "
+                    raise DeformationError(f"{name}: shape {part.shape}, expected {want} for "
                                            f"block {b} (0-based)")
                 if part.dtype != np.float64:
-                    raise DeformationError(f"{what}: dtype {part.dtype}, expected float64")
-                if not part.flags.writeable:
-                    raise DeformationError(f"{what}: the array is read-only")
-                if np.may_share_memory(part, blk.xyz):
-                    raise DeformationError(f"{what}: shares memory with the reference grid")
+                    raise DeformationError(f"{name}: dtype {part.dtype}, expected float64")
+                if writeable and not part.flags.writeable:
+                    raise DeformationError(f"{name}: the array is read-only")
+                if writeable and np.may_share_memory(part, blk.xyz):
+                    raise DeformationError(f"{name}: shares memory with the reference grid")
             dests.append(item if isinstance(item, np.ndarray) else tuple(item))
         return dests
+
+    def velocity(self, prev, cur, dt: float, out=None):
+        """Grid-point velocities of a step, ``(cur - prev) / dt``, for ALE flow solvers.
+
+        Parameters
+        ----------
+        prev, cur : Grid or list
+            The grid before and after the step, in any layout :meth:`deform`
+            writes (``out=``): Grids, or lists with per block an array
+            ``(ni, nj, nk, 3)`` or a tuple of three ``(ni, nj, nk)`` arrays
+            ``x, y, z``; the two may differ in layout.  Their dimensions
+            are the reference's.
+        dt : float
+            The time step, finite and not 0.
+        out : Grid or list, optional
+            Where the velocities go (as :meth:`deform`'s ``out``: the same
+            layouts, checked the same way); may be ``cur`` itself.  Default:
+            new arrays in the layout of ``cur`` (a Grid's blocks: a list of
+            Fortran-ordered ``(ni, nj, nk, 3)`` arrays).
+
+        Returns
+        -------
+        Grid or list
+            ``out`` when given, else the new list.  Each value is computed as
+            ``(cur - prev) / dt`` (a subtraction, then a division: the bits
+            numpy gives for that expression), with no temporaries the size
+            of the grid.
+        """
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            dt = math.nan
+        if not (math.isfinite(dt) and dt != 0.0):
+            raise DeformationError(f"dt must be a finite number other than 0, got {dt!r}")
+        with use_threads(self.threads):
+            a = self._layout(prev, "prev")
+            c = self._layout(cur, "cur")
+            if out is None:
+                out = [tuple(np.empty_like(p) for p in blk) if isinstance(blk, tuple) else
+                       np.empty_like(blk) for blk in c]
+                o = out
+            else:
+                o = self._check_out(out)
+            for b in range(len(self.grid)):
+                for x0, x1, v in zip(_parts(a[b]), _parts(c[b]), _parts(o[b])):
+                    np.subtract(x1, x0, out=v)
+                    np.divide(v, dt, out=v)
+            return out
+
+    def _layout(self, coords, what: str) -> list:
+        """``coords`` (a Grid or a list) as per-block arrays or (x, y, z) tuples, checked."""
+        if isinstance(coords, Grid):
+            if len(coords) != len(self.grid) or coords.dims != self.grid.dims:
+                raise DeformationError(f"{what}: a grid of dimensions {coords.dims}, the "
+                                       f"reference has {self.grid.dims}")
+            return [blk.xyz for blk in coords]
+        return self._check_out(coords, what=what, writeable=False)
 
     def summary(self) -> str:
         """A few lines describing the skeleton (for the CLI and logs)."""
@@ -852,6 +921,14 @@ def _check_block_sizes(grid: Grid) -> None:
             if min(blk.dims[:2]) < 2:
                 raise CaseError(f"block {b + 1}: a 2-D block needs at least 2 points in i and j, "
                                 f"got {blk.dims[:2]}")
+
+
+def _check_threads(threads) -> int | None:
+    if threads is None:
+        return None
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise CaseError(f"threads must be a whole number >= 1 or None (all), got {threads!r}")
+    return int(threads)
 
 
 def _centre(pts, centre) -> np.ndarray:
@@ -911,6 +988,14 @@ def _wall_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
 def _is_kernel_array(a) -> bool:
     """Whether the volume kernels write ``a`` straight: a Fortran-ordered (ni, nj, nk, 3) array."""
     return isinstance(a, np.ndarray) and a.ndim == 4 and a.flags.f_contiguous
+
+
+def _parts(blk) -> tuple:
+    """A block's coordinate arrays: ``(xyz,)`` or its ``(x, y, z)``, as arrays of one shape
+    (a (ni, nj, nk, 3) array against x, y, z: the three component views)."""
+    if isinstance(blk, tuple):
+        return blk
+    return tuple(blk[..., c] for c in range(3))
 
 
 def _copy_out(src: np.ndarray, dest) -> None:
