@@ -504,3 +504,14 @@ def test_velocity_allocates_nothing_grid_sized_with_out():
     finally:
         tracemalloc.stop()
     assert peak < 0.05 * sum(b.xyz.nbytes for b in grid)
+
+
+def test_timings_count_the_check_apart():
+    grid, walls, sym, fixed = G.o_grid_3d()
+    d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed)
+    d.deform(_motion(d))
+    assert d.timings.check == 0.0
+    d.deform(_motion(d), check=True)
+    t = d.timings
+    assert t.check > 0.0 and t.volumes > 0.0
+    assert t.total == t.walls + t.skeleton + t.faces + t.volumes + t.check
