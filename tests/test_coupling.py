@@ -311,14 +311,15 @@ def test_a_step_into_out_allocates_nothing_grid_sized(method):
     xs[:, 1] += 0.01 * np.sin(3.0 * xs[:, 0])
     nbytes = sum(b.xyz.nbytes for b in grid)
     for out in (d.new_grid(), d.new_grid("C"), d.new_grid("F", separate=True)):
-        d.deform(xs, out=out)                  # compiled, scratch made
-        tracemalloc.start()
-        try:
-            d.deform(xs, out=out)
-            peak = tracemalloc.get_traced_memory()[1]
-        finally:
-            tracemalloc.stop()
-        assert peak < 0.05 * nbytes, (type(out), peak / nbytes)
+        for check in (False, True, "raise"):
+            d.deform(xs, out=out, check=check)          # compiled, scratch made
+            tracemalloc.start()
+            try:
+                d.deform(xs, out=out, check=check)
+                peak = tracemalloc.get_traced_memory()[1]
+            finally:
+                tracemalloc.stop()
+            assert peak < 0.05 * nbytes, (type(out), check, peak / nbytes)
     # without out, a step makes its grid
     tracemalloc.start()
     try:
