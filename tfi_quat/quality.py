@@ -92,13 +92,21 @@ def _tet_sum(x, i, j, k, s, di, dj, dk, qi, qj, qk, ei, ej, ek):
     return s[0] + (dy * qz - dz * qy), s[1] + (dz * qx - dx * qz), s[2] + (dx * qy - dy * qx)
 
 
-@jit(inline="always")
+@jit
 def _hex_volume(x, i, j, k):
+    """Signed volume of hexahedron (i, j, k) (:func:`_hex_volume_inline`, called: the kernels
+    that use it compile faster than with it inlined)."""
+    return _hex_volume_inline(x, i, j, k)
+
+
+@jit(inline="always")
+def _hex_volume_inline(x, i, j, k):
     """Signed volume of hexahedron (i, j, k): sum over the six monotone-path tetrahedra,
     ``a . S / 6`` with ``a = c111 - c000`` and
     ``S = (c100 - c010) x (c110 - c000) + (c010 - c001) x (c011 - c000) + (c001 - c100) x (c101 - c000)``.
 
-    Straight-line code (inlined): loops over cells that call it can vectorise."""
+    Straight-line code, inlined where a loop over cells must vectorise
+    (:func:`_volume_signs`)."""
     s = _tet_sum(x, i, j, k, (0.0, 0.0, 0.0), 1, 0, 0, 1, 1, 0, 0, 1, 0)
     s = _tet_sum(x, i, j, k, s, 0, 1, 0, 0, 1, 1, 0, 0, 1)
     s = _tet_sum(x, i, j, k, s, 0, 0, 1, 1, 0, 1, 1, 0, 0)
@@ -481,14 +489,37 @@ def _corner_ratio2(x, xr, i, j, a, b):
     return (ux * vy - uy * vx) / jr if jr != 0.0 else np.inf
 
 
-@jit(inline="always")
+@jit
 def _corner_pass(x, xr, j, k, b, c, rat, first):
     """``rat[i]`` = (``first``) or min= the smaller ratio of corners ``c(0, b, c)`` and
-    ``c(1, b, c)`` of the cells (i, j, k) of a row (unsigned indices)."""
+    ``c(1, b, c)`` of the cells (i, j, k) of a row (unsigned indices; a loop that
+    vectorises, compiled once for the four pairs)."""
     for ii in range(rat.shape[0]):
         i = np.uint64(ii)
         q = _nan_min(_corner_ratio(x, xr, i, j, k, 1, b, c), _corner_ratio(x, xr, i, j, k, 0, b, c))
         rat[ii] = q if first else _nan_min(q, rat[ii])
+
+
+@jit
+def _volume_signs(x, xr, j, k, neg):
+    """``neg[i]``: 1.0 where the volume of hexahedron (i, j, k) has not the sign of the
+    reference's (unsigned indices, a loop that vectorises)."""
+    for ii in range(neg.shape[0]):
+        i = np.uint64(ii)
+        neg[ii] = _wrong_sign(_hex_volume_inline(x, i, j, k), _hex_volume_inline(xr, i, j, k))
+
+
+@jit
+def _quad_ratios(x, xr, j, rat, neg):
+    """2-D: per quadrilateral (i, j) of a row its smallest corner ratio and volume sign
+    change (unsigned indices, a loop that vectorises)."""
+    for ii in range(rat.shape[0]):
+        i = np.uint64(ii)
+        r = _corner_ratio2(x, xr, i, j, 0, 0)
+        r = _nan_min(_corner_ratio2(x, xr, i, j, 1, 0), r)
+        r = _nan_min(_corner_ratio2(x, xr, i, j, 0, 1), r)
+        rat[ii] = _nan_min(_corner_ratio2(x, xr, i, j, 1, 1), r)
+        neg[ii] = _wrong_sign(_quad_area(x, i, j), _quad_area(xr, i, j))
 
 
 @jit(inline="always")
@@ -511,21 +542,15 @@ def _ratio_row(x, xr, ndim, j, k, rat, neg, res):
     if ndim == 3:
         # one loop per pair of corners that share their i-edge: each vectorises (the eight
         # corners in one loop do not; pairs were the fastest)
-        _corner_pass(x, xr, j, k, 0, 0, rat, True)
-        _corner_pass(x, xr, j, k, 1, 0, rat, False)
-        _corner_pass(x, xr, j, k, 0, 1, rat, False)
-        _corner_pass(x, xr, j, k, 1, 1, rat, False)
-        for ii in range(nci):
-            i = np.uint64(ii)
-            neg[ii] = _wrong_sign(_hex_volume(x, i, j, k), _hex_volume(xr, i, j, k))
+        one = np.uint64(1)
+        zero = np.uint64(0)
+        _corner_pass(x, xr, j, k, zero, zero, rat, True)
+        _corner_pass(x, xr, j, k, one, zero, rat, False)
+        _corner_pass(x, xr, j, k, zero, one, rat, False)
+        _corner_pass(x, xr, j, k, one, one, rat, False)
+        _volume_signs(x, xr, j, k, neg)
     else:
-        for ii in range(nci):
-            i = np.uint64(ii)
-            r = _corner_ratio2(x, xr, i, j, 0, 0)
-            r = _nan_min(_corner_ratio2(x, xr, i, j, 1, 0), r)
-            r = _nan_min(_corner_ratio2(x, xr, i, j, 0, 1), r)
-            rat[ii] = _nan_min(_corner_ratio2(x, xr, i, j, 1, 1), r)
-            neg[ii] = _wrong_sign(_quad_area(x, i, j), _quad_area(xr, i, j))
+        _quad_ratios(x, xr, j, rat, neg)
     best = np.inf
     at = -1
     nneg = 0
