@@ -516,3 +516,25 @@ def test_timings_count_the_check_apart():
     t = d.timings
     assert t.check > 0.0 and t.volumes > 0.0
     assert t.total == t.walls + t.skeleton + t.faces + t.volumes + t.check
+
+
+@settings(max_examples=12, deadline=None)
+@given(name=st.sampled_from(sorted(ALL_CASES)), amp=st.floats(0.0, 0.6), kx=st.floats(-6.0, 6.0),
+       ky=st.floats(-6.0, 6.0))
+def test_check_matches_the_numpy_oracle_for_random_wall_waves(name, amp, kx, ky):
+    from tfi_quat.quality import negative_cells
+    d = _DEFORMERS.setdefault(name, Deformer(*_args(name)))
+    three = d.ndim == 3
+
+    def wave(p):
+        q = p.copy()
+        q[:, 1] += amp * np.sin(kx * p[:, 0] + ky * p[:, 2])
+        if three:
+            q[:, 2] += 0.5 * amp * np.cos(ky * p[:, 0])
+        return q
+    g = d.deform(wave(d.surface_points()), check=True)
+    rep = g.quality
+    lo, nj = _oracle(g, d.grid)
+    assert rep.min_ratio == pytest.approx(lo, rel=1e-9, abs=1e-12)
+    assert rep.negative_jacobian == nj
+    assert rep.negative == sum(len(c) for _, c in negative_cells(g, d.grid))

@@ -299,8 +299,8 @@ class Deformer:
             self._scratch = None
             self._scratch_grid = None
             self._check_seconds = 0.0
-            #: the check of the last :meth:`deform` step (:class:`tfi_quat.quality.CellCheck`), or
-            #: None when it was not checked
+            #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
+            #: of one that raised for invalid cells), or None when it was not checked
             self.quality = None
             self.setup_seconds = time.perf_counter() - t0
             self.timings = StepTimings()
@@ -612,6 +612,7 @@ class Deformer:
             t0 = time.perf_counter()
             if not (check is False or check is True or check == "raise"):
                 raise DeformationError(f"check must be False, True or 'raise', got {check!r}")
+            self.quality = None
             dests = None if out is None else self._check_out(out)
             if isinstance(moved, np.ndarray):
                 rd = self._array_targets(moved, ids, bool(displacement), self._work.rd)
