@@ -27,6 +27,7 @@ with a :class:`DeprecationWarning` (:func:`resolve_method`).
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -243,67 +244,71 @@ class Deformer:
         self.dup_tol = dup_tol
         #: the most threads the Deformer's own calls use (None: all)
         self.threads = _check_threads(threads)
-        with use_threads(self.threads):
-            t0 = time.perf_counter()
-            self.grid = grid
-            self.ndim = grid.ndim
-            self.method = method
-            self._use_q = method != "tfi"
-            self.blending = None if two else (blending or "hermite")
-            _check_block_sizes(grid)
-            walls = as_patch_specs(walls, "walls")
-            symmetry = as_patch_specs(symmetry, "symmetry")
-            fixed = as_patch_specs(fixed, "fixed")
-            from .. import topology
-            own = connectivity is None and grid.connectivity is not None
-            if own:
-                # the file's kinds, the given ones over them, the rest as connect() classifies it
-                # (fixed, planar next to a wall: symmetry), in connect()'s patch order
-                connectivity = topology.classify(grid.connectivity, grid, walls=walls, symmetry=symmetry,
-                                                 fixed=fixed)
-            elif connectivity is None:
+        cap = functools.partial(use_threads, self.threads)
+        t0 = time.perf_counter()
+        self.grid = grid
+        self.ndim = grid.ndim
+        self.method = method
+        self._use_q = method != "tfi"
+        self.blending = None if two else (blending or "hermite")
+        _check_block_sizes(grid)
+        walls = as_patch_specs(walls, "walls")
+        symmetry = as_patch_specs(symmetry, "symmetry")
+        fixed = as_patch_specs(fixed, "fixed")
+        from .. import topology
+        own = connectivity is None and grid.connectivity is not None
+        if own:
+            # the file's kinds, the given ones over them, the rest as connect() classifies it
+            # (fixed, planar next to a wall: symmetry), in connect()'s patch order
+            connectivity = topology.classify(grid.connectivity, grid, walls=walls, symmetry=symmetry,
+                                             fixed=fixed)
+        elif connectivity is None:
+            with cap():
                 connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
-            elif walls or symmetry or fixed:
-                connectivity = topology.classify(connectivity, grid, walls=walls, symmetry=symmetry,
-                                                 fixed=fixed)
-            self.connectivity = connectivity
-            lo, hi = grid.bbox()
-            diag = float(np.linalg.norm(hi - lo)) or 1.0
-            self._scale = diag
-            self.tol = float(tol) if tol is not None else 1e-10 * diag
-            if not (math.isfinite(self.tol) and self.tol >= 0.0):
-                raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
+        elif walls or symmetry or fixed:
+            connectivity = topology.classify(connectivity, grid, walls=walls, symmetry=symmetry,
+                                             fixed=fixed)
+        self.connectivity = connectivity
+        lo, hi = grid.bbox()
+        diag = float(np.linalg.norm(hi - lo)) or 1.0
+        self._scale = diag
+        self.tol = float(tol) if tol is not None else 1e-10 * diag
+        if not (math.isfinite(self.tol) and self.tol >= 0.0):
+            raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
+        with cap():
             pts = boundary_points(grid, connectivity, self.tol)
-            if not pts.wall.size:
-                src = ""
-                if own:
-                    src = f" (the boundary conditions of {grid.source_path or 'the grid'} name no wall)"
-                raise CaseError(f"no wall points{src}: give at least one wall patch")
-            self.centre = _centre(pts, centre)
-            if two:
+        if not pts.wall.size:
+            src = ""
+            if own:
+                src = f" (the boundary conditions of {grid.source_path or 'the grid'} name no wall)"
+            raise CaseError(f"no wall points{src}: give at least one wall patch")
+        self.centre = _centre(pts, centre)
+        if two:
+            with cap():
                 layer = twolevel.wall_layer(pts, rotation_length, diag)
-                params = layer
-                self.rotation_length = layer.ell
-            else:
-                params = ArclengthParams(BLENDINGS[self.blending])
-                self.rotation_length = None
-            #: the frozen skeleton (:class:`tfi_quat.deform.skeleton.Skeleton`)
+            params = layer
+            self.rotation_length = layer.ell
+        else:
+            params = ArclengthParams(BLENDINGS[self.blending])
+            self.rotation_length = None
+        #: the frozen skeleton (:class:`tfi_quat.deform.skeleton.Skeleton`)
+        with cap():
             self.skeleton = build_skeleton(grid, connectivity, pts, params, tol=self.tol,
                                            idw_power=idw_power, max_idw_sources=max_idw_sources)
             #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
             self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
-            self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
-            self._lock = threading.Lock()
-            self._surface_cache = None
-            self._wall_keys = None
-            self._scratch = None
-            self._scratch_grid = None
-            self._check_seconds = 0.0
-            #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
-            #: of one that raised for invalid cells), or None when it was not checked
-            self.quality = None
-            self.setup_seconds = time.perf_counter() - t0
-            self.timings = StepTimings()
+        self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
+        self._lock = threading.Lock()
+        self._surface_cache = None
+        self._wall_keys = None
+        self._scratch = None
+        self._scratch_grid = None
+        self._check_seconds = 0.0
+        #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
+        #: of one that raised for invalid cells), or None when it was not checked
+        self.quality = None
+        self.setup_seconds = time.perf_counter() - t0
+        self.timings = StepTimings()
 
     @property
     def n_global(self) -> int:
