@@ -25,7 +25,7 @@ import threading
 
 from ..errors import TfiQuatError
 
-__all__ = ["main", "console_main", "SUBCOMMANDS", "EXIT_CHECK", "EXIT_INPUT", "EXIT_INTERNAL", "EXIT_INTERRUPTED",
+__all__ = ["main", "console_main", "GC_THRESHOLDS", "SUBCOMMANDS", "EXIT_CHECK", "EXIT_INPUT", "EXIT_INTERNAL", "EXIT_INTERRUPTED",
            "EXIT_TERMINATED"]
 
 #: exit status: the command ran but its result failed a check (a folded grid, not written)
