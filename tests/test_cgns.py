@@ -273,6 +273,50 @@ def test_written_like_the_source_keeps_every_other_node(tmp_path):
     assert_same_points(moved, out, tmp_path)
 
 
+def test_written_like_a_source_keeps_its_links_and_coordinate_children(tmp_path):
+    """Soft and external links are copied as links; a coordinate's own children are kept."""
+    src = tmp_path / "src.cgns"
+    shutil.copyfile(MULTI, src)
+    with h5py.File(src, "r+") as f:
+        f["wing/inner/Alias"] = h5py.SoftLink("/wing/inner/ZoneBC")
+        f["wing/inner/GridCoordinates/Elsewhere"] = h5py.ExternalLink("other.cgns", "/x")
+        dc = f["wing/inner/GridCoordinates/CoordinateX"].create_group("DataClass")
+        dc.attrs["label"] = np.bytes_("DataClass_t")
+    g = tq.read(src)
+    out = tmp_path / "like.cgns"
+    tq.write(out, Grid([Block(b.xyz * 2.0, name=b.name) for b in g], source_format=g.source_format))
+    with h5py.File(out) as f:
+        alias = f["wing/inner"].get("Alias", getlink=True)
+        assert isinstance(alias, h5py.SoftLink) and alias.path == "/wing/inner/ZoneBC"
+        ext = f["wing/inner/GridCoordinates"].get("Elsewhere", getlink=True)
+        assert isinstance(ext, h5py.ExternalLink) and (ext.filename, ext.path) == ("other.cgns", "/x")
+        assert f["wing/inner/GridCoordinates/CoordinateX/DataClass"].attrs["label"] == b"DataClass_t"
+    np.testing.assert_array_equal(tq.read(out)[0].xyz, g[0].xyz * 2.0)
+
+
+def test_odd_attributes_and_empty_data_name_the_node(tmp_path):
+    """A label stored as an array or a variable-length string is read; an empty dataspace is an error."""
+    odd = tmp_path / "odd.cgns"
+    shutil.copyfile(MULTI, odd)
+    with h5py.File(odd, "r+") as f:
+        zbc = f["wing/inner/ZoneBC"]
+        del zbc.attrs["label"]
+        zbc.attrs["label"] = np.array([b"ZoneBC_t"])            # shape (1,), not a scalar
+        gc = f["wing/inner/GridCoordinates"]
+        del gc.attrs["label"]
+        gc.attrs["label"] = "GridCoordinates_t"                 # h5py's variable-length string
+    assert tq.read(odd).connectivity == tq.read(MULTI).connectivity
+    for node in ("wing/inner/GridCoordinates/CoordinateY", "wing/inner/ZoneType"):
+        bad = tmp_path / f"empty_{node.rsplit('/', 1)[1]}.cgns"
+        shutil.copyfile(MULTI, bad)
+        with h5py.File(bad, "r+") as f:
+            dtype = f[f"{node}/ data"].dtype
+            del f[f"{node}/ data"]
+            f[node].create_dataset(" data", data=h5py.Empty(dtype))
+        with pytest.raises(GridFormatError, match=f"/{node}: its data has an empty \\(null\\) dataspace"):
+            tq.read(bad)
+
+
 def test_written_like_float32_source_stays_float32(tmp_path):
     g = tq.read(CGRID)
     out = tmp_path / "c.cgns"

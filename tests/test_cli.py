@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import json
+import sys
 
 import h5py
 import numpy as np
@@ -12,7 +14,7 @@ from hypothesis import strategies as st
 
 import tfi_quat
 from tfi_quat import Block, Grid, GridFormatError
-from tfi_quat.cli import _info, main
+from tfi_quat.cli import GC_THRESHOLDS, _info, console_main, main
 from tfi_quat.io import hdf5, plot3d
 from tfi_quat.io.hdf5 import HDF5Format
 from tfi_quat.io.plot3d import Plot3DFormat
@@ -58,6 +60,28 @@ def assert_one_line_error(rc, out, err, *fragments):
     assert len(lines) == 1, err
     for f in fragments:
         assert str(f) in lines[0], (f, lines[0])
+
+
+def test_console_main_sets_the_collector_for_a_process_and_main_leaves_it(capsys, monkeypatch, h5grid):
+    """The process entry runs the command with the collector set for a short run (and exits
+    with its status); ``main`` called from Python changes nothing."""
+    before = gc.get_threshold()
+    assert run_cli(capsys, "info", h5grid[0])[0] == 0
+    assert gc.get_threshold() == before
+    monkeypatch.setattr(sys, "argv", ["tfi-quat", "info", str(h5grid[0])])
+    try:
+        with pytest.raises(SystemExit) as exc:
+            console_main()
+        assert exc.value.code == 0
+        assert gc.get_threshold() == GC_THRESHOLDS and gc.get_freeze_count() > 0
+        assert "wing" in capsys.readouterr().out
+        monkeypatch.setattr(sys, "argv", ["tfi-quat", "info", str(h5grid[0]) + ".missing"])
+        with pytest.raises(SystemExit) as exc:
+            console_main()
+        assert exc.value.code == 2
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*before)
 
 
 # ----------------------------------------------------------------------------- info

@@ -974,9 +974,17 @@ def test_nn_bad_shape_raises(shape, which):
         nearest_within(*args, 1.0)
 
 
+def test_nn_finite_coordinates_whose_sum_overflows_pass():
+    """The finiteness check sums the coordinates first: an overflowing sum of finite values
+    falls back to the exact check instead of raising."""
+    R = np.full((4, 3), 1e308)
+    d, i = nearest_within(R, R[:2], 1.0)
+    assert np.all(d == 0.0) and np.all(i == 0)
+
+
 def test_nn_plain_python_kernels(monkeypatch):
     """The kernels uncompiled (what TFI_QUAT_JIT=0 runs) give the same answers."""
-    for name in ("_first_nonfinite", "_swap4", "_select_rounds", "_select", "_range_box", "_kd_build",
+    for name in ("_swap4", "_select_rounds", "_select", "_range_box", "_kd_build",
                  "_box_d2", "_kd_query", "_kd_chunk", "_argsort", "_sift"):
         monkeypatch.setattr(_points, name, getattr(_points, name).py_func)
     monkeypatch.setattr(_points, "CHUNK", 7)

@@ -427,6 +427,19 @@ def test_drivers_broadcast_and_round_trip():
     assert s.shape == (3, 4)
 
 
+def test_drivers_give_the_kernels_one_array_type():
+    """Broadcast inputs reach the kernels read-only and C-contiguous whether broadcasting copied
+    them or not (one compiled and cached version per kernel, not one per mix of flags); the
+    callers' arrays keep their flags."""
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for shape, a in (((), q), ((5,), q), ((5,), np.tile(q, (5, 1))), ((2, 3), q)):
+        flat = Q._flat(a, shape, (4,))
+        assert not flat.flags.writeable and flat.flags.c_contiguous and flat.shape == (math.prod(shape), 4)
+    assert q.flags.writeable
+    np.testing.assert_array_equal(Q.rotate(q, np.eye(3)), np.eye(3))
+    np.testing.assert_array_equal(Q.rotate(q, [0.0, 1.0, 2.0]), [0.0, 1.0, 2.0])
+
+
 @given(qlist=st.lists(unit_quat(), min_size=2, max_size=7), data=st.data())
 def test_array_drivers_match_scipy(qlist, data):
     """The vectorised drivers against scipy on whole arrays (antipodal signs included)."""

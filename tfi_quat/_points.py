@@ -555,18 +555,6 @@ _RUNS = 16
 _STACK = 64
 
 
-@jit
-def _first_nonfinite(X):
-    """Index of the first row of ``X`` (n, 3) with a NaN or infinite coordinate, else -1."""
-    for i in range(X.shape[0]):
-        # NaN compares false, so the sum of |.| is < inf only when all three are finite
-        if not (abs(X[i, 0]) + abs(X[i, 1]) + abs(X[i, 2]) < np.inf):
-            for k in range(3):
-                if not np.isfinite(X[i, k]):
-                    return i
-    return -1
-
-
 @jit(inline="always")
 def _swap4(a, b, c, p, i, j):
     t = a[i]
@@ -862,11 +850,14 @@ def _points_array(x, name: str) -> np.ndarray:
     P = np.ascontiguousarray(x, dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 3:
         raise ValueError(f"nearest_within: {name} must have shape (n, 3), got {P.shape}")
-    bad = _first_nonfinite(P)
-    if bad >= 0:
-        nbad = int(np.count_nonzero(~np.isfinite(P).all(axis=1)))
-        raise ValueError(f"nearest_within: {name} contains a non-finite (NaN or infinite) coordinate "
-                         f"({nbad} row(s), first row {int(bad)})")
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.isfinite(np.add.reduce(P, axis=None))   # one pass, no temporary
+    if not finite:                                  # a NaN or inf, or a sum that overflowed
+        bad = ~np.isfinite(P).all(axis=1)
+        if bad.any():
+            raise ValueError(f"nearest_within: {name} contains a non-finite (NaN or infinite) "
+                             f"coordinate ({int(np.count_nonzero(bad))} row(s), first row "
+                             f"{int(np.argmax(bad))})")
     return P
 
 

@@ -362,6 +362,10 @@ class Grid:
         ``connectivity`` is not made for these blocks.
     """
 
+    #: the cell check of the :meth:`tfi_quat.deform.Deformer.deform` step that made or
+    #: filled this grid (a :class:`tfi_quat.quality.CellCheck`), None otherwise
+    quality = None
+
     def __init__(self, blocks: Iterable[Block | np.ndarray] | Block, ndim: int | None = None, *,
                  source_format=None, source_path=None, allow_nonfinite: bool = False,
                  connectivity=None):

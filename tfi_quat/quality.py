@@ -56,7 +56,8 @@ from .spec import resolve_patch_specs
 
 __all__ = ["METRICS", "cell_volumes", "cell_metrics", "cell_orthogonality", "quality_report",
            "QualityReport", "BlockQuality", "MetricStats", "WallOrthogonality",
-           "volume_ratio_summary", "negative_cells", "invalid_cells", "wall_orthogonality", "orthogonality_change"]
+           "volume_ratio_summary", "negative_cells", "invalid_cells", "wall_orthogonality", "orthogonality_change",
+           "CellCheck", "check_block"]
 
 #: per-cell metrics, in the order of the kernels' output
 METRICS = ("volume", "jacobian", "scaled_jacobian", "skewness", "aspect_ratio", "volume_ratio")
@@ -78,49 +79,44 @@ _HALF_PI = 0.5 * math.pi
 
 
 # ------------------------------------------------------------------ per-cell kernels
+@jit(inline="always")
+def _tet_sum(x, i, j, k, s, di, dj, dk, qi, qj, qk, ei, ej, ek):
+    """``s + d x q`` with ``d = c(d*) - c(e*)`` and ``q = c(q*) - c000`` (a term of
+    :func:`_hex_volume`)."""
+    dx = x[i + di, j + dj, k + dk, 0] - x[i + ei, j + ej, k + ek, 0]
+    dy = x[i + di, j + dj, k + dk, 1] - x[i + ei, j + ej, k + ek, 1]
+    dz = x[i + di, j + dj, k + dk, 2] - x[i + ei, j + ej, k + ek, 2]
+    qx = x[i + qi, j + qj, k + qk, 0] - x[i, j, k, 0]
+    qy = x[i + qi, j + qj, k + qk, 1] - x[i, j, k, 1]
+    qz = x[i + qi, j + qj, k + qk, 2] - x[i, j, k, 2]
+    return s[0] + (dy * qz - dz * qy), s[1] + (dz * qx - dx * qz), s[2] + (dx * qy - dy * qx)
+
+
 @jit
 def _hex_volume(x, i, j, k):
+    """Signed volume of hexahedron (i, j, k) (:func:`_hex_volume_inline`, called: the kernels
+    that use it compile faster than with it inlined)."""
+    return _hex_volume_inline(x, i, j, k)
+
+
+@jit(inline="always")
+def _hex_volume_inline(x, i, j, k):
     """Signed volume of hexahedron (i, j, k): sum over the six monotone-path tetrahedra,
     ``a . S / 6`` with ``a = c111 - c000`` and
-    ``S = (c100 - c010) x (c110 - c000) + (c010 - c001) x (c011 - c000) + (c001 - c100) x (c101 - c000)``."""
-    x0 = x[i, j, k, 0]
-    y0 = x[i, j, k, 1]
-    z0 = x[i, j, k, 2]
-    sx = 0.0
-    sy = 0.0
-    sz = 0.0
-    for p in range(3):
-        if p == 0:       # d = c100 - c010, q = c110 - c000
-            dx = x[i + 1, j, k, 0] - x[i, j + 1, k, 0]
-            dy = x[i + 1, j, k, 1] - x[i, j + 1, k, 1]
-            dz = x[i + 1, j, k, 2] - x[i, j + 1, k, 2]
-            qx = x[i + 1, j + 1, k, 0] - x0
-            qy = x[i + 1, j + 1, k, 1] - y0
-            qz = x[i + 1, j + 1, k, 2] - z0
-        elif p == 1:     # d = c010 - c001, q = c011 - c000
-            dx = x[i, j + 1, k, 0] - x[i, j, k + 1, 0]
-            dy = x[i, j + 1, k, 1] - x[i, j, k + 1, 1]
-            dz = x[i, j + 1, k, 2] - x[i, j, k + 1, 2]
-            qx = x[i, j + 1, k + 1, 0] - x0
-            qy = x[i, j + 1, k + 1, 1] - y0
-            qz = x[i, j + 1, k + 1, 2] - z0
-        else:            # d = c001 - c100, q = c101 - c000
-            dx = x[i, j, k + 1, 0] - x[i + 1, j, k, 0]
-            dy = x[i, j, k + 1, 1] - x[i + 1, j, k, 1]
-            dz = x[i, j, k + 1, 2] - x[i + 1, j, k, 2]
-            qx = x[i + 1, j, k + 1, 0] - x0
-            qy = x[i + 1, j, k + 1, 1] - y0
-            qz = x[i + 1, j, k + 1, 2] - z0
-        sx += dy * qz - dz * qy
-        sy += dz * qx - dx * qz
-        sz += dx * qy - dy * qx
-    ax = x[i + 1, j + 1, k + 1, 0] - x0
-    ay = x[i + 1, j + 1, k + 1, 1] - y0
-    az = x[i + 1, j + 1, k + 1, 2] - z0
-    return (ax * sx + ay * sy + az * sz) / 6.0
+    ``S = (c100 - c010) x (c110 - c000) + (c010 - c001) x (c011 - c000) + (c001 - c100) x (c101 - c000)``.
+
+    Straight-line code, inlined where a loop over cells must vectorise
+    (:func:`_volume_signs`)."""
+    s = _tet_sum(x, i, j, k, (0.0, 0.0, 0.0), 1, 0, 0, 1, 1, 0, 0, 1, 0)
+    s = _tet_sum(x, i, j, k, s, 0, 1, 0, 0, 1, 1, 0, 0, 1)
+    s = _tet_sum(x, i, j, k, s, 0, 0, 1, 1, 0, 1, 1, 0, 0)
+    ax = x[i + 1, j + 1, k + 1, 0] - x[i, j, k, 0]
+    ay = x[i + 1, j + 1, k + 1, 1] - x[i, j, k, 1]
+    az = x[i + 1, j + 1, k + 1, 2] - x[i, j, k, 2]
+    return (ax * s[0] + ay * s[1] + az * s[2]) / 6.0
 
 
-@jit
+@jit(inline="always")
 def _quad_area(x, i, j):
     """Signed area of quadrilateral (i, j): half the cross product of its diagonals."""
     d1x = x[i + 1, j + 1, 0, 0] - x[i, j, 0, 0]
@@ -330,6 +326,48 @@ def _quad_areas(x, out):
             out[i, j, 0] = _quad_area(x, i, j)
 
 
+#: the volume and area inlined into the caller's code before compilation (a call from the
+#: ratio rows' loop kept LLVM from vectorising it: 4x slower); the same operations
+_hex_volume_inline = jit(inline="always")(_hex_volume.py_func)
+_quad_area_inline = jit(inline="always")(_quad_area.py_func)
+
+
+@pjit
+def _ratio_rows(x, xr, ndim, neg, low, first):
+    """Cell-volume ratios ``x`` / ``xr`` of one block reduced over each row of cells (fixed j, k),
+    without storing them: row ``r = j + (nj - 1) k`` writes ``neg[r]`` (ratios <= 0),
+    ``low[r]`` (the smallest ratio, or the first NaN) and ``first[r]`` (its first i; -1 when
+    every ratio of the row is infinite).  A ratio is ``v / vr`` (volumes, areas in 2-D), infinite
+    where ``vr == 0``, as :func:`volume_ratio_summary` defines it.  Parallel over the planes k."""
+    nci = x.shape[0] - 1
+    ncj = x.shape[1] - 1
+    nck = low.shape[0] // ncj
+    for k in prange(nck):
+        q = np.empty(nci)
+        for j in range(ncj):
+            if ndim == 3:
+                for i in range(nci):
+                    vr = _hex_volume_inline(xr, i, j, k)
+                    q[i] = _hex_volume_inline(x, i, j, k) / vr if vr != 0.0 else np.inf
+            else:
+                for i in range(nci):
+                    vr = _quad_area_inline(xr, i, j)
+                    q[i] = _quad_area_inline(x, i, j) / vr if vr != 0.0 else np.inf
+            r = j + ncj * k
+            n = 0
+            lo = np.inf
+            at = -1
+            for i in range(nci):
+                if q[i] <= 0.0:
+                    n += 1
+                if lo == lo and (q[i] != q[i] or q[i] < lo):      # the first NaN stays
+                    lo = q[i]
+                    at = i
+            neg[r] = n
+            low[r] = lo
+            first[r] = at
+
+
 @pjit
 def _block_stats(x, xr, has_ref, ndim, s, rtol, lo, hi, tot, arg, cnt, refsum):
     """Reduce every metric of one block over each row of cells (fixed j, k).
@@ -446,6 +484,159 @@ def _invalid_cells(x, ndim, corner_tol):
         return total, -1, -1, -1
     return total, best // (ncj * nck), (best // nck) % ncj, best % nck
 
+
+
+@jit(inline="always")
+def _edge3(x, i, j, k, di, dj, dk):
+    """``x[i + di, j + dj, k + dk] - x[i, j, k]`` as three numbers."""
+    return (x[i + di, j + dj, k + dk, 0] - x[i, j, k, 0], x[i + di, j + dj, k + dk, 1] - x[i, j, k, 1],
+            x[i + di, j + dj, k + dk, 2] - x[i, j, k, 2])
+
+
+@jit(inline="always")
+def _det3(u, v, w):
+    return (u[0] * (v[1] * w[2] - v[2] * w[1]) - u[1] * (v[0] * w[2] - v[2] * w[0])
+            + u[2] * (v[0] * w[1] - v[1] * w[0]))
+
+
+@jit(inline="always")
+def _nan_min(a, b):
+    """The smaller of a and b; NaN if a is NaN (a select, so loops stay vectorisable)."""
+    return a if (a < b or a != a) else b
+
+
+@jit(inline="always")
+def _corner_ratio(x, xr, i, j, k, a, b, c):
+    """Corner Jacobian of corner ``c(a, b, c)`` of hexahedron (i, j, k) over the reference's
+    (the edges leaving the corner along +i, +j, +k); inf where the reference's is 0."""
+    jr = _det3(_edge3(xr, i, j + b, k + c, 1, 0, 0), _edge3(xr, i + a, j, k + c, 0, 1, 0),
+               _edge3(xr, i + a, j + b, k, 0, 0, 1))
+    jd = _det3(_edge3(x, i, j + b, k + c, 1, 0, 0), _edge3(x, i + a, j, k + c, 0, 1, 0),
+               _edge3(x, i + a, j + b, k, 0, 0, 1))
+    return jd / jr if jr != 0.0 else np.inf
+
+
+@jit(inline="always")
+def _corner_ratio2(x, xr, i, j, a, b):
+    """2-D :func:`_corner_ratio`: corner (a, b) of quadrilateral (i, j)."""
+    ux = xr[i + 1, j + b, 0, 0] - xr[i, j + b, 0, 0]
+    uy = xr[i + 1, j + b, 0, 1] - xr[i, j + b, 0, 1]
+    vx = xr[i + a, j + 1, 0, 0] - xr[i + a, j, 0, 0]
+    vy = xr[i + a, j + 1, 0, 1] - xr[i + a, j, 0, 1]
+    jr = ux * vy - uy * vx
+    ux = x[i + 1, j + b, 0, 0] - x[i, j + b, 0, 0]
+    uy = x[i + 1, j + b, 0, 1] - x[i, j + b, 0, 1]
+    vx = x[i + a, j + 1, 0, 0] - x[i + a, j, 0, 0]
+    vy = x[i + a, j + 1, 0, 1] - x[i + a, j, 0, 1]
+    return (ux * vy - uy * vx) / jr if jr != 0.0 else np.inf
+
+
+@jit
+def _corner_pass(x, xr, j, k, b, c, rat, first):
+    """``rat[i]`` = (``first``) or min= the smaller ratio of corners ``c(0, b, c)`` and
+    ``c(1, b, c)`` of the cells (i, j, k) of a row (unsigned indices; a loop that
+    vectorises, compiled once for the four pairs)."""
+    for ii in range(rat.shape[0]):
+        i = np.uint64(ii)
+        q = _nan_min(_corner_ratio(x, xr, i, j, k, 1, b, c), _corner_ratio(x, xr, i, j, k, 0, b, c))
+        rat[ii] = q if first else _nan_min(q, rat[ii])
+
+
+@jit
+def _volume_signs(x, xr, j, k, neg):
+    """``neg[i]``: 1.0 where the volume of hexahedron (i, j, k) has not the sign of the
+    reference's (unsigned indices, a loop that vectorises)."""
+    for ii in range(neg.shape[0]):
+        i = np.uint64(ii)
+        neg[ii] = _wrong_sign(_hex_volume_inline(x, i, j, k), _hex_volume_inline(xr, i, j, k))
+
+
+@jit
+def _quad_ratios(x, xr, j, rat, neg):
+    """2-D: per quadrilateral (i, j) of a row its smallest corner ratio and volume sign
+    change (unsigned indices, a loop that vectorises)."""
+    for ii in range(rat.shape[0]):
+        i = np.uint64(ii)
+        r = _corner_ratio2(x, xr, i, j, 0, 0)
+        r = _nan_min(_corner_ratio2(x, xr, i, j, 1, 0), r)
+        r = _nan_min(_corner_ratio2(x, xr, i, j, 0, 1), r)
+        rat[ii] = _nan_min(_corner_ratio2(x, xr, i, j, 1, 1), r)
+        neg[ii] = _wrong_sign(_quad_area(x, i, j), _quad_area(xr, i, j))
+
+
+@jit(inline="always")
+def _wrong_sign(vd, vr):
+    """1.0 when the volume ``vd`` has not the sign of the reference's ``vr`` (0 when vr is 0)."""
+    return 1.0 if (vr > 0.0 and not vd > 0.0) or (vr < 0.0 and not vd < 0.0) else 0.0
+
+
+@jit
+def _ratio_row(x, xr, ndim, j, k, rat, neg, res):
+    """Row (j, k) of :func:`_step_check`: per cell the smallest corner-Jacobian ratio to the
+    reference ``xr`` into ``rat`` and whether its volume changed sign into ``neg`` (a loop
+    with no branches and no carried values, which the compiler vectorises), then their
+    reduction into ``res``: ``(min ratio (NaN first), its i, negative cells,
+    negative-Jacobian cells, first bad i or -1, NaN cells)``."""
+    nci = x.shape[0] - 1
+    # unsigned indices: numba then emits no negative-index wrap-around, and the loops vectorise
+    j = np.uint64(j)
+    k = np.uint64(k)
+    if ndim == 3:
+        # one loop per pair of corners that share their i-edge: each vectorises (the eight
+        # corners in one loop do not; pairs were the fastest)
+        one = np.uint64(1)
+        zero = np.uint64(0)
+        _corner_pass(x, xr, j, k, zero, zero, rat, True)
+        _corner_pass(x, xr, j, k, one, zero, rat, False)
+        _corner_pass(x, xr, j, k, zero, one, rat, False)
+        _corner_pass(x, xr, j, k, one, one, rat, False)
+        _volume_signs(x, xr, j, k, neg)
+    else:
+        _quad_ratios(x, xr, j, rat, neg)
+    best = np.inf
+    at = -1
+    nneg = 0
+    nnj = 0
+    first = -1
+    nnan = 0
+    for i in range(nci):
+        r = rat[i]
+        bad = neg[i] > 0.0
+        if bad:
+            nneg += 1
+        if not r > 0.0:
+            nnj += 1
+            bad = True
+        if bad and first < 0:
+            first = i
+        if r != r:
+            if nnan == 0:
+                best = r
+                at = i
+            nnan += 1
+        elif nnan == 0 and r < best:
+            best = r
+            at = i
+    res[0] = best
+    res[1] = at
+    res[2] = nneg
+    res[3] = nnj
+    res[4] = first
+    res[5] = nnan
+
+
+@pjit
+def _step_check(x, xr, ndim, res):
+    """Per row of cells ``r = j + (nj - 1) k``, ``res[r]`` (6,): the smallest corner-Jacobian
+    ratio to ``xr`` and its i, the negative and negative-Jacobian cells, the first bad i
+    (-1: none), the cells whose ratio is NaN (:func:`_ratio_row`).  Rows in parallel, no
+    temporaries the size of the block."""
+    ncj = x.shape[1] - 1
+    nci = x.shape[0] - 1
+    for r in prange(res.shape[0]):
+        rat = np.empty(nci)
+        neg = np.empty(nci)
+        _ratio_row(x, xr, ndim, r % ncj, r // ncj, rat, neg, res[r])
 
 # ------------------------------------------------------------------ per-cell drivers
 def _xyz(block, what: str = "block") -> np.ndarray:
@@ -1060,41 +1251,131 @@ def negative_cells(grid: Grid, reference: Grid | None = None):
     return out
 
 
+# ------------------------------------------------------------------ a deformation step's check
+@dataclass(frozen=True)
+class CellCheck:
+    """The cells of a deformed grid against its reference (:func:`check_cells`).
+
+    Attributes
+    ----------
+    min_ratio : float
+        The smallest ratio, over every cell corner, of the corner Jacobian
+        (the determinant of the three edges leaving the corner along i, j, k,
+        in the positive index sense; two in 2-D) to the same corner's in the
+        reference; corners whose reference Jacobian is 0 are skipped.  1 for
+        a translated grid; <= 0 where a corner folded.  NaN when a cell has
+        non-finite coordinates; ``inf`` when no corner counts.
+    min_at : (block, i, j, k) or None
+        0-based cell of ``min_ratio``.
+    negative : int
+        Cells whose volume (area) has not the sign of the reference cell's
+        (reference cells of zero volume skipped): the count
+        :func:`negative_cells` gives with the reference.
+    negative_jacobian : int
+        Cells with a corner ratio <= 0 (or NaN): the stricter test.
+    first : tuple of (block, i, j, k)
+        0-based, up to ``max_locations`` cells that are negative or
+        negative-Jacobian: the first (lowest i) of each row of cells that
+        has one, rows in block order, then k, then j.
+    """
+
+    min_ratio: float
+    min_at: tuple | None
+    negative: int
+    negative_jacobian: int
+    first: tuple = ()
+
+    @property
+    def ok(self) -> bool:
+        """No negative and no negative-Jacobian cell."""
+        return self.negative == 0 and self.negative_jacobian == 0
+
+    def __str__(self) -> str:
+        where = "" if self.min_at is None else f" at (block, i, j, k) = {self.min_at}"
+        text = (f"smallest corner-Jacobian ratio {self.min_ratio:.6g}{where}; {self.negative} "
+                f"negative cell(s), {self.negative_jacobian} with a corner ratio <= 0")
+        if self.first:
+            text += f"; first: {', '.join(str(t) for t in self.first)} (0-based)"
+        return text
+
+    @staticmethod
+    def merge(parts, max_locations: int = 5) -> "CellCheck":
+        """One report for the blocks of ``parts`` (per-block reports, block order)."""
+        parts = list(parts)
+        nan = [p for p in parts if p.min_ratio != p.min_ratio]
+        lo = nan[0] if nan else min(parts, key=lambda p: p.min_ratio, default=None)
+        first = tuple(t for p in parts for t in p.first)[:max_locations]
+        return CellCheck(math.inf if lo is None else lo.min_ratio, None if lo is None else lo.min_at,
+                         sum(p.negative for p in parts), sum(p.negative_jacobian for p in parts),
+                         first)
+
+
+def check_block(xyz: np.ndarray, ref: np.ndarray, ndim: int, block: int = 0,
+                max_locations: int = 5) -> CellCheck:
+    """:class:`CellCheck` of one block ``xyz`` against its reference coordinates ``ref`` (both
+    float64 Fortran-ordered ``(ni, nj, nk, 3)``; ``block``: its number in the locations).
+
+    One pass over the cells, rows in parallel, nothing the size of the block allocated:
+    the check :meth:`tfi_quat.deform.Deformer.deform` makes with ``check=True``.
+    """
+    for name, a in (("xyz", xyz), ("ref", ref)):
+        if not isinstance(a, np.ndarray) or a.ndim != 4 or a.shape[-1] != 3 or \
+                a.dtype != np.float64 or not a.flags.f_contiguous:
+            raise GridValueError(f"{name}: expected a float64 Fortran-ordered (ni, nj, nk, 3) array")
+    if xyz.shape != ref.shape:
+        raise GridValueError(f"xyz has shape {xyz.shape}, its reference {ref.shape}")
+    ndim = _ndim(xyz, ndim)
+    nci, ncj, nck = _cell_shape(xyz.shape[:3], ndim)
+    if nci * ncj * nck == 0:
+        return CellCheck(math.inf, None, 0, 0)
+    res = np.empty((ncj * nck, 6))
+    _step_check(xyz, ref, ndim, res)
+    nan = np.flatnonzero(res[:, 5] > 0)
+    r = int(nan[0]) if nan.size else int(np.argmin(res[:, 0]))
+    lo = float(res[r, 0])
+    at = None if res[r, 1] < 0 else (block, int(res[r, 1]), r % ncj, r // ncj)
+    bad = np.flatnonzero(res[:, 4] >= 0)[:max_locations]
+    first = tuple((block, int(res[q, 4]), int(q % ncj), int(q // ncj)) for q in bad)
+    return CellCheck(lo, at, int(res[:, 2].sum()), int(res[:, 3].sum()), first)
+
+
 def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
     """Number of negative cells and the smallest cell-volume ratio to ``reference``.
+
+    One pass over each block and its reference, no per-cell arrays: the
+    ratios are reduced row by row of cells as they are computed.
 
     Returns
     -------
     dict with keys ``negative`` (int), ``min_ratio`` (float) and ``where``
-    ((block, i, j, k) 0-based of the smallest ratio; of a NaN ratio if there is
-    one; the first in C order, i then j then k, among equal ones).
+    ((block, i, j, k) 0-based of the smallest ratio, the first in C order, i
+    then j then k, among equal ones).  A ratio is the deformed cell's volume
+    over the reference cell's (areas in 2-D), infinite where the reference
+    volume is 0; a block with a NaN ratio offers no smallest ratio.
     """
     neg = 0
     best = (np.inf, None)
     for b, (blk, ref) in enumerate(zip(grid, reference)):
-        ratio = cell_volumes(blk, grid.ndim)         # Fortran order, divided in place
-        vr = cell_volumes(ref, grid.ndim)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            np.divide(ratio, vr, out=ratio)
-        np.copyto(ratio, np.inf, where=vr == 0.0)
-        neg += int(np.count_nonzero(ratio <= 0.0))
-        if ratio.size:
-            ijk = _first_min(ratio)
-            if ratio[ijk] < best[0]:
-                best = (float(ratio[ijk]), (b, *ijk))
+        x = _xyz(blk)
+        xr = _check_ref(x, ref, f"block {b + 1}")
+        nci, ncj, nck = _cell_shape(x.shape[:3], grid.ndim)
+        nrows = ncj * nck
+        if not nci * nrows:
+            continue
+        cnt = np.empty(nrows, dtype=np.int64)
+        low = np.empty(nrows)
+        first = np.empty(nrows, dtype=np.int64)
+        _ratio_rows(x, xr, grid.ndim, cnt, low, first)
+        neg += int(cnt.sum())
+        if np.isnan(low).any():
+            continue                                # NaN < best is False: as np.argmin's NaN
+        m = low.min()
+        if m < best[0]:
+            rows = np.flatnonzero(low == m)
+            i, j, k = first[rows], rows % ncj, rows // ncj
+            r = int(np.lexsort((k, j, i))[0])
+            best = (float(low[rows[r]]), (b, int(i[r]), int(j[r]), int(k[r])))
     return {"negative": neg, "min_ratio": best[0], "where": best[1]}
-
-
-def _first_min(a: np.ndarray) -> tuple[int, int, int]:
-    """``np.unravel_index(np.argmin(a), a.shape)`` for a Fortran-order 3-D array, without
-    ``argmin``'s copy of it into C order: the minimum (or NaN) found in memory order, then
-    the first of its copies in C order."""
-    t = a.T                                         # C order, shape (nk, nj, ni)
-    v = t.flat[int(np.argmin(t))]
-    same = np.flatnonzero(np.isnan(t) if v != v else t == v)
-    k, j, i = np.unravel_index(same, t.shape)
-    first = np.lexsort((k, j, i))[0]
-    return int(i[first]), int(j[first]), int(k[first])
 
 
 # ------------------------------------------------------------ near-wall orthogonality

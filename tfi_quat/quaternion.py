@@ -642,8 +642,14 @@ def _v(a, name: str) -> np.ndarray:
 
 
 def _flat(a, shape, tail) -> np.ndarray:
-    """``a`` broadcast to ``shape + tail`` as a C-contiguous ``(N,) + tail`` array."""
-    return np.ascontiguousarray(np.broadcast_to(a, shape + tail)).reshape((-1,) + tail)
+    """``a`` broadcast to ``shape + tail`` as a read-only C-contiguous ``(N,) + tail`` array.
+
+    Read-only whether or not broadcasting made a copy (a view of ``a`` is read-only, a copy
+    is made so), so a kernel sees one type and is compiled and loaded once, not once for
+    each combination of its inputs' flags."""
+    flat = np.ascontiguousarray(np.broadcast_to(a, shape + tail)).reshape((-1,) + tail)
+    flat.flags.writeable = False
+    return flat
 
 
 def _bshape(*pairs) -> tuple:

@@ -1,7 +1,5 @@
 """``python -m tfi_quat.cli``: the same as the ``tfi-quat`` command."""
 
-import sys
+from . import console_main
 
-from . import main
-
-sys.exit(main())
+console_main()

@@ -27,6 +27,7 @@ with a :class:`DeprecationWarning` (:func:`resolve_method`).
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -37,8 +38,10 @@ from typing import Callable, Mapping
 import numpy as np
 
 from .. import quaternion as qa
+from .._jit import serial_below, use_threads
 from ..errors import CaseError, DeformationError
 from ..grid import Block, Grid, face_ijk
+from ..quality import CellCheck, check_block
 from ..spec import PatchSpec, as_patch_specs, parse_patch_spec
 from . import stages, twolevel
 from .skeleton import BLENDINGS, FIXED, WALL, ArclengthParams, boundary_points, build_skeleton
@@ -107,17 +110,19 @@ class StepTimings:
 
     ``walls``: wall targets, rigid fits, wall quaternions; ``skeleton``:
     vertices and segments; ``faces``: patches, symmetry and boundary
-    positions; ``volumes``: the block kernels and the copy of boundary points.
+    positions; ``volumes``: the block kernels, the copy of boundary points
+    and into the ``out`` buffers; ``check``: the cell check (``check=``).
     """
 
     walls: float = 0.0
     skeleton: float = 0.0
     faces: float = 0.0
     volumes: float = 0.0
+    check: float = 0.0
 
     @property
     def total(self) -> float:
-        return self.walls + self.skeleton + self.faces + self.volumes
+        return self.walls + self.skeleton + self.faces + self.volumes + self.check
 
 
 class _Work:
@@ -191,13 +196,25 @@ class Deformer:
     max_idw_sources : int
         At most this many (evenly sampled) wall points serve as sources of the
         vertex blend.
+    threads : int, optional
+        The most threads the Deformer's compiled kernels use, in its own calls
+        only (set-up, :meth:`deform`, :meth:`velocity`); the setting of the
+        calling thread is restored after each.  Default: all
+        (``numba.config.NUMBA_NUM_THREADS``; more are capped to that).  In a
+        coupled run give the Deformer the cores the flow solver leaves idle
+        while it waits for the grid, e.g. ``threads=1`` when every core runs
+        a solver rank, so that the two do not compete.
+    dup_tol : float
+        The array form of :meth:`deform`: copies of one wall point (a point
+        listed more than once) may differ by at most this distance (default
+        0: they must be equal); the first copy given is used.
     """
 
     def __init__(self, grid: Grid, walls=(), symmetry=(), fixed=(), connectivity=None,
                  method: str = "two-level", formulation: str | None = None, centre=None,
                  tol: float | None = None, blending: str | None = None,
                  rotation_length: float | None = None, idw_power: float = 3.0,
-                 max_idw_sources: int = 2000):
+                 max_idw_sources: int = 2000, dup_tol: float = 0.0, threads: int | None = None):
         if not isinstance(grid, Grid):
             raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
         method = resolve_method(method, formulation)
@@ -217,6 +234,17 @@ class Deformer:
                 raise CaseError(f"rotation_length must be a positive number, got {rotation_length!r}")
             if not two:
                 raise CaseError("rotation_length applies to method='two-level' only")
+        try:
+            dup_tol = float(dup_tol)
+        except (TypeError, ValueError):
+            dup_tol = math.nan
+        if not (math.isfinite(dup_tol) and dup_tol >= 0.0):
+            raise CaseError(f"dup_tol must be a finite number >= 0, got {dup_tol!r}")
+        #: the largest distance allowed between copies of one wall point (:meth:`deform`)
+        self.dup_tol = dup_tol
+        #: the most threads the Deformer's own calls use (None: all)
+        self.threads = _check_threads(threads)
+        cap = functools.partial(use_threads, self.threads)
         t0 = time.perf_counter()
         self.grid = grid
         self.ndim = grid.ndim
@@ -235,7 +263,8 @@ class Deformer:
             connectivity = topology.classify(grid.connectivity, grid, walls=walls, symmetry=symmetry,
                                              fixed=fixed)
         elif connectivity is None:
-            connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
+            with cap():
+                connectivity = topology.connect(grid, walls=walls, symmetry=symmetry, fixed=fixed)
         elif walls or symmetry or fixed:
             connectivity = topology.classify(connectivity, grid, walls=walls, symmetry=symmetry,
                                              fixed=fixed)
@@ -246,7 +275,8 @@ class Deformer:
         self.tol = float(tol) if tol is not None else 1e-10 * diag
         if not (math.isfinite(self.tol) and self.tol >= 0.0):
             raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
-        pts = boundary_points(grid, connectivity, self.tol)
+        with cap():
+            pts = boundary_points(grid, connectivity, self.tol)
         if not pts.wall.size:
             src = ""
             if own:
@@ -254,20 +284,29 @@ class Deformer:
             raise CaseError(f"no wall points{src}: give at least one wall patch")
         self.centre = _centre(pts, centre)
         if two:
-            layer = twolevel.wall_layer(pts, rotation_length, diag)
+            with cap():
+                layer = twolevel.wall_layer(pts, rotation_length, diag)
             params = layer
             self.rotation_length = layer.ell
         else:
             params = ArclengthParams(BLENDINGS[self.blending])
             self.rotation_length = None
         #: the frozen skeleton (:class:`tfi_quat.deform.skeleton.Skeleton`)
-        self.skeleton = build_skeleton(grid, connectivity, pts, params, tol=self.tol,
-                                       idw_power=idw_power, max_idw_sources=max_idw_sources)
-        #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
-        self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
+        with cap():
+            self.skeleton = build_skeleton(grid, connectivity, pts, params, tol=self.tol,
+                                           idw_power=idw_power, max_idw_sources=max_idw_sources)
+            #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
+            self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
         self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
         self._lock = threading.Lock()
         self._surface_cache = None
+        self._wall_keys = None
+        self._scratch = None
+        self._scratch_grid = None
+        self._check_seconds = 0.0
+        #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
+        #: of one that raised for invalid cells), or None when it was not checked
+        self.quality = None
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
 
@@ -309,6 +348,39 @@ class Deformer:
                 out[sel] = blk.xyz[i, j, k]
         return out
 
+    def new_grid(self, order: str = "F", separate: bool = False):
+        """Buffers for :meth:`deform`'s ``out`` (and :meth:`velocity`'s), holding a copy of
+        the reference coordinates.
+
+        Parameters
+        ----------
+        order : {"F", "C"}
+            Memory order of each block's arrays.
+        separate : bool
+            Three arrays ``x, y, z`` of shape ``(ni, nj, nk)`` per block
+            (as Fortran solvers keep them) instead of one ``(ni, nj, nk, 3)``.
+
+        Returns
+        -------
+        Grid or list
+            ``order="F"``, not separate: a Grid (its blocks are Fortran
+            ``(ni, nj, nk, 3)`` arrays, which :meth:`deform` writes with no
+            copy).  Otherwise a list with per block an array
+            ``(ni, nj, nk, 3)`` in ``order``, or a tuple ``(x, y, z)``.
+        """
+        if order not in ("F", "C"):
+            raise CaseError(f"order must be 'F' or 'C', got {order!r}")
+        ref = self.grid
+        if order == "F" and not separate:
+            return ref.copy()
+        out = []
+        for blk in ref:
+            if separate:
+                out.append(tuple(np.array(blk.xyz[..., c], order=order) for c in range(3)))
+            else:
+                out.append(np.array(blk.xyz, order=order))
+        return out
+
     def _surface(self) -> tuple[np.ndarray, np.ndarray]:
         """``(ids (n, 4), gid (n,))``: :meth:`surface_ids` and each copy's global point id;
         made on first use, then kept."""
@@ -329,44 +401,248 @@ class Deformer:
             self._surface_cache = got
         return got
 
-    def deform(self, moved, *, callback: Callable[[int, int], None] | None = None) -> Grid:
+    def _wall_lookup(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(keys, gid)``: the flat keys (block offset + Fortran index) of every copy of every
+        wall point, ascending, and its global id; made on first use, then kept."""
+        got = self._wall_keys
+        if got is None:
+            pts = self.skeleton.points
+            on_wall = pts.kind[pts.copies_gid] == WALL
+            got = (pts.copies_key[on_wall], pts.copies_gid[on_wall])
+            self._wall_keys = got
+        return got
+
+    def _copy_name(self, b: int, i: int, j: int, k: int) -> str:
+        name = self.grid[b].name
+        return f"(block, i, j, k) = ({b}, {i}, {j}, {k})" + (f" [{name}]" if name else "")
+
+    def _array_targets(self, xs, ids, displacement: bool, rd: np.ndarray) -> np.ndarray:
+        """The array form of :meth:`deform`: wall targets from rows of ``xs`` at the copies
+        ``ids`` (None: :meth:`surface_ids`), checked, into the wall rows of ``rd``."""
+        pts = self.skeleton.points
+        xs = np.asarray(xs)
+        if xs.ndim != 2 or xs.shape[1] != 3:
+            raise DeformationError(f"xs must have shape (n, 3), got {xs.shape}")
+        if not (np.issubdtype(xs.dtype, np.floating) or np.issubdtype(xs.dtype, np.integer)):
+            raise DeformationError(f"xs must hold real numbers, got dtype {xs.dtype}")
+        xs = np.asarray(xs, dtype=np.float64)
+        m = xs.shape[0]
+        if ids is None:
+            sid, gid = self._surface()
+            if m != sid.shape[0]:
+                raise DeformationError(
+                    f"xs has {m} rows; without ids it must have one row per wall point copy of "
+                    f"surface_ids(), {sid.shape[0]} (or give ids)")
+            copy_of = sid
+        else:
+            copy_of = self._check_ids(ids, m)
+            keys, kgid = self._wall_lookup()
+            b, i, j, k = copy_of.T
+            flat = self._flat_keys(b, i, j, k)
+            at = np.minimum(np.searchsorted(keys, flat), keys.size - 1)
+            hit = keys[at] == flat
+            if not hit.all():
+                r = int(np.flatnonzero(~hit)[0])
+                raise DeformationError(f"ids row {r}: {self._copy_name(*copy_of[r])} (0-based) is "
+                                       f"not a wall point ({int((~hit).sum())} such row(s))")
+            gid = kgid[at]
+        bad = ~np.isfinite(xs)
+        if bad.any():
+            r = int(np.flatnonzero(bad.any(axis=1))[0])
+            raise DeformationError(f"xs row {r} ({self._copy_name(*copy_of[r])}, 0-based) is not "
+                                   f"finite ({int(bad.any(axis=1).sum())} such row(s))")
+        # one row per distinct point, the first copy given; the others must agree with it
+        order = np.argsort(gid, kind="stable")
+        g_sorted = gid[order]
+        start = np.ones(m, dtype=bool)
+        start[1:] = g_sorted[1:] != g_sorted[:-1]
+        first = order[start]
+        # the repeated copies (rows of xs) and the first copy of their point
+        rep = np.flatnonzero(~start)
+        lead = order[np.maximum.accumulate(np.where(start, np.arange(m), 0))[rep]]
+        rep = order[rep]
+        dist = np.sqrt(np.sum((xs[rep] - xs[lead]) ** 2, axis=1))
+        over = dist > self.dup_tol
+        if over.any():
+            r = int(np.argmax(np.where(over, dist, -1.0)))
+            a, c = int(lead[r]), int(rep[r])
+            raise DeformationError(
+                f"rows {a} and {c} of xs are copies of one wall point, {self._copy_name(*copy_of[a])} "
+                f"and {self._copy_name(*copy_of[c])} (0-based), and differ by {dist[r]:.6g} > "
+                f"dup_tol = {self.dup_tol:g} ({int(over.sum())} copy(ies) disagree with their "
+                f"first; Deformer(dup_tol=...) sets the tolerance)")
+        g_first = gid[first]
+        seen = np.zeros(pts.n_global, dtype=bool)
+        seen[g_first] = True
+        missing = pts.wall[~seen[pts.wall]]
+        if missing.size:
+            b, flat = self._key_to_copy(int(pts.rep_key[missing[0]]))
+            raise DeformationError(f"{missing.size} wall point(s) have no row in xs, e.g. "
+                                   f"{self._copy_name(b, *flat)} (0-based)")
+        rd[g_first] = xs[first]
+        if displacement:
+            rd[g_first] += pts.P[g_first]
+        if self.ndim == 2 and np.any(rd[pts.wall, 2] != 0.0):
+            what = "displacements" if displacement else "wall points"
+            raise DeformationError(f"the {what} of a 2-D grid must have z = 0")
+        return rd
+
+    def _check_ids(self, ids, m: int) -> np.ndarray:
+        """``ids`` as an (m, 4) int64 array of existing points, else a DeformationError naming
+        the row."""
+        a = np.asarray(ids)
+        if a.ndim != 2 or a.shape[1] != 4:
+            raise DeformationError(f"ids must have shape (m, 4) (block, i, j, k, 0-based), got "
+                                   f"{a.shape}")
+        if a.shape[0] != m:
+            raise DeformationError(f"ids has {a.shape[0]} rows, xs {m}: one id per row of xs")
+        if not np.issubdtype(a.dtype, np.integer):
+            raise DeformationError(f"ids must be integers, got dtype {a.dtype}")
+        a = a.astype(np.int64, copy=False)
+        nb = len(self.grid)
+        bad = (a[:, 0] < 0) | (a[:, 0] >= nb)
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            raise DeformationError(f"ids row {r}: block {a[r, 0]} out of range 0..{nb - 1} "
+                                   f"(0-based)")
+        dims = np.array(self.grid.dims, dtype=np.int64)[a[:, 0]]
+        bad = ((a[:, 1:] < 0) | (a[:, 1:] >= dims)).any(axis=1)
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            raise DeformationError(f"ids row {r}: {self._copy_name(*a[r])} (0-based) is outside "
+                                   f"the block's {tuple(int(v) for v in dims[r])} points")
+        return a
+
+    def _flat_keys(self, b, i, j, k) -> np.ndarray:
+        """Flat keys (block offset + Fortran index) of points (block, i, j, k)."""
+        dims = np.array(self.grid.dims, dtype=np.int64)[b]
+        return self.skeleton.points.offsets[b] + i + dims[:, 0] * (j + dims[:, 1] * k)
+
+    def _key_to_copy(self, key: int) -> tuple[int, tuple[int, int, int]]:
+        off = self.skeleton.points.offsets
+        b = int(np.searchsorted(off, key, side="right") - 1)
+        ni, nj, _ = self.grid[b].dims
+        r = key - int(off[b])
+        return b, (r % ni, (r // ni) % nj, r // (ni * nj))
+
+    def deform(self, moved, *, ids=None, displacement: bool = False, out=None, check=False,
+               callback: Callable[[int, int], None] | None = None) -> Grid:
         """Deform the grid for new wall positions.
 
         Parameters
         ----------
-        moved : callable, Grid or mapping
+        moved : ndarray, callable, Grid or mapping
+            * an array ``xs`` (n, 3): the new position (``displacement``:
+              the displacement) of every wall point copy, in the order of
+              :meth:`surface_ids`, or with ``ids`` of the copies ``ids``;
             * a callable ``f(points (n, 3)) -> (n, 3)`` giving the new
               position of each wall point (see :meth:`wall_points`);
             * a Grid with the reference's dimensions whose wall points hold
               the new positions (other points are ignored);
             * a mapping ``PatchSpec or "B:FACE[:range]" -> array (na, nb, 3)``
               covering every wall point.
+        ids : array_like of int, shape (m, 4), optional
+            With an array ``xs`` (m, 3): the ``(block, i, j, k)`` (0-based)
+            of the point each row moves, in any order (a solver's own wall
+            list).  Every distinct wall point must be given at least once;
+            a point may be listed several times (once per block that holds
+            it, say): its copies must agree within ``dup_tol``
+            (:class:`Deformer`) and the first is used.  Any copy of a wall
+            point counts, also one :meth:`surface_ids` does not list (a
+            block touching the wall at an edge only).
+        displacement : bool
+            With an array: its rows are displacements from the reference
+            positions (:meth:`surface_points`) instead of positions.
+        out : Grid or list, optional
+            Buffers the step writes into instead of making a new grid (a
+            coupled solver's own arrays; :meth:`new_grid` makes them): a
+            Grid with the reference's dimensions, or a list with, per
+            block, an array ``(ni, nj, nk, 3)`` float64 in Fortran or C
+            order (any strides), or a tuple of three ``(ni, nj, nk)``
+            arrays ``x, y, z`` (2-D grids: ``nk = 1``; give a
+            ``(ni, nj)`` array as its view ``a[:, :, None]``).  They are
+            checked (shape, dtype, writeable, not the reference) before
+            anything is written; the step allocates nothing the size of
+            the grid.  Fortran-ordered ``(ni, nj, nk, 3)`` arrays (a
+            Grid's blocks) are written by the compiled kernels directly;
+            the other layouts go, block by block, through one scratch
+            array the size of the largest block that the Deformer keeps,
+            and are copied from it (the kernels are compiled for Fortran
+            arrays only: a specialisation per layout would add its
+            compile time to every cold start, and the x, y, z triple
+            cannot be one array).
+        check : {False, True, "raise"}
+            Check every cell of the result against the reference as each
+            block is made (:func:`tfi_quat.quality.check_block`: the
+            smallest corner-Jacobian ratio, negative and negative-Jacobian
+            cells, their first locations): one more pass over each block
+            while it is in memory, allocating nothing grid-sized; it costs
+            about as much as the block kernels (0.6-0.8 x on the 501 k-point
+            wing, measured on a loaded machine; ``timings.check``).  The report
+            (:class:`tfi_quat.quality.CellCheck`) is the result grid's
+            ``quality`` and the Deformer's :attr:`quality`.  ``"raise"``:
+            a :class:`DeformationError` naming the first invalid cells when
+            a cell is negative or has a corner ratio <= 0; with ``out``, the
+            step then computes into a scratch grid that the Deformer keeps
+            (made on the first such call: memory the size of the grid) and
+            copies it into ``out`` only when the grid is valid, so that the
+            buffers are left unchanged by a failed step.
         callback : callable(done, total), optional
             Called after each block kernel (progress reporting).
 
         Returns
         -------
-        Grid
-            A new grid with the reference's ``source_format`` and
-            ``connectivity`` (so ``write(path, out, like=reference)`` writes
-            the reference's file variant, a CGNS file with its boundary
-            conditions); the reference is not modified.  Every call starts
-            from the reference, so repeated steps do not drift.
+        Grid or None
+            Without ``out``: a new grid with the reference's
+            ``source_format`` and ``connectivity`` (so ``write(path, out,
+            like=reference)`` writes the reference's file variant, a CGNS
+            file with its boundary conditions).  With ``out`` a Grid: that
+            grid; with a list of Fortran-ordered arrays: a Grid whose
+            blocks view them; with other layouts: None (the values are in
+            ``out``).  The reference is not modified; every call starts
+            from it, so repeated steps do not drift.  Every form and
+            every ``out`` layout gives the same bits; the array form
+            gives bit for bit the grid of a callable returning the same
+            positions.
+
+        Raises
+        ------
+        DeformationError
+            Bad input, before anything is computed: wrong shapes, ids out of
+            range or not on a wall (the message names the row), wall points
+            not covered (it names how many and one), copies of a point that
+            disagree (it names both and their distance), non-finite values.
         """
-        with self._lock:
+        with self._lock, use_threads(self.threads):
             t0 = time.perf_counter()
-            rd = _wall_targets(self.skeleton, self.grid, moved, self._work.rd)
-            if self.two_level is not None:
-                outs, pos, ts, t1, t3 = self._two_level_step(rd, callback)
+            if not (check is False or check is True or check == "raise"):
+                raise DeformationError(f"check must be False, True or 'raise', got {check!r}")
+            self.quality = None
+            dests = None if out is None else self._check_out(out)
+            if isinstance(moved, np.ndarray):
+                rd = self._array_targets(moved, ids, bool(displacement), self._work.rd)
             else:
-                outs, pos, ts, t1, t3 = self._samareh_step(rd, callback)
-            grid = _assemble(self.skeleton, self.grid, outs, pos)
-            t4 = time.perf_counter()
-            self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=t3 - t1 - ts, volumes=t4 - t3)
+                if ids is not None or displacement:
+                    raise DeformationError("ids= and displacement= go with an array of wall points "
+                                           f"(n, 3) as the first argument, got {type(moved).__name__}")
+                rd = _wall_targets(self.skeleton, self.grid, moved, self._work.rd)
+            if self.two_level is not None:
+                passes, ts, t1, t3 = self._two_level_fields(rd)
+            else:
+                passes, ts, t1, t3 = self._samareh_fields(rd)
+            self._check_seconds = 0.0
+            try:
+                grid = self._volumes(passes, dests, out, callback, check)
+            finally:
+                t4 = time.perf_counter()
+                tc = self._check_seconds
+                self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=t3 - t1 - ts,
+                                           volumes=t4 - t3 - tc, check=tc)
             return grid
 
-    def _samareh_step(self, rd, callback):
-        """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q)."""
+    def _samareh_fields(self, rd):
+        """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q) on the
+        boundary points; returns the volume pass (:meth:`_volumes`)."""
         sk = self.skeleton
         wall = sk.points.wall
         c = self.centre
@@ -398,13 +674,12 @@ class Deformer:
         stages.onto_symmetry(sk, pos)
         pos[wall] = rd[wall]
         t3 = time.perf_counter()
-        outs = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
-        stages.volumes(sk, self.grid, [blk.xyz for blk in self.grid], gdelta, gq, c, outs, callback)
-        return outs, pos, ts, t1, t3
+        return [(gdelta, gq, c, None)], ts, t1, t3
 
-    def _two_level_step(self, rd, callback):
+    def _two_level_fields(self, rd):
         """The residual motion (:func:`twolevel.local_fields`) where the walls deform, then
-        the bodies' rigid motions (:func:`twolevel.rigid_fields`) where they move."""
+        the bodies' rigid motions (:func:`twolevel.rigid_fields`) where they move; returns
+        the volume passes (:meth:`_volumes`)."""
         sk = self.skeleton
         two = self.two_level
         wall = sk.points.wall
@@ -429,19 +704,206 @@ class Deformer:
         stages.onto_symmetry(sk, pos)
         pos[wall] = rd[wall]
         t3 = time.perf_counter()
-        grid = self.grid
-        outs = [np.empty_like(blk.xyz, order="F") for blk in grid]
-        total = len(grid) * (int(local) + int(rigid))
-        if local:
-            stages.volumes(sk, grid, [blk.xyz for blk in grid], w.K, w.ql, _ORIGIN, outs, callback,
-                           0, total, base_tables=two.base)
-        else:
-            for out, blk in zip(outs, grid):
-                np.copyto(out, blk.xyz)
+        # the residual motion about the arms' base points, or the reference copied; then the
+        # rigid motion in place
+        passes = [(w.K, w.ql, _ORIGIN, two.base) if local else None]
         if rigid:
-            stages.volumes(sk, grid, outs, w.gd, w.qg, self.centre, outs, callback,
-                           len(grid) * int(local), total)
-        return outs, pos, ts, t1, t3
+            passes.append((w.gd, w.qg, self.centre, None))
+        return passes, ts, t1, t3
+
+    def _volumes(self, passes, dests, out, callback, check):
+        """The block kernels of a step's ``passes`` (each ``(Δ or K, Q, centre, base tables)``
+        applied to the previous one's result, the first to the reference; None: copy the
+        reference), every boundary copy from the positions, into the buffers ``dests``
+        (:meth:`_check_out`; None: new arrays), each block checked after it is made when
+        ``check``; returns the result grid."""
+        sk = self.skeleton
+        grid = self.grid
+        pos = self._work.pos
+        total = len(grid) * sum(p is not None for p in passes)
+        done = 0
+        arrays = []
+        # check="raise" into buffers: every block into the kept scratch first, so that a
+        # folded grid leaves the buffers as they were
+        hold = check == "raise" and dests is not None
+        reports = []
+        for b, blk in enumerate(grid):
+            dest = None if dests is None else dests[b]
+            if dest is None:
+                dst = np.empty_like(blk.xyz, order="F")
+            elif hold:
+                dst = self._grid_scratch()[b]
+            elif _is_kernel_array(dest):
+                dst = dest
+            else:
+                dst = self._block_scratch(b)
+            base = blk.xyz
+            for p in passes:
+                if p is None:
+                    np.copyto(dst, base)
+                else:
+                    gd, gq, c, tables = p
+                    stages.volume(sk, grid, b, base, gd, gq, c, dst,
+                                  None if tables is None else tables[b])
+                    done += 1
+                    if callback is not None:
+                        callback(done, total)
+                base = dst
+            local, gid = sk.scatter[b]
+            stages.scatter_rows(pos, gid, local, dst.reshape(-1, 3, order="F"))
+            if sk.ndim == 2:
+                dst[..., 2] = 0.0
+            if check:
+                tc = time.perf_counter()
+                with serial_below(blk.npoints):
+                    reports.append(check_block(dst, blk.xyz, sk.ndim, b))
+                self._check_seconds += time.perf_counter() - tc
+            if dst is not dest and dest is not None and not hold:
+                _copy_out(dst, dest)
+            arrays.append(dst if dest is None else dest)
+        report = CellCheck.merge(reports) if check else None
+        self.quality = report
+        if check == "raise" and not report.ok:
+            raise DeformationError(f"the deformed grid has invalid cells: {report}" +
+                                   ("; the out buffers are unchanged" if hold else ""))
+        if hold:
+            for b, dest in enumerate(dests):
+                _copy_out(self._grid_scratch()[b], dest)
+        if isinstance(out, Grid):
+            result = out
+        elif not all(_is_kernel_array(a) for a in arrays):
+            return None
+        else:
+            blocks = [Block(a, blk.iblank, blk.name, allow_nonfinite=True)
+                      for a, blk in zip(arrays, grid)]
+            result = Grid(blocks, grid.ndim, source_format=grid.source_format,
+                          connectivity=grid.connectivity)
+        result.quality = report
+        return result
+
+    def _grid_scratch(self) -> list:
+        """One Fortran (ni, nj, nk, 3) array per block (``check="raise"`` into buffers), made
+        on first use and kept."""
+        if self._scratch_grid is None:
+            self._scratch_grid = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
+        return self._scratch_grid
+
+    def _block_scratch(self, b: int) -> np.ndarray:
+        """A Fortran (ni, nj, nk, 3) array for block ``b``: a view of one buffer the size of
+        the largest block, made on first use and kept (the next block's scratch reuses it)."""
+        if self._scratch_grid is not None:
+            return self._scratch_grid[b]
+        dims = self.grid[b].dims
+        n = 3 * self.grid[b].npoints
+        flat = self._scratch
+        if flat is None:
+            flat = self._scratch = np.empty(3 * max(blk.npoints for blk in self.grid))
+        return flat[:n].reshape(dims + (3,), order="F")
+
+    def _check_out(self, out, what: str = "out", writeable: bool = True) -> list:
+        """The buffers of ``out`` per block: a (ni, nj, nk, 3) float64 array or a tuple of three
+        (ni, nj, nk) ones, checked (shape, dtype; with ``writeable``: writeable and not the
+        reference's memory).  ``what``: the argument's name in messages."""
+        grid = self.grid
+        nb = len(grid)
+        if isinstance(out, Grid):
+            if out is grid and writeable:
+                raise DeformationError(f"{what} is the reference grid: give a buffer of its own "
+                                       "(Deformer.new_grid())")
+            if len(out) != nb:
+                raise DeformationError(f"{what} has {len(out)} blocks, the grid {nb}")
+            items = [blk.xyz for blk in out]
+        elif isinstance(out, (list, tuple)):
+            if len(out) != nb:
+                raise DeformationError(f"{what} has {len(out)} entries, the grid {nb} blocks: "
+                                       "one per block")
+            items = list(out)
+        else:
+            raise DeformationError(f"{what} must be a Grid or a list with one entry per block, "
+                                   f"got {type(out).__name__}")
+        dests = []
+        for b, (item, blk) in enumerate(zip(items, grid)):
+            dims = blk.dims
+            if isinstance(item, np.ndarray):
+                parts, want, name = [item], dims + (3,), f"{what}[{b}]"
+            elif isinstance(item, (tuple, list)) and len(item) == 3:
+                parts, want, name = list(item), dims, f"{what}[{b}] (x, y, z)"
+            else:
+                raise DeformationError(f"{what}[{b}]: expected an array (ni, nj, nk, 3) or a tuple of "
+                                       f"three (ni, nj, nk) arrays x, y, z, got "
+                                       f"{type(item).__name__}")
+            for part in parts:
+                if not isinstance(part, np.ndarray):
+                    raise DeformationError(f"{name}: expected numpy arrays, got "
+                                           f"{type(part).__name__}")
+                if part.shape != want:
+                    raise DeformationError(f"{name}: shape {part.shape}, expected {want} for "
+                                           f"block {b} (0-based)")
+                if part.dtype != np.float64:
+                    raise DeformationError(f"{name}: dtype {part.dtype}, expected float64")
+                if writeable and not part.flags.writeable:
+                    raise DeformationError(f"{name}: the array is read-only")
+                if writeable and np.may_share_memory(part, blk.xyz):
+                    raise DeformationError(f"{name}: shares memory with the reference grid")
+            dests.append(item if isinstance(item, np.ndarray) else tuple(item))
+        return dests
+
+    def velocity(self, prev, cur, dt: float, out=None):
+        """Grid-point velocities of a step, ``(cur - prev) / dt``, for ALE flow solvers.
+
+        Parameters
+        ----------
+        prev, cur : Grid or list
+            The grid before and after the step, in any layout :meth:`deform`
+            writes (``out=``): Grids, or lists with per block an array
+            ``(ni, nj, nk, 3)`` or a tuple of three ``(ni, nj, nk)`` arrays
+            ``x, y, z``; the two may differ in layout.  Their dimensions
+            are the reference's.
+        dt : float
+            The time step, finite and not 0.
+        out : Grid or list, optional
+            Where the velocities go (as :meth:`deform`'s ``out``: the same
+            layouts, checked the same way); may be ``cur`` itself.  Default:
+            new arrays in the layout of ``cur`` (a Grid's blocks: a list of
+            Fortran-ordered ``(ni, nj, nk, 3)`` arrays).
+
+        Returns
+        -------
+        Grid or list
+            ``out`` when given, else the new list.  Each value is computed as
+            ``(cur - prev) / dt`` (a subtraction, then a division: the bits
+            numpy gives for that expression), with no temporaries the size
+            of the grid.
+        """
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            dt = math.nan
+        if not (math.isfinite(dt) and dt != 0.0):
+            raise DeformationError(f"dt must be a finite number other than 0, got {dt!r}")
+        with use_threads(self.threads):
+            a = self._layout(prev, "prev")
+            c = self._layout(cur, "cur")
+            if out is None:
+                out = [tuple(np.empty_like(p) for p in blk) if isinstance(blk, tuple) else
+                       np.empty_like(blk) for blk in c]
+                o = out
+            else:
+                o = self._check_out(out)
+            for b in range(len(self.grid)):
+                for x0, x1, v in zip(_parts(a[b]), _parts(c[b]), _parts(o[b])):
+                    np.subtract(x1, x0, out=v)
+                    np.divide(v, dt, out=v)
+            return out
+
+    def _layout(self, coords, what: str) -> list:
+        """``coords`` (a Grid or a list) as per-block arrays or (x, y, z) tuples, checked."""
+        if isinstance(coords, Grid):
+            if len(coords) != len(self.grid) or coords.dims != self.grid.dims:
+                raise DeformationError(f"{what}: a grid of dimensions {coords.dims}, the "
+                                       f"reference has {self.grid.dims}")
+            return [blk.xyz for blk in coords]
+        return self._check_out(coords, what=what, writeable=False)
 
     def summary(self) -> str:
         """A few lines describing the skeleton (for the CLI and logs)."""
@@ -538,6 +1000,14 @@ def _check_block_sizes(grid: Grid) -> None:
                                 f"got {blk.dims[:2]}")
 
 
+def _check_threads(threads) -> int | None:
+    if threads is None:
+        return None
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise CaseError(f"threads must be a whole number >= 1 or None (all), got {threads!r}")
+    return int(threads)
+
+
 def _centre(pts, centre) -> np.ndarray:
     if centre is None:
         return pts.P[pts.kind == WALL].mean(axis=0)
@@ -592,16 +1062,26 @@ def _wall_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
     return rd
 
 
-def _assemble(sk, ref: Grid, outs, pos) -> Grid:
-    """The result grid: the block kernels' outputs with every boundary copy from ``pos``."""
-    blocks = []
-    for b, (blk, out) in enumerate(zip(ref, outs)):
-        local, gid = sk.scatter[b]
-        stages.scatter_rows(pos, gid, local, out.reshape(-1, 3, order="F"))
-        if sk.ndim == 2:
-            out[..., 2] = 0.0
-        blocks.append(Block(out, blk.iblank, blk.name, allow_nonfinite=True))
-    return Grid(blocks, ref.ndim, source_format=ref.source_format, connectivity=ref.connectivity)
+def _is_kernel_array(a) -> bool:
+    """Whether the volume kernels write ``a`` straight: a Fortran-ordered (ni, nj, nk, 3) array."""
+    return isinstance(a, np.ndarray) and a.ndim == 4 and a.flags.f_contiguous
+
+
+def _parts(blk) -> tuple:
+    """A block's coordinate arrays: ``(xyz,)`` or its ``(x, y, z)``, as arrays of one shape
+    (a (ni, nj, nk, 3) array against x, y, z: the three component views)."""
+    if isinstance(blk, tuple):
+        return blk
+    return tuple(blk[..., c] for c in range(3))
+
+
+def _copy_out(src: np.ndarray, dest) -> None:
+    """A block's result (Fortran (ni, nj, nk, 3)) into the caller's layout ``dest``."""
+    if isinstance(dest, np.ndarray):
+        np.copyto(dest, src)
+    else:
+        for c in range(3):
+            np.copyto(dest[c], src[..., c])
 
 
 def deformer_from_case(case, grid: Grid | None = None, **kw) -> Deformer:

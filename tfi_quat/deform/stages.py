@@ -4,7 +4,7 @@ Each kernel works on the arrays of one hierarchy level (the gaps of the
 segments, the derived patches, the symmetry points, the wall halos) and
 neither validates nor raises.  Below them, one thin driver per level
 (:func:`vertex_stage`, :func:`segment_stage`, :func:`patch_stage`,
-:func:`symmetry_stage`, :func:`wall_quaternions`, :func:`volumes`) calls them
+:func:`symmetry_stage`, :func:`wall_quaternions`, :func:`volume`) calls them
 on a :class:`~.skeleton.Skeleton`; the Deformer front validates the user's
 input before any of them runs.
 """
@@ -551,18 +551,15 @@ def _wall_quaternions(sk, rd, centre):
     return acc
 
 
-def volumes(sk, grid, bases, gdelta, gq, centre, outs, callback=None, done0=0, total=None,
-            base_tables=None) -> None:
-    """Fused TFI kernel per block: ``out = centre + Δ + rot(Q, base - centre)``.
+def volume(sk, grid, b, base, gdelta, gq, centre, out, base_tables=None) -> None:
+    """Fused TFI kernel of block ``b``: ``out = centre + Δ + rot(Q, base - centre)`` (``out``:
+    a Fortran-ordered (ni, nj, nk, 3) array; it may be ``base``).
 
-    The face values are read from the global boundary arrays through each block's
-    :func:`tfi.gather_plan` (no per-face copies).  ``base_tables`` (per block): the base
-    point is ``bases[b] + TFI(-c)`` (the two-level arms).
+    The face values are read from the global boundary arrays through the block's
+    :func:`tfi.gather_plan` (no per-face copies).  ``base_tables``: the base point is
+    ``base + TFI(-c)`` (the two-level arms).
     """
-    total = total or len(grid)
-    for b, plan in enumerate(sk.blocks):
-        with serial_below(grid[b].npoints):
-            tfi.deform_block_gathered(bases[b], plan.s, gdelta, gq, plan.gather, centre,
-                                      out=outs[b], base=None if base_tables is None else base_tables[b])
-        if callback is not None:
-            callback(done0 + b + 1, total)
+    plan = sk.blocks[b]
+    with serial_below(grid[b].npoints):
+        tfi.deform_block_gathered(base, plan.s, gdelta, gq, plan.gather, centre, out=out,
+                                  base=base_tables)

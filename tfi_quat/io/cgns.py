@@ -51,6 +51,8 @@ node (e.g. ``/wing/inner/ZoneBC/wall1/PointRange``).  ADF-format CGNS files
 
 from __future__ import annotations
 
+import contextlib
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -194,6 +196,18 @@ def _open(path) -> h5py.File:
         raise GridFormatError(f"{p}: cannot open as HDF5: {exc}") from None
 
 
+@contextlib.contextmanager
+def _tree(path):
+    """The checked :class:`_Tree` of a CGNS file (guarded, opened, closed on leaving)."""
+    f = _open(path)
+    t = _Tree(Path(os.fspath(path)), f)
+    try:
+        yield t
+    finally:
+        t.release()
+        f.close()
+
+
 def _text(value) -> str:
     if isinstance(value, np.ndarray):
         value = value.tobytes() if value.dtype.kind in "iuS" else value[()]
@@ -203,123 +217,235 @@ def _text(value) -> str:
 
 
 class _Tree:
-    """Checked access to the CGNS nodes of an open file; errors name the file and node."""
+    """Checked access to the CGNS nodes of an open file; errors name the file and node.
+
+    Nodes are named by their paths (``/Base/zone/ZoneBC``; the root is ``""``).
+    The links of a whole base are listed by one ``H5Lvisit`` (:meth:`prefetch`),
+    every node is opened once and its label read once (cached): a CGNS tree has
+    hundreds of small nodes, and per-node lookups through h5py's high-level
+    objects cost ten times more.
+    """
 
     def __init__(self, path, f: h5py.File):
         self.path = path
         self.f = f
+        self._links: dict = {}    # node -> {child key: link type}, in the file's order
+        self._objs: dict = {}     # node -> its GroupID or DatasetID
+        self._labels: dict = {}
+        self._buf = np.zeros((), dtype=f"S{_ATTR_LEN}")
 
     def fail(self, node: str, msg: str):
         raise GridFormatError(f"{self.path}: {node}: {msg}")
 
-    # h5py's low-level calls throughout: a CGNS tree has hundreds of small nodes, and
-    # the high-level objects cost ten times more per node
+    # ------------------------------------------------------------------ links and objects
+    def prefetch(self, node: str) -> None:
+        """List the links of ``node`` and of every group below it in one pass."""
+        gid = self._group_id(node)
+        found: dict = {}
 
-    def attr(self, g, key: str, node: str) -> str:
-        kb = key.encode("ascii")
+        def seen(name, info):
+            parent, _, key = name.decode("utf-8", "surrogateescape").rpartition("/")
+            found.setdefault(f"{node}/{parent}" if parent else node, {})[key] = info.type
         try:
-            if not h5py.h5a.exists(g.id, kb):
-                self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
-            aid = h5py.h5a.open(g.id, kb)
+            # groups that do not track the creation order are listed by name (as h5py lists them)
+            gid.links.visit(seen, idx_type=h5py.h5.INDEX_CRT_ORDER, info=True)
+        except (RuntimeError, OSError, ValueError, KeyError):
+            return  # listed group by group instead (:meth:`links`), with their own errors
+        for key, links in found.items():
+            self._links.setdefault(key, links)
+
+    def links(self, node: str) -> dict:
+        """``{key: link type}`` of the children of group ``node``, in the file's order."""
+        links = self._links.get(node)
+        if links is None:
+            gid = self._group_id(node)
+            links = {}
+
+            def seen(name, info):
+                links[name.decode("utf-8", "surrogateescape")] = info.type
+            try:
+                try:
+                    gid.links.iterate(seen, idx_type=h5py.h5.INDEX_CRT_ORDER, info=True)
+                except RuntimeError:  # no creation order index: by name, as h5py lists them
+                    links.clear()
+                    gid.links.iterate(seen, idx_type=h5py.h5.INDEX_NAME, info=True)
+            except (RuntimeError, OSError, ValueError) as exc:
+                self.fail(node or "/", f"cannot list its children: {exc}")
+            self._links[node] = links
+        return links
+
+    def _group_id(self, node: str):
+        if node == "":
+            return self.f.id
+        oid = self.obj(node)
+        if not isinstance(oid, h5py.h5g.GroupID):
+            self.fail(node, "is not a CGNS node (not an HDF5 group)")
+        return oid
+
+    def obj(self, node: str):
+        """The GroupID or DatasetID at ``node`` (reached through hard links only)."""
+        oid = self._objs.get(node)
+        if oid is None:
+            parent, _, key = node.rpartition("/")
+            # relative to the parent (open already): one link lookup, not one per level
+            loc = self.f.id if parent == "" else self._objs.get(parent)
+            if loc is None:
+                loc, key = self.f.id, node
+            try:
+                oid = h5py.h5o.open(loc, key.encode("utf-8", "surrogateescape"))
+            except (OSError, KeyError, ValueError, RuntimeError) as exc:
+                self.fail(node, f"cannot open: {exc}")
+            self._objs[node] = oid
+        return oid
+
+    def release(self) -> None:
+        """Drop the objects held open (before the file closes: h5py's close walks those left)."""
+        self._objs.clear()
+
+    def _hard(self, g: str, key: str, sub: str) -> bool:
+        """Whether ``key`` is a child of ``g``; a soft or external link is an error."""
+        ltype = self.links(g).get(key)
+        if ltype is None:
+            return False
+        if ltype != h5py.h5l.TYPE_HARD:
+            self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
+        return True
+
+    # ------------------------------------------------------------------ attributes
+    def attr(self, g: str, key: str, node: str) -> str:
+        """A string attribute of any form (the general, slower way)."""
+        kb = key.encode("ascii")
+        oid = self._group_id(g)
+        try:
+            exists = h5py.h5a.exists(oid, kb)
+        except (OSError, TypeError, ValueError, KeyError, RuntimeError) as exc:
+            self.fail(node, f"cannot read attribute {key!r}: {exc}")
+        if not exists:
+            self.fail(node, f"has no attribute {key!r} (not a CGNS node)")
+        try:
+            aid = h5py.h5a.open(oid, kb)
             tid = aid.get_type()
             if tid.get_class() != h5py.h5t.STRING or tid.is_variable_str() or aid.shape not in ((), (1,)):
-                return _text(g.attrs[key])
+                return _text(h5py.AttributeManager(h5py.Group(oid))[key])
             buf = np.zeros(aid.shape, dtype=f"S{tid.get_size()}")
             aid.read(buf)
             return _text(buf.reshape(-1)[0])
-        except (OSError, TypeError, ValueError, KeyError) as exc:
+        except (OSError, TypeError, ValueError, KeyError, RuntimeError) as exc:
             self.fail(node, f"cannot read attribute {key!r}: {exc}")
 
-    def label(self, g, node: str) -> str:
-        return self.attr(g, "label", node)
+    def label(self, g: str, node: str) -> str:
+        """The node's ``label`` attribute (read once)."""
+        have = self._labels.get(g)
+        if have is not None:
+            return have
+        oid = self._group_id(g)
+        try:
+            # the common form (a scalar fixed-length string) in one read; anything else the general way
+            aid = h5py.h5a.open(oid, b"label")
+            if aid.shape != ():  # h5py does not check the buffer's size against the attribute's
+                raise TypeError("not a scalar")
+            aid.read(self._buf, mtype=_S_ATTR)
+            have = _text(self._buf[()])
+        except (OSError, TypeError, ValueError, KeyError, RuntimeError):
+            have = self.attr(g, "label", node)
+        self._labels[g] = have
+        return have
 
-    def _open(self, g, key: str, sub: str):
-        """The object behind a hard link ``key`` of ``g``: h5py.Group or h5py.Dataset; None if absent."""
-        kb = key.encode("utf-8", "surrogateescape")
-        if not g.id.links.exists(kb):
-            return None
-        if g.id.links.get_info(kb).type != h5py.h5l.TYPE_HARD:
-            self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
-        oid = h5py.h5o.open(g.id, kb)
-        if isinstance(oid, h5py.h5g.GroupID):
-            return h5py.Group(oid)
-        if isinstance(oid, h5py.h5d.DatasetID):
-            return h5py.Dataset(oid)
-        return False
-
-    def children(self, g, node: str, label: str | None = None):
-        """``(name, group, path)`` of the child nodes (hard-linked groups) with ``label``.
+    # ------------------------------------------------------------------ children
+    def children(self, g: str, node: str, label: str | None = None):
+        """``(name, path, path)`` of the child nodes (hard-linked groups) with ``label``.
 
         Links (CGNS ``LK`` nodes, soft or external HDF5 links) are not followed: the
-        guard vouches for this file only.
+        guard vouches for this file only; with a ``label`` they are an error.
         """
         out = []
-        for key in g:
+        for key, ltype in self.links(g).items():
             if key.startswith(" "):
                 continue
             sub = f"{node.rstrip('/')}/{key}"
-            if label is None and g.id.links.get_info(key.encode("utf-8", "surrogateescape")).type \
-                    != h5py.h5l.TYPE_HARD:
+            if ltype != h5py.h5l.TYPE_HARD:
+                if label is None:
+                    continue
+                self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
+            if not isinstance(self.obj(sub), h5py.h5g.GroupID):
                 continue
-            obj = self._open(g, key, sub)
-            if not isinstance(obj, h5py.Group):
-                continue
-            if label is None or self.label(obj, sub) == label:
-                out.append((key, obj, sub))
+            if label is None or self.label(sub, sub) == label:
+                out.append((key, sub, sub))
         return out
 
-    def child(self, g, key: str, node: str, label: str | None = None, required: bool = True):
+    def child(self, g: str, key: str, node: str, label: str | None = None, required: bool = True):
+        """``(path, path)`` of child ``key`` (``(None, path)`` when absent and not ``required``)."""
         sub = f"{node.rstrip('/')}/{key}"
-        obj = self._open(g, key, sub)
-        if obj is None:
+        if not self._hard(g, key, sub):
             if required:
                 self.fail(sub, "is missing")
             return None, sub
-        if not isinstance(obj, h5py.Group):
+        if not isinstance(self.obj(sub), h5py.h5g.GroupID):
             self.fail(sub, "is not a CGNS node (not an HDF5 group)")
         if label is not None:
-            have = self.label(obj, sub)
+            have = self.label(sub, sub)
             if have != label:
                 self.fail(sub, f"has label {have!r}, expected {label!r}")
-        return obj, sub
+        return sub, sub
 
-    def has(self, g, key: str) -> bool:
-        return g.id.links.exists(key.encode("utf-8", "surrogateescape"))
+    def has(self, g: str, key: str) -> bool:
+        return key in self.links(g)
 
-    def dataset(self, g, node: str) -> h5py.Dataset:
-        obj = self._open(g, " data", f"{node}/ data")
-        if obj is None:
+    # ------------------------------------------------------------------ values
+    def dataset(self, g: str, node: str):
+        """``(DatasetID, numpy dtype)`` of the node's ``" data"``."""
+        sub = f"{node}/ data"
+        if not self._hard(g, " data", sub):
             self.fail(node, "has no data")
-        if not isinstance(obj, h5py.Dataset):
+        dsid = self.obj(sub)
+        if not isinstance(dsid, h5py.h5d.DatasetID):
             self.fail(node, "its ' data' is not a dataset")
-        return obj
+        return dsid, self._dtype(dsid, node)
 
-    def data(self, g, node: str, max_values: int = 1 << 16) -> np.ndarray:
+    def _dtype(self, dsid, node: str) -> np.dtype:
+        """The native numpy type of a dataset of numbers (fails on anything else)."""
+        try:
+            tid = dsid.get_type()
+            cls, size = tid.get_class(), tid.get_size()
+            if cls == h5py.h5t.INTEGER and size in (1, 2, 4, 8):
+                return np.dtype(f"{'u' if tid.get_sign() == h5py.h5t.SGN_NONE else 'i'}{size}")
+            if cls == h5py.h5t.FLOAT and size in (2, 4, 8):
+                return np.dtype(f"f{size}")
+            try:
+                what = str(dsid.dtype)
+            except (TypeError, ValueError):
+                what = f"HDF5 class {cls}"
+        except (OSError, TypeError, ValueError, RuntimeError) as exc:
+            self.fail(node, f"cannot read the type of its data: {exc}")
+        self.fail(node, f"data of type {what} is not numbers or characters")
+
+    def data(self, g: str, node: str, max_values: int = 1 << 16) -> np.ndarray:
         """The node's value, at most ``max_values`` values (metadata, not coordinates)."""
-        ds = self.dataset(g, node)
-        dsid = ds.id
-        shape = dsid.shape
-        size = int(np.prod(shape)) if shape else 1
+        dsid, dtype = self.dataset(g, node)
+        try:
+            shape = dsid.shape
+        except (OSError, TypeError, ValueError, RuntimeError) as exc:
+            self.fail(node, f"cannot read the shape of its data: {exc}")
+        if shape is None:
+            self.fail(node, "its data has an empty (null) dataspace")
+        size = math.prod(shape)
         if size > max_values:
             self.fail(node, f"holds {size:,} values, more than the {max_values:,} expected")
-        dtype = dsid.dtype
-        if dtype.kind not in "iuf":
-            self.fail(node, f"data of type {dtype} is not numbers or characters")
         try:
-            out = np.empty(shape, dtype=dtype.newbyteorder("="))
+            out = np.empty(shape, dtype=dtype)
             if size:
-                dsid.read(h5py.h5s.ALL, h5py.h5s.ALL, out)
+                dsid.read(h5py.h5s.ALL, h5py.h5s.ALL, out, mtype=_mem_type(dtype))
             return out
-        except (OSError, TypeError, ValueError) as exc:
+        except (OSError, TypeError, ValueError, RuntimeError) as exc:
             self.fail(node, f"cannot read its data: {exc}")
 
-    def string(self, g, node: str) -> str:
+    def string(self, g: str, node: str) -> str:
         arr = self.data(g, node, 4096)
         if arr.dtype.kind not in "iu" or arr.dtype.itemsize != 1:
             self.fail(node, f"expected a character (C1) value, got {arr.dtype}")
         return _text(np.ascontiguousarray(arr).reshape(-1))
 
-    def ints(self, g, node: str, shape: tuple, max_values: int = 1 << 16) -> np.ndarray:
+    def ints(self, g: str, node: str, shape: tuple, max_values: int = 1 << 16) -> np.ndarray:
         arr = self.data(g, node, max_values)
         if arr.dtype.kind not in "iu" or arr.dtype.itemsize < 4:
             self.fail(node, f"expected integers (I4 or I8), got {arr.dtype}")
@@ -330,15 +456,31 @@ class _Tree:
         return arr.astype(np.int64)
 
 
+#: the memory type of the ``label`` read (longer labels are cut: no CGNS label is that long)
+_ATTR_LEN = 64
+_S_ATTR = h5py.h5t.C_S1.copy()
+_S_ATTR.set_size(_ATTR_LEN)
+_S_ATTR.set_strpad(h5py.h5t.STR_NULLTERM)
+_MEM_TYPES: dict = {}
+
+
+def _mem_type(dtype: np.dtype):
+    """The HDF5 type of a numpy number type (made once: h5py's conversion is slow)."""
+    tid = _MEM_TYPES.get(dtype)
+    if tid is None:
+        tid = _MEM_TYPES[dtype] = h5py.h5t.py_create(dtype)
+    return tid
+
+
 # ----------------------------------------------------------------------------- the base
 
 @dataclass
 class _Zone:
     name: str
     node: str
-    group: object
+    group: str          # its path in the file (as node)
     dims: tuple
-    coords: list        # (name, dataset) for X, Y[, Z]
+    coords: list        # (name, DatasetID, node, dtype) for X, Y[, Z]
 
 
 class _Base:
@@ -348,7 +490,7 @@ class _Base:
         self.tree = tree
         t = tree
         bases = []
-        for name, g, node in t.children(t.f, "", "CGNSBase_t"):
+        for name, g, node in t.children("", "", "CGNSBase_t"):
             dims = t.ints(g, node, (2,))
             bases.append((name, g, node, int(dims[0]), int(dims[1])))
         if not bases:
@@ -368,6 +510,7 @@ class _Base:
         if not self.cell_dim <= self.phys_dim <= 3:
             t.fail(self.node, f"physical dimension {self.phys_dim} with cell dimension {self.cell_dim}")
         self.idim = self.cell_dim
+        t.prefetch(self.node)
         self.zones = [self._zone(name, g, node) for name, g, node in t.children(self.group, self.node, "Zone_t")]
         if not self.zones:
             t.fail(self.node, "has no Zone_t node")
@@ -399,20 +542,28 @@ class _Base:
         shape = tuple(reversed(vert))
         for c in comps:
             cg, cnode = t.child(gc, c, gcnode, "DataArray_t")
-            ds = t.dataset(cg, cnode)
-            if ds.shape != shape:
-                t.fail(cnode, f"data of shape {' x '.join(map(str, ds.shape[::-1]))} (Fortran order) "
+            ds, dtype = t.dataset(cg, cnode)
+            try:
+                have = ds.shape
+                plist = ds.get_create_plist()
+                filtered, chunked = plist.get_nfilters(), plist.get_layout() == h5py.h5d.CHUNKED
+                stored = ds.get_storage_size()
+            except (OSError, TypeError, ValueError, RuntimeError) as exc:
+                t.fail(cnode, f"cannot read the header of its data: {exc}")
+            if have is None:
+                t.fail(cnode, "its data has an empty (null) dataspace")
+            if have != shape:
+                t.fail(cnode, f"data of shape {' x '.join(map(str, have[::-1]))} (Fortran order) "
                               f"does not match the zone size {' x '.join(map(str, vert))}")
-            if ds.dtype.kind != "f" or ds.dtype.itemsize not in (4, 8):
-                t.fail(cnode, f"coordinates of type {ds.dtype}: expected R4 or R8")
-            plist = ds.id.get_create_plist()
-            if plist.get_nfilters():
+            if dtype.kind != "f" or dtype.itemsize not in (4, 8):
+                t.fail(cnode, f"coordinates of type {dtype}: expected R4 or R8")
+            if filtered:
                 t.fail(cnode, "compressed or filtered coordinates are not supported")
-            if ds.chunks is None:
-                stored, need = ds.id.get_storage_size(), ds.size * ds.dtype.itemsize
+            if not chunked:
+                need = math.prod(shape) * dtype.itemsize
                 if stored < need:
                     t.fail(cnode, f"only {stored} of {need} bytes are stored (incomplete data)")
-            coords.append((c, ds, cnode))
+            coords.append((c, ds, cnode, dtype))
         return _Zone(name, node, g, dims, coords)
 
     # ------------------------------------------------------------------ records
@@ -658,11 +809,11 @@ class _Base:
             xyz = alloc(z.dims + (3,), np.float64, t.path, f"zone {z.name!r}")
             if len(z.coords) < 3:
                 xyz[..., 2] = 0.0
-            for c, (cname, ds, cnode) in enumerate(z.coords):
-                single = single or ds.dtype.itemsize == 4
+            for c, (cname, ds, cnode, dtype) in enumerate(z.coords):
+                single = single or dtype.itemsize == 4
                 view = xyz[..., c].T if self.idim == 3 else xyz[:, :, 0, c].T
                 try:
-                    ds.read_direct(view)
+                    ds.read(h5py.h5s.ALL, h5py.h5s.ALL, view, mtype=_mem_type(view.dtype))
                 except (OSError, TypeError, ValueError) as exc:
                     t.fail(cnode, f"cannot read: {exc}")
             if not allow_nonfinite:
@@ -721,8 +872,8 @@ def read(path, *, base: str | None = None, allow_nonfinite: bool = False,
         From the operating system, naming the path.
     """
     p = Path(os.fspath(path))
-    with _open(p) as f:
-        b = _Base(_Tree(p, f), base)
+    with _tree(p) as t:
+        b = _Base(t, base)
         blocks, single = b.blocks(allow_nonfinite, max_points)
         try:
             grid = Grid(blocks, b.ndim, source_format=CGNSFormat(b.name, single, os.path.abspath(p)), source_path=p)
@@ -747,13 +898,12 @@ def info(path, *, base: str | None = None) -> CGNSInfo:
     CGNSInfo
     """
     p = Path(os.fspath(path))
-    with _open(p) as f:
-        t = _Tree(p, f)
+    with _tree(p) as t:
         b = _Base(t, base)
         bases = []
         for name, g, node, cd, pd in b.all:
             bases.append((name, cd, pd, [z for z, *_ in t.children(g, node, "Zone_t")]))
-        zones = [(z.name, z.dims, "R4" if z.coords[0][1].dtype.itemsize == 4 else "R8") for z in b.zones]
+        zones = [(z.name, z.dims, "R4" if z.coords[0][3].itemsize == 4 else "R8") for z in b.zones]
         keep = ("zone", "name", "type", "family", "resolved", "kind", "face", "range", "node")
         bcs = [{k: r[k] for k in keep} for r in b.bcs()]
         ones, other = b.connectivity_records()
@@ -771,7 +921,11 @@ def _tid(size: int):
 
 
 class _Writer:
-    """Creates CGNS nodes with the attributes of the CGNS/HDF5 mapping."""
+    """Creates CGNS nodes with the attributes of the CGNS/HDF5 mapping.
+
+    Works on h5py's low-level identifiers (FileID, GroupID): a CGNS tree has
+    hundreds of small nodes, and the high-level objects cost more per node.
+    """
 
     def __init__(self):
         self.s33, self.s3 = _tid(33), _tid(3)
@@ -784,29 +938,29 @@ class _Writer:
         self.dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
         self.dcpl.set_obj_track_times(False)
 
-    def group(self, parent, name: str) -> h5py.Group:
-        """A new child group (h5py's low-level calls: a CGNS tree has many small nodes)."""
-        return h5py.Group(h5py.h5g.create(parent.id, name.encode("ascii"), gcpl=self.gcpl))
+    def group(self, parent, name: str):
+        """A new child group of ``parent`` (a FileID or GroupID): its GroupID."""
+        return h5py.h5g.create(parent, name.encode("ascii"), gcpl=self.gcpl)
 
     def data(self, g, arr: np.ndarray, key: bytes = b" data") -> None:
         """Dataset ``key`` of ``g`` holding the C-contiguous ``arr`` (contiguous layout)."""
         arr = np.ascontiguousarray(arr)
         space = h5py.h5s.create_simple(arr.shape) if arr.shape else self.scalar
-        ds = h5py.h5d.create(g.id, key, h5py.h5t.py_create(arr.dtype), space, dcpl=self.dcpl)
-        ds.write(h5py.h5s.ALL, h5py.h5s.ALL, arr)
+        tid = _mem_type(arr.dtype)  # the native type, stored as it is
+        ds = h5py.h5d.create(g, key, tid, space, dcpl=self.dcpl)
+        ds.write(h5py.h5s.ALL, h5py.h5s.ALL, arr, mtype=tid)
 
     def _str_attr(self, gid, key: bytes, text: str, tid, size: int):
         aid = h5py.h5a.create(gid, key, tid, self.scalar)
-        aid.write(np.array(text.encode("ascii")[:size - 1].ljust(size, b"\0"), dtype=f"S{size}"))
+        aid.write(np.array(text.encode("ascii")[:size - 1].ljust(size, b"\0"), dtype=f"S{size}"), mtype=tid)
 
-    def attrs(self, g, name: str, label: str, dtype: str, flags: bool = True):
-        gid = g.id
+    def attrs(self, gid, name: str, label: str, dtype: str, flags: bool = True):
         self._str_attr(gid, b"name", name, self.s33, 33)
         self._str_attr(gid, b"label", label, self.s33, 33)
         self._str_attr(gid, b"type", dtype, self.s3, 3)
         if flags:
             aid = h5py.h5a.create(gid, b"flags", h5py.h5t.NATIVE_INT32, self.one)
-            aid.write(self.flag)
+            aid.write(self.flag, mtype=h5py.h5t.NATIVE_INT32)
 
     def node(self, parent, name: str, label: str, data=None, dtype: str | None = None):
         """Create a node; ``data`` a str (C1), an int array (I4/I8) or float array (R4/R8)."""
@@ -901,7 +1055,7 @@ def _write_records(w: _Writer, base_g, zone_groups, names, conn: Connectivity, f
                 fam_types[fam] = _PLAIN[bc_kind(bctype)]
         bc_rows[p.spec.block].append((p, bctype, fam))
     for fam, bctype in fam_types.items():
-        if fam in base_g:  # a family of the copied file: kept as it is
+        if base_g.links.exists(fam.encode("ascii")):  # a family of the copied file: kept as it is
             continue
         fg = w.node(base_g, fam, "Family_t")
         w.node(fg, "FamilyBC", "FamilyBC_t", bctype)
@@ -927,9 +1081,9 @@ def _write_records(w: _Writer, base_g, zone_groups, names, conn: Connectivity, f
 
     def conn_group(zn):
         if zn not in zgc:
-            g = zone_groups[zn].get("ZoneGridConnectivity")
-            zgc[zn] = g if g is not None else w.node(zone_groups[zn], "ZoneGridConnectivity",
-                                                     "ZoneGridConnectivity_t")
+            zg = zone_groups[zn]
+            zgc[zn] = h5py.h5o.open(zg, b"ZoneGridConnectivity") if zg.links.exists(b"ZoneGridConnectivity") \
+                else w.node(zg, "ZoneGridConnectivity", "ZoneGridConnectivity_t")
         return zgc[zn]
 
     for n, it in enumerate(conn.interfaces):
@@ -971,7 +1125,8 @@ def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
     w = _Writer()
     ndim = grid.ndim
     names = _zone_names(grid)
-    with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
+    with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as fh:
+        f = fh.id
         _root(w, f)
         w.node(f, "CGNSLibraryVersion", "CGNSLibraryVersion_t", np.array([LIBRARY_VERSION], dtype=np.float32))
         bg = w.node(f, base, "CGNSBase_t", np.array([ndim, ndim], dtype=np.int32))
@@ -987,24 +1142,45 @@ def _write_new(path, grid: Grid, base: str, single: bool, conn, families):
             _write_records(w, bg, zgs, names, conn, families, ndim)
 
 
-def _copy_attrs_node(w, src, dst_parent, key):
+def _copy_attrs_node(w: _Writer, t: _Tree, src: str, dst_parent, key: str):
+    """A new group ``key`` of ``dst_parent`` with the name, label, type (and flags) of node ``src``."""
     g = w.group(dst_parent, key)
+    sid = t.obj(src)
     for a in ("name", "label", "type"):
         size = 3 if a == "type" else 33
-        w._str_attr(g.id, a.encode(), _text(src.attrs[a]) if a in src.attrs else "", w.s3 if size == 3 else w.s33,
-                    size)
-    if "flags" in src.attrs:
-        h5py.h5a.create(g.id, b"flags", h5py.h5t.NATIVE_INT32, w.one).write(w.flag)
+        text = t.attr(src, a, src) if h5py.h5a.exists(sid, a.encode()) else ""
+        w._str_attr(g, a.encode(), text, w.s3 if size == 3 else w.s33, size)
+    if h5py.h5a.exists(sid, b"flags"):
+        h5py.h5a.create(g, b"flags", h5py.h5t.NATIVE_INT32, w.one).write(w.flag, mtype=h5py.h5t.NATIVE_INT32)
     return g
+
+
+def _copy(t: _Tree, src: str, key: str, dst) -> None:
+    """Copy child ``key`` of node ``src`` (and everything below it) into ``dst`` (``H5Ocopy``),
+    or the link itself when it is a soft or external one."""
+    loc = t.f.id if src == "" else t.obj(src)
+    kb = key.encode("utf-8", "surrogateescape")
+    ltype = t.links(src)[key]
+    if ltype == h5py.h5l.TYPE_HARD:
+        h5py.h5o.copy(loc, kb, dst, kb)
+    elif ltype == h5py.h5l.TYPE_SOFT:
+        dst.links.create_soft(kb, loc.links.get_val(kb))
+    elif ltype == h5py.h5l.TYPE_EXTERNAL:
+        filename, obj = loc.links.get_val(kb)
+        dst.links.create_external(kb, filename, obj)
 
 
 def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families):
     """Copy the tree of ``fmt.source``, replacing the coordinates of ``fmt.base`` (and the records
-    when ``conn`` is given)."""
+    when ``conn`` is given).
+
+    Every subtree that stays as it is (other bases, families, flow solutions,
+    ``ZoneBC`` without ``conn``, ...) is copied whole by HDF5 (``H5Ocopy``);
+    only the base, its zones and their ``GridCoordinates`` are made anew.
+    """
     src_path = Path(fmt.source)
     w = _Writer()
-    with _open(src_path) as src:
-        t = _Tree(src_path, src)
+    with _tree(src_path) as t:
         b = _Base(t, fmt.base)
         if len(b.zones) != grid.nblocks or any(z.dims != blk.dims for z, blk in zip(b.zones, grid.blocks)):
             raise GridValueError(
@@ -1013,82 +1189,70 @@ def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families)
                 "write without like (keep=False) to make a new file")
         if b.ndim != grid.ndim:
             raise GridValueError(f"like={src_path}: base {fmt.base!r} is {b.ndim}-D, the grid {grid.ndim}-D")
-        zone_keys = {z.group.name: n for n, z in enumerate(b.zones)}
-        with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as f:
-            for a in src.attrs:
-                w._str_attr(f.id, a.encode(), _text(src.attrs[a]), w.s3 if a == "type" else w.s33,
-                            3 if a == "type" else 33)
-            for key in src:
-                link = src.get(key, getlink=True)
-                if not isinstance(link, h5py.HardLink):
-                    _copy_link(src, f, key, link)
+        zone_keys = {z.group: n for n, z in enumerate(b.zones)}
+        with h5py.File(path, "x", libver=("v108", "v108"), track_order=True) as fh:
+            f = fh.id
+            names = []
+            h5py.h5a.iterate(t.f.id, lambda name, *_: names.append(name))
+            for a in names:
+                key = a.decode("utf-8", "replace")
+                w._str_attr(f, a, t.attr("", key, "/"), w.s3 if key == "type" else w.s33,
+                            3 if key == "type" else 33)
+            for key, ltype in t.links("").items():
+                if ltype != h5py.h5l.TYPE_HARD or key != fmt.base:
+                    _copy(t, "", key, f)
                     continue
-                if key != fmt.base:
-                    src.copy(src[key], f, name=key)
-                    continue
-                bsrc = src[key]
-                bdst = _copy_attrs_node(w, bsrc, f, key)
+                bsrc = b.node
+                bdst = _copy_attrs_node(w, t, bsrc, f, key)
                 zgs = []
-                for ck in bsrc:
-                    clink = bsrc.get(ck, getlink=True)
-                    if not isinstance(clink, h5py.HardLink):
-                        _copy_link(bsrc, bdst, ck, clink)
+                for ck, cltype in t.links(bsrc).items():
+                    zsrc = f"{bsrc}/{ck}"
+                    if cltype != h5py.h5l.TYPE_HARD or zsrc not in zone_keys:
+                        _copy(t, bsrc, ck, bdst)
                         continue
-                    obj = bsrc[ck]
-                    if obj.name not in zone_keys:
-                        bsrc.copy(obj, bdst, name=ck)
-                        continue
-                    n = zone_keys[obj.name]
-                    zdst = _copy_attrs_node(w, obj, bdst, ck)
-                    for zk in obj:
-                        zlink = obj.get(zk, getlink=True)
-                        if not isinstance(zlink, h5py.HardLink):
-                            _copy_link(obj, zdst, zk, zlink)
-                            continue
-                        if zk == "GridCoordinates":
-                            _replace_coords(w, obj[zk], zdst, grid.blocks[n], grid.ndim, single)
+                    n = zone_keys[zsrc]
+                    zdst = _copy_attrs_node(w, t, zsrc, bdst, ck)
+                    for zk, zltype in t.links(zsrc).items():
+                        if zltype != h5py.h5l.TYPE_HARD:
+                            _copy(t, zsrc, zk, zdst)
+                        elif zk == "GridCoordinates":
+                            _replace_coords(w, t, f"{zsrc}/{zk}", zdst, grid.blocks[n], grid.ndim, single)
                         elif conn is not None and zk == "ZoneBC":
                             continue
                         elif conn is not None and zk == "ZoneGridConnectivity":
-                            zsrc = obj[zk]
-                            zg = _copy_attrs_node(w, zsrc, zdst, zk)
-                            for ck2 in zsrc:
-                                node = zsrc[ck2]
-                                if isinstance(node, h5py.Group) and \
-                                        _text(node.attrs.get("label", b"")) == "GridConnectivity1to1_t":
+                            gsrc = f"{zsrc}/{zk}"
+                            zg = _copy_attrs_node(w, t, gsrc, zdst, zk)
+                            for ck2, ltype2 in t.links(gsrc).items():
+                                node = f"{gsrc}/{ck2}"
+                                if ltype2 == h5py.h5l.TYPE_HARD and isinstance(t.obj(node), h5py.h5g.GroupID) \
+                                        and t.label(node, node) == "GridConnectivity1to1_t":
                                     continue
-                                zsrc.copy(node, zg, name=ck2)
+                                _copy(t, gsrc, ck2, zg)
                         else:
-                            obj.copy(obj[zk], zdst, name=zk)
+                            _copy(t, zsrc, zk, zdst)
                     zgs.append(zdst)
                 if conn is not None:
                     _write_records(w, bdst, zgs, [z.name for z in b.zones], conn, families, grid.ndim)
 
 
-def _copy_link(src, dst, key, link):
-    if isinstance(link, h5py.SoftLink):
-        dst[key] = h5py.SoftLink(link.path)
-    elif isinstance(link, h5py.ExternalLink):
-        dst[key] = h5py.ExternalLink(link.filename, link.path)
-
-
-def _replace_coords(w: _Writer, gsrc, zdst, block: Block, ndim: int, single: bool):
-    gdst = _copy_attrs_node(w, gsrc, zdst, "GridCoordinates")
+def _replace_coords(w: _Writer, t: _Tree, gsrc: str, zdst, block: Block, ndim: int, single: bool):
+    gdst = _copy_attrs_node(w, t, gsrc, zdst, "GridCoordinates")
     names = ("CoordinateX", "CoordinateY", "CoordinateZ")[:ndim]
-    for key in gsrc:
-        if key in names:
-            continue
-        gsrc.copy(gsrc[key], gdst, name=key)
+    links = t.links(gsrc)
+    for key in links:
+        if key not in names:
+            _copy(t, gsrc, key, gdst)
     xyz = block.xyz
     for c, cname in enumerate(names):
         view = xyz[..., c].T if ndim == 3 else xyz[:, :, 0, c].T
         g = w.group(gdst, cname)
         w.attrs(g, cname, "DataArray_t", "R4" if single else "R8")
         w.data(g, view.astype(np.float32) if single else view)
-        if cname in gsrc:
-            for extra in gsrc[cname]:  # DataClass, DimensionalUnits, ... of the coordinate
+        csrc = f"{gsrc}/{cname}"
+        if links.get(cname) == h5py.h5l.TYPE_HARD and isinstance(t.obj(csrc), h5py.h5g.GroupID):
+            for extra in t.links(csrc):  # DataClass, DimensionalUnits, ... of the coordinate
                 if extra != " data":
-                    gsrc[cname].copy(gsrc[cname][extra], g, name=extra)
+                    _copy(t, csrc, extra, g)
 
 
 def write(path, grid: Grid, *, like=None, overwrite: bool = False, connectivity=None, families=None,

@@ -61,9 +61,11 @@ hyperslab selections and never loads the rest of the file.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import faulthandler
 import functools
+import gc
 import json
 import mmap
 import os
@@ -214,66 +216,96 @@ def _chunk_bound(chunk_bytes: int, filters) -> int:
     return n + (4 if _FLETCHER32 in filters else 0)
 
 
-def _chunk_infos(ds: h5py.Dataset) -> list:
-    """Offset, filter mask, file position and size of every stored chunk of ``ds``."""
+def _chunk_infos(ds) -> list:
+    """Offset, filter mask, file position and size of every stored chunk of ``ds``
+    (an h5py Dataset or its DatasetID)."""
+    dsid = ds.id if isinstance(ds, h5py.Dataset) else ds
     out = []
-    if hasattr(ds.id, "chunk_iter"):
-        ds.id.chunk_iter(out.append)
+    if hasattr(dsid, "chunk_iter"):
+        dsid.chunk_iter(out.append)
         return out
-    return [ds.id.get_chunk_info(i) for i in range(ds.id.get_num_chunks())]
+    return [dsid.get_chunk_info(i) for i in range(dsid.get_num_chunks())]
 
 
-def _walk_metadata(source, report) -> None:
+#: classes of attribute types whose values have a fixed size and refer to nothing else in the file
+_PLAIN_CLASSES = frozenset((h5py.h5t.INTEGER, h5py.h5t.FLOAT, h5py.h5t.BITFIELD, h5py.h5t.OPAQUE,
+                            h5py.h5t.ENUM, h5py.h5t.TIME))
+
+
+def _walk_metadata(source, report, close: bool = True) -> None:
     """Read every piece of metadata the reader may use; what the guard's child runs.
 
-    Opens the file; reads every attribute of every object, every group's links,
-    every dataset's type, shape, layout and filters, the whole chunk index of a
-    chunked dataset (each chunk must lie inside the file and not exceed what
-    its filters can produce) and the value of string datasets.  ``report(where)``
-    is called before each step, so that a crash can be placed.  Raises on the
-    first problem.
+    Opens the file; reads every attribute of every object (opening one decodes
+    its type, shape and value; variable-length values are then read from the
+    heap, compound, array and reference values read as stored), every group's
+    links, every dataset's type, shape, layout and filters, the whole chunk
+    index of a chunked dataset (each chunk must lie inside the file and not
+    exceed what its filters can produce) and the value of string datasets.
+    ``report(where)`` is called before each step, so that a crash can be
+    placed.  Raises on the first problem.  ``close=False`` leaves the file
+    open (the guard's child exits at once: closing would only free HDF5's
+    metadata cache, entry by entry).
+
+    h5py's low-level calls throughout, each object opened relative to its
+    parent: a CGNS tree has hundreds of small groups with four attributes
+    each, and the high-level objects cost several times more per item.
     """
     report("the superblock")
-    with h5py.File(source, "r") as f:
+    f = h5py.File(source, "r")
+    with f if close else contextlib.nullcontext(f):
         eof = f.id.get_filesize()
+        groups = {b"": f.id}  # the groups met so far: their children are opened from them
 
         def attrs(oid, where):
-            # h5py's low-level calls: the walk of a CGNS tree (hundreds of small
-            # groups, four attributes each) takes a third of the high-level time
             report(f"the attribute list of {where}")
             names = []
             h5py.h5a.iterate(oid, lambda name, *_: names.append(name))
             for name in names:
                 report(f"attribute {name.decode('utf-8', 'replace')!r} of {where}")
+                # opening decodes the attribute's message: its type, its shape and its value
+                # (from the object header or the dense attribute storage)
                 aid = h5py.h5a.open(oid, name)
-                if aid.shape is None:  # an empty (null) dataspace holds no value
+                tid = aid.get_type()
+                cls = tid.get_class()
+                if cls in _PLAIN_CLASSES or (cls == h5py.h5t.STRING and not tid.is_variable_str()):
+                    continue  # a value of fixed size, in memory now: reading it reads no more of the file
+                shape = aid.shape
+                if shape is None:  # an empty (null) dataspace holds no value
                     continue
-                try:
-                    value = np.empty(aid.shape, dtype=aid.dtype)
+                if cls != h5py.h5t.VLEN and cls != h5py.h5t.STRING:
+                    # compound, array, reference: the stored bytes in the stored type
+                    aid.read(np.empty(shape, dtype=f"V{tid.get_size()}"), mtype=tid)
+                    continue
+                try:  # variable-length data: through h5py, which frees what HDF5 allocates
+                    value = np.empty(shape, dtype=aid.dtype)
                 except TypeError:  # a type numpy cannot hold: read it as h5py would
                     f[where].attrs[name.decode("utf-8", "replace")]
                     continue
                 aid.read(value)
 
-        def dataset(ds, where):
+        def dataset(dsid, where):
             report(f"the header of dataset {where}")
-            ds.shape, ds.dtype, ds.chunks, ds.compression, ds.compression_opts
-            filters = _filters(ds)
+            dsid.get_space()  # the dataspace message
+            tid = dsid.get_type()
+            cls, itemsize = tid.get_class(), tid.get_size()
+            plist = dsid.get_create_plist()
+            chunks = plist.get_chunk() if plist.get_layout() == h5py.h5d.CHUNKED else None
+            filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
             report(f"the storage of dataset {where}")
-            stored = ds.id.get_storage_size()
-            if ds.chunks is None:
-                offset = ds.id.get_offset()
+            stored = dsid.get_storage_size()
+            if chunks is None:
+                offset = dsid.get_offset()
                 if offset is not None and offset + stored > eof:
                     raise ValueError(f"dataset {where}: its data (bytes {offset}..{offset + stored}) "
                                      f"lie beyond the end of the file ({eof} bytes)")
-                if ds.dtype.kind in "OSU":
+                if cls in (h5py.h5t.STRING, h5py.h5t.VLEN, h5py.h5t.REFERENCE):
                     report(f"the value of dataset {where}")
-                    ds[()]
+                    h5py.Dataset(dsid)[()]
                 return
             report(f"the chunk index of dataset {where}")
             known = all(c in _FILTER_NAMES for c in filters)
-            bound = _chunk_bound(int(np.prod(ds.chunks)) * ds.dtype.itemsize, filters)
-            for c in _chunk_infos(ds):
+            bound = _chunk_bound(int(np.prod(chunks)) * itemsize, filters)
+            for c in _chunk_infos(dsid):
                 if c.byte_offset + c.size > eof or (known and c.size > bound):
                     raise ValueError(f"dataset {where}: chunk {c.chunk_offset} of {c.size} bytes at "
                                      f"byte {c.byte_offset} does not fit (file of {eof} bytes, "
@@ -285,18 +317,24 @@ def _walk_metadata(source, report) -> None:
 
         def visit(name, info):
             where = "/" + name.decode("utf-8", "replace")
-            oid = h5py.h5o.open(f.id, name)
+            parent, _, key = name.rpartition(b"/")
+            loc = groups.get(parent)
+            oid = h5py.h5o.open(loc, key) if loc is not None else h5py.h5o.open(f.id, name)
             attrs(oid, where)
             if info.type == h5py.h5o.TYPE_GROUP:
+                groups[name] = oid
                 links(oid, where)
             elif info.type == h5py.h5o.TYPE_DATASET:
-                dataset(h5py.Dataset(oid), where)
+                dataset(oid, where)
 
-        attrs(f.id, "the root group")
-        report("the links of the root group")
-        f.id.links.iterate(lambda name, info: None, info=True)
-        report("the object tree")
-        h5py.h5o.visit(f.id, visit, info=True)
+        try:
+            attrs(f.id, "the root group")
+            report("the links of the root group")
+            f.id.links.iterate(lambda name, info: None, info=True)
+            report("the object tree")
+            h5py.h5o.visit(f.id, visit, info=True)
+        finally:
+            groups.clear()  # before the file closes: h5py's close walks the objects left open
 
 
 def _limit_child() -> None:
@@ -325,6 +363,8 @@ def _limit_child() -> None:
 #: bytes of the shared page in which the guard's child records its step count and current step
 _PROGRESS_BYTES = 4096
 _WHERE_MAX = _PROGRESS_BYTES - 16
+#: wall-clock seconds between two settings of the guard child's CPU limit
+_REARM_SECONDS = 0.1
 
 
 def _guard_child(source, size: int, wfd, progress) -> None:
@@ -337,30 +377,40 @@ def _guard_child(source, size: int, wfd, progress) -> None:
     """
     status = 3
     try:
+        # no cyclic garbage collection here: a full collection writes to every object of the
+        # parent's heap, and each page it writes to is copied (the walk makes little garbage,
+        # and the child ends soon)
+        gc.disable()
         steps = 0
         # every step of the walk reads at least a few bytes of metadata
         max_steps = 100 + size // 4
         cpu_hard = resource.getrlimit(resource.RLIMIT_CPU)[1]
+        rearm = -1.0
 
         def report(where):
-            # each step gets its own CPU allowance: the limit follows the progress
-            nonlocal steps
+            nonlocal steps, rearm
             steps += 1
             if steps > max_steps:
                 raise ValueError(f"more than {max_steps} metadata items, more than the file can hold")
-            use = resource.getrusage(resource.RUSAGE_SELF)
-            soft = int(use.ru_utime + use.ru_stime + GUARD_CPU_SECONDS) + 1
-            if cpu_hard != resource.RLIM_INFINITY:
-                soft = min(soft, cpu_hard)
-            resource.setrlimit(resource.RLIMIT_CPU, (soft, cpu_hard))
+            # each step gets its own CPU allowance: the limit follows the progress.  It is set
+            # again once per _REARM_SECONDS of wall-clock time (two system calls; a CGNS tree has
+            # thousands of small steps), with that much more allowance: the child has one
+            # thread and cannot use more CPU time than wall-clock time meanwhile, so every step
+            # still gets at least GUARD_CPU_SECONDS
+            now = time.monotonic()
+            if now >= rearm:
+                use = resource.getrusage(resource.RUSAGE_SELF)
+                soft = int(use.ru_utime + use.ru_stime + GUARD_CPU_SECONDS + _REARM_SECONDS) + 1
+                if cpu_hard != resource.RLIM_INFINITY:
+                    soft = min(soft, cpu_hard)
+                resource.setrlimit(resource.RLIMIT_CPU, (soft, cpu_hard))
+                rearm = now + _REARM_SECONDS
             text = where.encode("utf-8", "replace")[:_WHERE_MAX]
-            progress[16:16 + len(text)] = text
-            progress[8:16] = len(text).to_bytes(8, "little")
-            progress[0:8] = steps.to_bytes(8, "little")
+            progress[0:16 + len(text)] = steps.to_bytes(8, "little") + len(text).to_bytes(8, "little") + text
 
         try:
             _limit_child()
-            _walk_metadata(source, report)
+            _walk_metadata(source, report, close=False)
             outcome = "="
         except MemoryError:
             outcome = f"!needs more than {GUARD_MEMORY / 2**20:.0f} MiB of memory"
