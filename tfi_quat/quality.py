@@ -326,12 +326,6 @@ def _quad_areas(x, out):
             out[i, j, 0] = _quad_area(x, i, j)
 
 
-#: the volume and area inlined into the caller's code before compilation (a call from the
-#: ratio rows' loop kept LLVM from vectorising it: 4x slower); the same operations
-_hex_volume_inline = jit(inline="always")(_hex_volume.py_func)
-_quad_area_inline = jit(inline="always")(_quad_area.py_func)
-
-
 @pjit
 def _ratio_rows(x, xr, ndim, neg, low, first):
     """Cell-volume ratios ``x`` / ``xr`` of one block reduced over each row of cells (fixed j, k),
@@ -351,8 +345,8 @@ def _ratio_rows(x, xr, ndim, neg, low, first):
                     q[i] = _hex_volume_inline(x, i, j, k) / vr if vr != 0.0 else np.inf
             else:
                 for i in range(nci):
-                    vr = _quad_area_inline(xr, i, j)
-                    q[i] = _quad_area_inline(x, i, j) / vr if vr != 0.0 else np.inf
+                    vr = _quad_area(xr, i, j)
+                    q[i] = _quad_area(x, i, j) / vr if vr != 0.0 else np.inf
             r = j + ncj * k
             n = 0
             lo = np.inf
@@ -483,7 +477,6 @@ def _invalid_cells(x, ndim, corner_tol):
     if best < 0:
         return total, -1, -1, -1
     return total, best // (ncj * nck), (best // nck) % ncj, best % nck
-
 
 
 @jit(inline="always")
