@@ -777,7 +777,7 @@ def _kd_query(lo, hi, box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order,
         _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order[c], dist, idx)
 
 
-@jit(inline="always")
+@jit
 def _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, b, dist, idx):
     """Chunk ``b`` of :func:`_kd_query`."""
     n = Q.shape[0]

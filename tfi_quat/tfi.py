@@ -377,8 +377,11 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
 # (on), so that numba compiles the row once per kind with the other kinds'
 # branches pruned before typing (bool flags compiled all eight kinds' code into
 # every kernel: three times the compile time); the kernel made by
-# :func:`_volume_kernel` passes its kind's flags (closure constants) to the row
-# (inlined by LLVM).
+# :func:`_volume_kernel` passes its kind's flags (closure constants) to the row.
+# The row and the point are separate compiled functions that LLVM inlines
+# (``forceinline``): numba types :func:`_point` once per kind although the row
+# calls it at three places (one per role of direction i; IR inlining typed
+# every copy: twice the compile time, the same machine code).
 
 @jit(inline="always")
 def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
@@ -388,7 +391,7 @@ def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
     return xyz[i, j, k, 0] + bx, xyz[i, j, k, 1] + by, xyz[i, j, k, 2] + bz
 
 
-@jit(inline="always")
+@jit(forceinline=True)
 def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, gQ, ma, mb,
            hD, hQ, na, nb, lineB, gB, hB, hasq, based):
     """Fused update of one point; returns 1 when the blended Q needs the fallback.

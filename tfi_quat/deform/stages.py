@@ -299,7 +299,7 @@ def patch_lines(lo, hi, gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, sh
         patch_line(gd, gq, use_q, meta, gidf, sf, wf, work, damp, shift, tasks[tk, 0], tasks[tk, 1])
 
 
-@jit(inline="always")
+@jit
 def patch_line(gd, gq, use_q, meta, gidf, sf, wf, work, damp, shift, p, m):
     """Interior line ``m`` of patch ``p`` for :func:`patch_lines`."""
     lineD, lineQ, resD, resQ, fb = work
