@@ -201,11 +201,15 @@ def _layer_dir_i(lo, hi, xyz, s, lam0, lam1, out):
             out[i, j, k, 0] = res[i]
 
 
-@jit(inline="always")
-def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, axis):
-    """Task ``t`` of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_block`: the plane
-    ``t // nt`` of the third direction and tile ``t % nt`` of TILE lines i."""
+@jit
+def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of
+    :func:`wall_layer_block`: the plane ``t // nt`` of the third direction and tile
+    ``t % nt`` of TILE lines i; compiled once per direction, with the direction a
+    constant, so the index arithmetic folds away (a separate compiled function: inlined
+    into the task kernel, the kernel compiled more slowly)."""
     ni = xyz.shape[0]
+    axis = 2 if kdir is not None else 1
     n = xyz.shape[axis]
     c = t // nt
     i0 = (t % nt) * TILE
@@ -254,10 +258,9 @@ def _layer_dir_jk(lo, hi, xyz, s, lam0, lam1, out, kdir):
     """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_block`: the tiles
     ``lo <= t < hi`` (:func:`tfi_quat.kernels.by_direction`); compiled once per direction,
     with the direction a constant, so the index arithmetic folds away."""
-    axis = 2 if kdir is not None else 1
     nt = (xyz.shape[0] + TILE - 1) // TILE
     for t in range(lo, hi):
-        _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, axis)
+        _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir)
 
 
 @jit(inline="always")
@@ -330,11 +333,13 @@ def _arc_layer_i(lo, hi, xyz, rtol, lam0, lam1, out):
             out[ni - 1, j, k, 0] = 1.0
 
 
-@jit(inline="always")
-def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, axis):
-    """Task ``t`` of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_arclength`: the
-    plane ``t // nt`` of the third direction and tile ``t % nt`` of TILE lines i."""
+@jit
+def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir):
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of
+    :func:`wall_layer_arclength`: the plane ``t // nt`` of the third direction and tile
+    ``t % nt`` of TILE lines i (as :func:`_layer_task_jk`)."""
     ni = xyz.shape[0]
+    axis = 2 if kdir is not None else 1
     n = xyz.shape[axis]
     c = t // nt
     i0 = (t % nt) * TILE
@@ -361,10 +366,9 @@ def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, axis):
 def _arc_layer_jk(lo, hi, xyz, rtol, lam0, lam1, out, kdir):
     """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_arclength`: the
     tiles ``lo <= t < hi`` (as :func:`_layer_dir_jk`)."""
-    axis = 2 if kdir is not None else 1
     nt = (xyz.shape[0] + TILE - 1) // TILE
     for t in range(lo, hi):
-        _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, axis)
+        _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir)
 
 
 def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
