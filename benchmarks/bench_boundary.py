@@ -21,7 +21,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from tfi_quat import quaternion as Q  # noqa: E402
-from tfi_quat._jit import numba  # noqa: E402
+from tfi_quat._jit import threads, use_threads  # noqa: E402
 from tfi_quat.boundary import boundary_motion  # noqa: E402
 
 
@@ -47,10 +47,13 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--points", type=int, default=1_000_000, help="wall points (a square patch)")
     p.add_argument("--repeat", type=int, default=5)
-    p.add_argument("--threads", type=int, default=0, help="numba threads (0: numba default)")
+    p.add_argument("--threads", type=int, default=0, help="threads (0: all, tfi_quat._jit.THREADS)")
     a = p.parse_args(argv)
-    if a.threads:
-        numba.set_num_threads(a.threads)
+    with use_threads(a.threads or None):
+        return _run(a)
+
+
+def _run(a) -> int:
     n = max(3, int(round(np.sqrt(a.points))))
     ru, rd = wall(n)
     t = time.perf_counter()
@@ -76,7 +79,7 @@ def main(argv=None) -> int:
     med = float(np.median(times))
     npts = n * n
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"wall {n} x {n} = {npts} points, threads {numba.get_num_threads()}, "
+    print(f"wall {n} x {n} = {npts} points, threads {threads()}, "
           f"first call {first:.3f} s (compile or cache load)")
     print(f"boundary_motion: best {best * 1e3:.1f} ms, median {med * 1e3:.1f} ms, "
           f"{npts / best / 1e6:.1f} M points/s best, {npts / med / 1e6:.1f} M points/s median")

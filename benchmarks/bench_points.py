@@ -41,7 +41,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from tfi_quat import generate as gen  # noqa: E402
-from tfi_quat._jit import numba  # noqa: E402
+from tfi_quat._jit import threads, use_threads  # noqa: E402
 from tfi_quat._points import close_pairs, nearest_within  # noqa: E402
 
 
@@ -172,12 +172,8 @@ def bench_nearest(grid, bp, conn, args) -> bool:
         t, out = _best(fn, args.repeat)
         times.append(t)
         outs.append(out)
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)
-    try:
+    with use_threads(1):
         t1, out1 = _best(lambda: nearest_within(W, Q, bound), args.repeat)
-    finally:
-        numba.set_num_threads(threads)
     ref = outs[1]
     print(f"{'':54s}{'time (best of %d)' % args.repeat:>20s}{'within bound':>14s}{'vs best cKDTree':>17s}")
     t_kd = min(times[:2])
@@ -210,7 +206,7 @@ def main(argv=None):
 
     grid, bp, conn, src, tg = _load(args)
     print(f"grid: {src} ({tg:.1f} s), {len(grid)} blocks, {grid.npoints / 1e6:.2f} M points")
-    print(f"load average {os.getloadavg()[0]:.1f}, {os.cpu_count()} CPUs, numba threads {numba.get_num_threads()}")
+    print(f"load average {os.getloadavg()[0]:.1f}, {os.cpu_count()} CPUs, threads {threads()}")
     ok = True
     if args.section in ("all", "pairs"):
         if not bench_pairs(grid, args):

@@ -30,7 +30,7 @@ prints Markdown tables, and with ``--out DIR`` writes
 set-up) and the figures of ``docs/reproduction.md``.
 
 Timing: the Deformers are built once; after a warm-up step the methods are
-timed in turn, round after round, the TFI methods with 1 and with all numba
+timed in turn, round after round, the TFI methods with 1 and with all
 threads (on a loaded machine a parallel region waits for the busy core, which
 costs a small grid ~30 ms a step); the best is kept.  RBF: fit + evaluation
 per step (it is refitted to every step's wall displacements).
@@ -54,13 +54,14 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numba
 import numpy as np
 import scipy
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 import tfi_quat as tq
+from tfi_quat import _jit
+from tfi_quat._jit import use_threads
 from tfi_quat.case import Motion, load_case
 from tfi_quat.deform import Deformer, rigid_motion
 from tfi_quat.demo import DemoMotion
@@ -80,8 +81,8 @@ DEFORMERS = {
 }
 RBF = "RBF"
 METHODS = (*DEFORMERS, RBF)
-#: numba thread counts the TFI methods are timed with (one, and numba's default: all cores)
-THREADS = tuple(sorted({1, numba.config.NUMBA_NUM_THREADS}))
+#: thread counts the TFI methods are timed with (one, and all: tfi_quat._jit.THREADS)
+THREADS = tuple(sorted({1, _jit.THREADS}))
 
 
 # ------------------------------------------------------------------ the cases
@@ -403,7 +404,7 @@ def run_grid(name: str, cases: list[CaseSpec], repeats: int, rbf_repeats: int, r
     for cs in cases:
         # the methods timed in turn, round after round (best of each kept), so that a burst of
         # load on the shared machine does not fall on the repeats of one method only; the
-        # TFI methods with one numba thread and with all (THREADS), see the module docstring
+        # TFI methods with one thread and with all (THREADS), see the module docstring
         for d in deformers.values():
             d.deform(cs.motion)                          # warm-up
         best = {label: dict.fromkeys(THREADS, np.inf) for label in deformers}
@@ -412,13 +413,12 @@ def run_grid(name: str, cases: list[CaseSpec], repeats: int, rbf_repeats: int, r
         for r in range(max(repeats, rbf_repeats)):
             if r < repeats:
                 for nt in THREADS:
-                    numba.set_num_threads(nt)
                     for label, d in deformers.items():
                         t = time.perf_counter()
-                        out = d.deform(cs.motion)
+                        with use_threads(nt):
+                            out = d.deform(cs.motion)
                         best[label][nt] = min(best[label][nt], time.perf_counter() - t)
                         outs[label] = (out, min(best[label].values()), {"step_s_threads": dict(best[label])})
-                numba.set_num_threads(THREADS[-1])
             if r < rbf_repeats:
                 t = time.perf_counter()
                 out = rbf.deform(cs.motion)
@@ -451,7 +451,7 @@ def table(rows: list[dict]) -> str:
         return f"{1e3 * t:.2f} ms" if t < 1.0 else f"{t:.1f} s"
     head = ("| case | method | orthogonality change, 5 layers: max / mean (deg) | smallest volume ratio "
             "| negative cells | time per step (best) | with " + " / ".join(map(str, THREADS))
-            + " numba threads | RBF time / this |")
+            + " threads | RBF time / this |")
     lines = [head, "|---|---|---|---:|---:|---:|---:|---:|"]
     for r in rows:
         ts = fmt(r["step_s"])

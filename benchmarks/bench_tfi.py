@@ -40,6 +40,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import pickle
@@ -51,7 +52,12 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from tfi_quat import blending, tfi  # noqa: E402
-from tfi_quat._jit import numba, pjit, prange  # noqa: E402
+from tfi_quat._jit import numba, threads  # noqa: E402
+
+# the references this script compares against (streams, frozen old kernels) are numba
+# parallel loops, as the package's kernels were before its own thread pool (tfi_quat._jit)
+pjit = functools.partial(numba.njit, error_model="numpy", nogil=True, parallel=True)
+prange = numba.prange
 from tfi_quat.grid import Block  # noqa: E402
 from tfi_quat.quaternion import normalize  # noqa: E402
 
@@ -306,7 +312,7 @@ def setup_wing(scale, repeat, pickled=None):
     npts = sum(x.shape[0] * x.shape[1] * x.shape[2] for x, _ in blocks)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"wing {scale}: {len(blocks)} blocks, {npts / 1e6:.2f} M points; "
-          f"threads {numba.get_num_threads()}; best of {repeat}, interleaved; "
+          f"threads {threads()}; best of {repeat}, interleaved; "
           f"load average {load:.1f} on {os.cpu_count()} CPUs")
     tot = {"old": np.zeros(3), "new": np.zeros(3), "fused": 0.0}
     for b, (xyz, lam) in enumerate(blocks):
@@ -378,11 +384,34 @@ def import_old(path):
     return importlib.import_module("tfi_quat_old.tfi")
 
 
+def _volume_call(mod, hasn, hasq, based):
+    """The volume kernel of one kind of the ``tfi`` module ``mod`` as a call on the whole
+    block, ``(xyz, s, out, cx, cy, cz, L, M, N, 8 tables, lineB, gB, hB, bad)``: the kernel
+    itself (numba's parallel loops), or its task kernel run by its package's
+    ``_jit.parallel_for`` over the k-planes (3-D) or rows (2-D)."""
+    kern = mod._volume_kernel(hasn, hasq, based)
+    jit = sys.modules[mod.__name__.rsplit(".", 1)[0] + "._jit"]
+    if not hasattr(jit, "parallel_for"):
+        return kern
+
+    def call(xyz, *rest):
+        jit.parallel_for(kern, xyz.shape[2] if hasn else xyz.shape[1], xyz, *rest)
+    return call
+
+
 def _old_volume(old, hasn, hasq, based):
     """The old version's volume kernel of one kind, called with the new kernels' signature
     ``(xyz, s, out, cx, cy, cz, L, M, N, 8 tables, lineB, gB, hB)``."""
     if hasattr(old, "_volume_kernel"):            # an old copy that already has one definition
-        return old._volume_kernel(hasn, hasq, based)
+        kern = _volume_call(old, hasn, hasq, based)
+        flags = {}
+
+        def with_flags(xyz, *rest):               # its own fallback flags, made once per shape
+            bad = flags.get(xyz.shape)
+            if bad is None:
+                bad = flags[xyz.shape] = np.zeros(xyz.shape[1] * xyz.shape[2], dtype=bool)
+            return kern(xyz, *rest, bad)
+        return with_flags
     if hasn:
         k = {(True, False): old._deform3_q, (False, False): old._deform3_d,
              (True, True): old._deform3_qb}[hasq, based]
@@ -406,7 +435,7 @@ def side_by_side(path, points, repeat, order):
     n2 = max(4, int(round(points ** 0.5)))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"old: {os.path.dirname(old.__file__)}  new: {os.path.dirname(tfi.__file__)}")
-    print(f"3-D block {n3}^3, 2-D block {n2}^2 x 1; threads {numba.get_num_threads()}; order {order}; "
+    print(f"3-D block {n3}^3, 2-D block {n2}^2 x 1; threads {threads()}; order {order}; "
           f"best of {repeat}, old and new alternating; load average {load:.1f} on {os.cpu_count()} CPUs")
 
     def bfun(p):
@@ -444,7 +473,7 @@ def side_by_side(path, points, repeat, order):
             tabs = tq if hasq else td
             lB, gB, hB = base if based else (tabs[0], tabs[2], tabs[4])
             args = (xyz, s)
-            new_k = tfi._volume_kernel(hasn, hasq, based)
+            new_k = _volume_call(tfi, hasn, hasq, based)
             old_k = _old_volume(old, hasn, hasq, based)
             out_n = np.empty_like(xyz, order="F")
             out_o = np.empty_like(xyz, order="F")
@@ -506,7 +535,7 @@ def main(argv=None):
     npts = n ** 3
     order = tuple(int(v) for v in args.order.split(","))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(f"block {n}^3 = {npts / 1e6:.2f} M points; threads {numba.get_num_threads()}; "
+    print(f"block {n}^3 = {npts / 1e6:.2f} M points; threads {threads()}; "
           f"order {order}; best of {args.repeat}; load average {load:.1f} on {os.cpu_count()} CPUs")
 
     xyz = make_block(n)
@@ -560,7 +589,7 @@ def main(argv=None):
     fdd, fqq = tfi._faces(fd, dims, 3, "fd"), tfi._faces(fq, dims, 4, "fq")
     tq = tfi._tables(dims, order, fdd, fqq, fs, True)
     td = tfi._tables(dims, order, fdd, None, fs, True)
-    kq, kd = tfi._volume_kernel(True, True, False), tfi._volume_kernel(True, False, False)
+    kq, kd = _volume_call(tfi, True, True, False), _volume_call(tfi, True, False, False)
     bad = np.zeros(n * n, dtype=bool)
     t_kq = best(lambda: kq(xyz, s, out, *c, *order, *tq, tq[0], tq[2], tq[4], bad), args.repeat)
     t_kd = best(lambda: kd(xyz, s, out, *c, *order, *td, td[0], td[2], td[4], bad), args.repeat)

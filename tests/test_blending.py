@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from tfi_quat import tfi
 from tfi_quat.blending import wall_layer_block, wall_layer_line
+from tfi_quat.kernels import by_direction
 
 from _deform_grids import stretched
 
@@ -331,13 +332,16 @@ def test_block_kernels_uncompiled_equal_compiled():
     for d in range(3):
         others = tuple(dims[m] for m in range(3) if m != d)
         a, b = s.copy(order="F"), s.copy(order="F")
-        blending._LAYER_DIR[d](xyz, s, lam[2 * d], lam[2 * d + 1], a)
-        blending._LAYER_DIR[d].py_func(xyz, s, lam[2 * d], lam[2 * d + 1], b)
+        layer = (blending._layer_dir_i, blending._layer_dir_jk)
+        by_direction(*layer, d, xyz, s, lam[2 * d], lam[2 * d + 1], a)
+        by_direction(*(k.py_func for k in layer), d, xyz, s, lam[2 * d], lam[2 * d + 1], b)
         assert_same_bits(a, b)
         a[...] = np.nan
         b[...] = np.nan
-        blending._ARC_LAYER_DIR[d](xyz, tfi.ZERO_LENGTH_RTOL, lam[2 * d], lam[2 * d + 1], a)
-        blending._ARC_LAYER_DIR[d].py_func(xyz, tfi.ZERO_LENGTH_RTOL, lam[2 * d], lam[2 * d + 1], b)
+        fused = (blending._arc_layer_i, blending._arc_layer_jk)
+        by_direction(*fused, d, xyz, tfi.ZERO_LENGTH_RTOL, lam[2 * d], lam[2 * d + 1], a)
+        by_direction(*(k.py_func for k in fused), d, xyz, tfi.ZERO_LENGTH_RTOL, lam[2 * d],
+                     lam[2 * d + 1], b)
         assert_same_bits(a[..., d], b[..., d])
         assert others == lam[2 * d].shape
 

@@ -440,7 +440,6 @@ def test_check_raise_names_the_cells_and_leaves_the_buffers_alone():
 
 # ------------------------------------------------------------------ threads=, velocity
 def test_threads_apply_inside_the_deformers_calls_only(monkeypatch):
-    import numba
     from tfi_quat import _jit
     seen = []
     real = _jit.use_threads
@@ -450,12 +449,12 @@ def test_threads_apply_inside_the_deformers_calls_only(monkeypatch):
         return real(n)
     monkeypatch.setattr("tfi_quat.deform.deformer.use_threads", spy)
     grid, walls, sym, fixed = G.o_grid()
-    before = numba.get_num_threads()
+    before = _jit.threads()
     d = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, threads=1)
     assert seen and set(seen) == {1}                  # the set-up's kernels
     n = len(seen)
     g1 = d.deform(_motion(d))
-    assert len(seen) == n + 1 and set(seen) == {1} and numba.get_num_threads() == before
+    assert len(seen) == n + 1 and set(seen) == {1} and _jit.threads() == before
     d.velocity(d.grid, g1, 0.1)
     assert len(seen) == n + 2 and set(seen) == {1}
     # the same bits with every thread count

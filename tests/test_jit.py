@@ -11,11 +11,14 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from conftest import early_job
+from tfi_quat import _jit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -30,8 +33,8 @@ def test_switch_off_gives_plain_python_kernels():
     code = (
         "import numba, numpy as np\n"
         "from tfi_quat import _jit, quaternion as Q, boundary as B, tfi as T\n"
-        "assert not _jit.ENABLED and _jit.prange is range\n"
-        "for k in (Q.kmul, Q.kblend, B._motion_kernel(False), B._interior_quaternion, T._volume_kernel(True, True, False), T._ARC_DIR[1]):\n"
+        "assert not _jit.ENABLED and _jit.threads() == 1\n"
+        "for k in (Q.kmul, Q.kblend, B._motion_rows, B._interior_quaternion, T._volume_kernel(True, True, False), T._arc_dir_jk):\n"
         "    assert not isinstance(k, numba.core.dispatcher.Dispatcher), k\n"
         "    assert k.py_func is k\n"
         "out = np.empty(4)\n"
@@ -73,12 +76,83 @@ def test_kernel_tests_pass_uncompiled(early):
 
 
 def test_serial_below_runs_small_work_on_one_thread():
-    import numba
-    from tfi_quat._jit import ENABLED, SERIAL_BELOW, serial_below
+    from tfi_quat._jit import ENABLED, SERIAL_BELOW, THREADS, serial_below, threads
     assert ENABLED           # the suite runs compiled (test_kernel_tests_pass_uncompiled: a subprocess)
-    before = numba.get_num_threads()
+    assert threads() == THREADS
     with serial_below(SERIAL_BELOW - 1):
-        assert numba.get_num_threads() == 1
-    assert numba.get_num_threads() == before
+        assert threads() == 1
+    assert threads() == THREADS
     with serial_below(SERIAL_BELOW):
-        assert numba.get_num_threads() == before
+        assert threads() == THREADS
+
+
+def _record(lo, hi, log, fail_at=-1):
+    """A 'kernel' in Python: logs its range and thread; raises on task ``fail_at``."""
+    log.append((lo, hi, threading.get_ident(), _jit.threads()))
+    if lo <= fail_at < hi:
+        raise ArithmeticError(f"task {fail_at}")
+
+
+@pytest.mark.parametrize("ntasks", [0, 1, 2, 3, 7, 1000])
+@pytest.mark.parametrize("cap", [1, 2, 3, None])
+def test_parallel_for_splits_tasks_into_one_contiguous_chunk_per_thread(ntasks, cap):
+    log = []
+    with _jit.use_threads(cap):
+        want = min(_jit.threads(), max(ntasks, 1))
+        _jit.parallel_for(_record, ntasks, log)
+    chunks = sorted(log)
+    if ntasks == 0:
+        assert chunks == []
+        return
+    assert len(chunks) == want
+    assert chunks[0][0] == 0 and chunks[-1][1] == ntasks
+    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:]))       # contiguous, no overlap
+    sizes = [hi - lo for lo, hi, _, _ in chunks]
+    assert max(sizes) - min(sizes) <= 1
+    me = threading.get_ident()
+    assert [c[2] == me for c in chunks].count(True) == 1              # the caller took one
+    assert (0, sizes[0], me, want) in log or want == 1                 # ... the first
+    assert all(c[3] == 1 for c in chunks if c[2] != me)               # nested calls: serial
+    assert len({c[2] for c in chunks}) == want
+
+
+def test_use_threads_is_per_calling_thread_and_nests():
+    assert _jit.threads() == _jit.THREADS
+    seen = {}
+    with _jit.use_threads(1):
+        assert _jit.threads() == 1
+        with _jit.use_threads(5):                  # an inner context never raises the cap
+            assert _jit.threads() == 1
+        t = threading.Thread(target=lambda: seen.setdefault("other", _jit.threads()))
+        t.start()
+        t.join()
+    assert seen["other"] == _jit.THREADS
+    assert _jit.threads() == _jit.THREADS
+    with _jit.use_threads(10 ** 6):
+        assert _jit.threads() == _jit.THREADS
+    with pytest.raises(ValueError, match="threads must be >= 1"):
+        _jit.use_threads(0)
+
+
+@pytest.mark.parametrize("fail_at", [0, 999])
+def test_parallel_for_raises_a_chunks_error_after_every_chunk_is_done(fail_at):
+    log = []
+    with pytest.raises(ArithmeticError, match=f"task {fail_at}"):
+        _jit.parallel_for(_record, 1000, log, fail_at)
+    assert sum(hi - lo for lo, hi, _, _ in log) == 1000
+
+
+def test_results_do_not_depend_on_the_threads():
+    """Task kernels on 1, 2 and 3 threads (at most THREADS: the caller and the pool), bit for bit."""
+    from tfi_quat import blending, tfi
+    rng = np.random.default_rng(5)
+    xyz = np.asfortranarray(np.cumsum(rng.uniform(0.1, 1.0, (37, 29, 11, 3)), axis=0))
+    lam = [rng.uniform(0.0, 2.0, shape) for shape in ((29, 11), (29, 11), (37, 11), (37, 11),
+                                                      (37, 29), (37, 29))]
+    got = []
+    for n in (1, 2, 3):
+        with _jit.use_threads(n), _jit.serial_below(0):
+            got.append((tfi.arclength(xyz), blending.wall_layer_arclength(xyz, lam)))
+    for s, w in got[1:]:
+        assert np.array_equal(s.view(np.int64), got[0][0].view(np.int64))
+        assert np.array_equal(w.view(np.int64), got[0][1].view(np.int64))

@@ -766,9 +766,7 @@ def test_nn_generated_wing_walls():
 def test_nn_parallel_chunks(threads):
     """Enough queries for the parallel path, n not a multiple of the chunk: same answer on any
     number of threads (the warm start of each chunk does not change it)."""
-    from tfi_quat._jit import ENABLED, numba
-    if ENABLED and threads > numba.config.NUMBA_NUM_THREADS:
-        pytest.skip("fewer threads available")
+    from tfi_quat._jit import use_threads
     rng = np.random.default_rng(17)
     R = np.concatenate([_clustered(rng, 800, 5), rng.uniform(-1, 1, size=(500, 3))])
     R = np.concatenate([R, R[:200]])
@@ -777,14 +775,8 @@ def test_nn_parallel_chunks(threads):
     from tfi_quat._jit import SERIAL_BELOW
     assert _points._QUERY_WORK * len(Q) >= SERIAL_BELOW      # the parallel path runs
     ref = nn_brute(R, Q, 0.3)
-    prev = numba.get_num_threads() if ENABLED else None
-    try:
-        if ENABLED:
-            numba.set_num_threads(threads)
+    with use_threads(threads):
         out = nearest_within(R, Q, 0.3)
-    finally:
-        if ENABLED:
-            numba.set_num_threads(prev)
     check_nn_form(out, len(Q), len(R))
     same_nn(out, ref)
     check_vs_ckdtree(R, Q, 0.3, out)
@@ -817,7 +809,7 @@ def test_nn_answer_independent_of_chunks_and_order(seed, chunk, how):
     tree = _points._kd_build(R, LEAF)
     d = np.full(len(Q), -1.0)
     idx = np.full(len(Q), -1, dtype=np.int64)
-    _points._kd_query(*tree, R, Q, bound * bound, chunk, order.astype(np.int64), d, idx)
+    _points._kd_query(0, nch, *tree, R, Q, bound * bound, chunk, order.astype(np.int64), d, idx)
     same_nn((d, idx), ref)
 
 

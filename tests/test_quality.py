@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 import tfi_quat
 from tfi_quat import Block, CaseError, Grid, GridValueError
 from tfi_quat import quality as Q
+from tfi_quat._jit import parallel_for
 from tfi_quat.quality import (METRICS, cell_metrics, cell_orthogonality, cell_volumes, invalid_cells, quality_report,
                               wall_orthogonality)
 
@@ -316,7 +317,7 @@ def test_compiled_and_uncompiled_kernels_agree():
     for kernel in (Q._block_fields, Q._block_fields.py_func):
         out = np.empty((3, 4, len(METRICS)), order="F")
         flags = np.empty((3, 4), dtype=np.uint8, order="F")
-        kernel(x, x * 1.1, True, 3, 1.0, 1e-12, rows, out, flags)
+        parallel_for(kernel, rows.size, x, x * 1.1, True, 3, 1.0, 1e-12, rows, out, flags)
         if kernel is Q._block_fields:
             ref = out.copy()
         else:
@@ -359,10 +360,12 @@ def test_invalid_cells_agree_with_the_numpy_reference(seed, nfold, planar, tol):
 
 
 @pytest.mark.parametrize("planar", [True, False])
-def test_invalid_cell_kernel_compiled_and_uncompiled_agree(planar):
+def test_invalid_cell_kernel_compiled_and_uncompiled_agree(planar, monkeypatch):
     x = _folded(annulus(7, 5) if planar else sheared_box(4, 3, 3), 3, 4, planar)
     ndim = 2 if planar else 3
-    got = [k(x, ndim, 1e-9) for k in (Q._invalid_cells, Q._invalid_cells.py_func)]
+    got = [Q._invalid_cells(x, ndim, 1e-9)]
+    monkeypatch.setattr(Q, "_invalid_rows", Q._invalid_rows.py_func)
+    got.append(Q._invalid_cells(x, ndim, 1e-9))
     assert got[0] == got[1] and got[0][0] > 0
     assert got[0] == (_cells.invalid(x, 1e-9)[0], *invalid_cells(x, ndim, 1e-9)[1])
 

@@ -13,6 +13,8 @@ from scipy.spatial.transform import Rotation, Slerp
 from tfi_quat import GridValueError, tfi
 from tfi_quat import quaternion as qa
 from tfi_quat.grid import Block
+from tfi_quat._jit import parallel_for
+from tfi_quat.kernels import by_direction
 
 import oracles
 from conftest import sheared_box
@@ -164,9 +166,10 @@ def test_arclength_kernel_uncompiled_equals_compiled():
     xyz[:, 0, :, :] = xyz[:1, 0, :, :]
     a = np.empty_like(xyz)
     b = np.empty_like(xyz)
-    for kern in tfi._ARC_DIR:
-        kern(xyz, a, tfi.ZERO_LENGTH_RTOL)
-        kern.py_func(xyz, b, tfi.ZERO_LENGTH_RTOL)
+    for d in range(3):
+        by_direction(tfi._arc_dir_i, tfi._arc_dir_jk, d, xyz, a, tfi.ZERO_LENGTH_RTOL)
+        by_direction(tfi._arc_dir_i.py_func, tfi._arc_dir_jk.py_func, d, xyz, b,
+                     tfi.ZERO_LENGTH_RTOL)
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a, tfi.arclength(xyz))
 
@@ -399,8 +402,9 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
     for hasq in (True, False):
         kern = tfi._volume_kernel(True, hasq, False)
         bad = np.zeros(xyz.shape[1] * xyz.shape[2], dtype=bool)
-        kern(xyz, s, a, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD, bad)
-        kern.py_func(xyz, s, b, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD, bad)
+        nk = xyz.shape[2]
+        parallel_for(kern, nk, xyz, s, a, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD, bad)
+        kern.py_func(0, nk, xyz, s, b, 0.1, 0.2, 0.3, *order, *tables, lineD, gD, hD, bad)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
     # the set-up kernel too
     again = [np.empty_like(t) for t in tables]
@@ -570,8 +574,9 @@ def test_deform_block_2d_rigid_and_uncompiled():
     for hasq in (True, False):
         kern = tfi._volume_kernel(False, hasq, False)
         bad = np.zeros(xyz.shape[1], dtype=bool)
-        kern(xyz, s, a, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD, bad)
-        kern.py_func(xyz, s, b, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD, bad)
+        nj = xyz.shape[1]
+        parallel_for(kern, nj, xyz, s, a, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD, bad)
+        kern.py_func(0, nj, xyz, s, b, 0.5, 0.5, 0.0, 1, 0, 2, *tables, lineD, gD, hD, bad)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
 
 
@@ -743,19 +748,23 @@ def test_fused_stage_allocates_only_surface_tables(with_q):
     assert np.all(np.isfinite(out))
 
 
-def test_volume_kernels_are_parallel_and_cached():
-    """cache=True and parallel=True on the kernels of the volume stage (docs/method.md §6), set
-    in _jit (serial for the O(surface) set-up); one kernel object per kind, made once."""
+def test_volume_kernels_are_task_kernels_and_cached():
+    """The kernels of the volume stage are task kernels (serial over a task range, run on the
+    thread pool, noalias; docs/method.md §6), cached, never numba parallel loops; the
+    O(surface) set-up is serial; one kernel object per kind, made once."""
     from tfi_quat import _jit
     kinds = [tfi._volume_kernel(*key) for key in itertools.product((True, False), repeat=3)]
     assert len({id(k) for k in kinds}) == 8
     assert tfi._volume_kernel(True, True, False) is tfi._volume_kernel(True, True, False)
-    serial = (tfi._prep_kernel(True, True), tfi._gather)   # O(surface): serial, quicker to compile
-    for k in (*kinds, *tfi._ARC_DIR, tfi._fields2, *serial):
+    serial = (tfi._prep_kernel(True, True), tfi._gather)   # O(surface): serial, one call
+    for k in (*kinds, tfi._arc_dir_i, tfi._arc_dir_jk, tfi._fields2, *serial):
         if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
             assert k.py_func is k
             continue
-        assert bool(k.targetoptions.get("parallel")) is (k not in serial), k
+        assert not k.targetoptions.get("parallel"), k
+        assert k.targetoptions.get("nogil"), k
+        task = k not in serial
+        assert (k._compiler.pipeline_class is _jit.task_jit.keywords["pipeline_class"]) is task, k
         assert (type(k._cache).__name__ == "FunctionCache") == _jit.CACHE, k
 
 

@@ -87,10 +87,10 @@ the first test is the root's box, so a query far outside the ref points'
 box costs one box distance.  Consecutive queries are usually close (the
 points of a grid face), so each query starts with the previous query's
 answer as a candidate, within chunks of :data:`CHUNK` queries.  The chunks
-run in parallel (``prange``), taken in interleaved runs of consecutive
-chunks so that each thread gets costly and cheap stretches of the queries
-alike (:func:`_chunk_order`); fewer than ``SERIAL_BELOW / _QUERY_WORK``
-queries run on one thread.  The answer does not depend on the start nor on
+run on the threads (:func:`tfi_quat._jit.parallel_for`), taken in interleaved
+runs of consecutive chunks so that each thread gets costly and cheap
+stretches of the queries alike (:func:`_chunk_order`); fewer than
+``SERIAL_BELOW / _QUERY_WORK`` queries run on one thread.  The answer does not depend on the start nor on
 the order.
 
 *Exactness.*  The distance test is cKDTree's: with ``dx = r_x - q_x`` etc.
@@ -126,7 +126,7 @@ import numbers
 
 import numpy as np
 
-from ._jit import ENABLED, jit, numba, pjit, prange, serial_below
+from ._jit import jit, parallel_for, serial_below, task_jit, threads
 
 __all__ = ["close_pairs", "nearest_within", "DIRECTION"]
 
@@ -737,7 +737,7 @@ def _chunk_order(nch: int, runs: int = _RUNS) -> np.ndarray:
     """The order in which ``_kd_query`` takes its ``nch`` chunks: ``runs`` runs of consecutive chunks,
     the runs in the order ``r * stride % runs`` (``stride`` coprime to ``runs``, near 0.618 runs).
 
-    Each thread's share of the ``prange`` is a stretch of this order, so it gets
+    Each thread's share of the chunks is a stretch of this order, so it gets
     runs from all over the queries (the costly queries tend to come together: a
     symmetry plane, a tip cap -- one half of the wing's took twice the other's
     time), while the queries of a run stay consecutive (the tree nodes they visit
@@ -751,23 +751,23 @@ def _chunk_order(nch: int, runs: int = _RUNS) -> np.ndarray:
     return np.concatenate([np.arange(edge[r], edge[r + 1]) for r in (np.arange(k) * stride) % k])
 
 
-@pjit
-def _kd_query(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order, dist, idx):
-    """``dist[q], idx[q]``: nearest row of ``R`` to ``Q[q]`` with squared distance ``< bound2``, else ``inf, m``.
+@task_jit
+def _kd_query(lo, hi, box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order, dist, idx):
+    """``dist[q], idx[q]``: nearest row of ``R`` to ``Q[q]`` with squared distance ``< bound2``,
+    else ``inf, m``, for the queries of the chunks ``order[lo:hi]``.
 
-    Ties go to the smallest row index.  The chunks of ``chunk`` queries run in
-    parallel, in the order ``order`` (:func:`_chunk_order`); within a chunk
-    each query first tries the previous one's answer.
+    Ties go to the smallest row index.  The chunks of ``chunk`` queries are the
+    tasks (:func:`tfi_quat._jit.parallel_for` over ``order.size``), in the order
+    ``order`` (:func:`_chunk_order`); within a chunk each query first tries the
+    previous one's answer.
     """
-    for c in prange(order.size):
+    for c in range(lo, hi):
         _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, order[c], dist, idx)
-    return dist, idx
 
 
 @jit
 def _kd_chunk(box, lstart, xs, ys, zs, perm, R, Q, bound2, chunk, b, dist, idx):
-    """Chunk ``b`` of :func:`_kd_query` (a call from the parallel loop keeps that loop small,
-    which keeps it quick to compile)."""
+    """Chunk ``b`` of :func:`_kd_query`."""
     n = Q.shape[0]
     m = xs.size
     nl = lstart.size - 1
@@ -926,6 +926,7 @@ def nearest_within(ref, query, bound) -> tuple[np.ndarray, np.ndarray]:
     with np.errstate(over="ignore", under="ignore"):
         tree = _kd_build(R, LEAF)
         with serial_below(_QUERY_WORK * n):
-            runs = _RUNS if ENABLED and numba.get_num_threads() > 1 else 1
-            _kd_query(*tree, R, Q, bound2, CHUNK, _chunk_order(-(-n // CHUNK), runs), dist, idx)
+            runs = _RUNS if threads() > 1 else 1
+            order = _chunk_order(-(-n // CHUNK), runs)
+            parallel_for(_kd_query, order.size, *tree, R, Q, bound2, CHUNK, order, dist, idx)
     return dist, idx

@@ -31,7 +31,7 @@ is the driver for a block (or a patch given as a ``(na, nb, 1, 3)`` block), and
 (one pass over the block instead of two).  The block kernels skip the lines
 without a layer (their parameters are ``s``), sum each line's length as
 ``arclength`` does, and process the lines of directions j and k in tiles of
-:data:`TILE` lines, i innermost, so memory is read along i as it lies; the
+:data:`tfi_quat.kernels.TILE` lines, i innermost, so memory is read along i as it lies; the
 result is bit for bit that of :func:`wall_layer_line` applied line by line.
 """
 
@@ -41,9 +41,9 @@ import math
 
 import numpy as np
 
-from ._jit import jit, pjit, prange
+from ._jit import jit, task_jit
 from .errors import GridValueError
-from .kernels import arc_line_i, arc_tile, at, dist, line_point
+from .kernels import TILE, arc_line_i, arc_tile, at, by_direction, dist, line_point
 from .tfi import S_DTYPE, ZERO_LENGTH_RTOL, check_xyz
 
 __all__ = ["wall_layer_line", "wall_layer_block", "wall_layer_arclength", "AMAX"]
@@ -121,11 +121,6 @@ def wall_layer_line(s, length, lam0, lam1) -> np.ndarray:
     return out
 
 
-#: lines per task of direction i, and lines i per tile of directions j and k:
-#: a tile's lines are processed together, i innermost, in (n, TILE) buffers
-#: (so memory is read and written along i, as it lies)
-LINES_PER_TASK = 64
-TILE = 128
 
 
 @jit(inline="always")
@@ -179,14 +174,14 @@ def _layer_tile(col, nw, ln, lam0, lam1, act, a0, a1, acc, gpp, sp):
             col[n - 1, w] = 1.0
 
 
-@jit
-def _layer_task_i(xyz, s, lam0, lam1, out, t):
-    """Task ``t`` of :func:`_layer_dir_i`: LINES_PER_TASK lines (j, k) from ``t * LINES_PER_TASK`` on."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nl = nj * nk
+@task_jit
+def _layer_dir_i(lo, hi, xyz, s, lam0, lam1, out):
+    """Direction i of :func:`wall_layer_block`: the lines ``lo <= jk < hi`` (j, k), contiguous
+    in memory (:func:`tfi_quat.kernels.by_direction`)."""
+    ni, nj = xyz.shape[0], xyz.shape[1]
     line = np.empty(ni)
     res = np.empty(ni)
-    for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
+    for jk in range(lo, hi):
         j = jk % nj
         k = jk // nj
         l0 = lam0[j, k]
@@ -206,19 +201,13 @@ def _layer_task_i(xyz, s, lam0, lam1, out, t):
             out[i, j, k, 0] = res[i]
 
 
-@pjit
-def _layer_dir_i(xyz, s, lam0, lam1, out):
-    """Direction i (lines contiguous in memory): tasks of LINES_PER_TASK lines (j, k)."""
-    nl = xyz.shape[1] * xyz.shape[2]
-    for t in prange((nl + LINES_PER_TASK - 1) // LINES_PER_TASK):
-        _layer_task_i(xyz, s, lam0, lam1, out, np.int64(t))
-
-
 @jit
 def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir):
-    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_block`:
-    the plane of the third direction and tile of TILE lines i; compiled once per direction,
-    with the direction a constant, so the index arithmetic folds away."""
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of
+    :func:`wall_layer_block`: the plane ``t // nt`` of the third direction and tile
+    ``t % nt`` of TILE lines i; compiled once per direction, with the direction a
+    constant, so the index arithmetic folds away (a separate compiled function: inlined
+    into the task kernel, the kernel compiled more slowly)."""
     ni = xyz.shape[0]
     axis = 2 if kdir is not None else 1
     n = xyz.shape[axis]
@@ -264,22 +253,14 @@ def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir):
                 out[i, j, k, axis] = col[m, w]
 
 
-def _make_layer_dir(axis: int):
-    """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_block`: one task
-    per plane of the third direction and tile of TILE lines i (:func:`_layer_task_jk`; the
-    parallel loop only calls it, which keeps it quick to compile)."""
-    kdir = True if axis == 2 else None
-
-    @pjit
-    def layer_dir(xyz, s, lam0, lam1, out):
-        nt = (xyz.shape[0] + TILE - 1) // TILE
-        for t in prange(xyz.shape[3 - axis] * nt):
-            _layer_task_jk(xyz, s, lam0, lam1, out, np.int64(t), nt, kdir)
-
-    return layer_dir
-
-
-_LAYER_DIR = (_layer_dir_i, _make_layer_dir(1), _make_layer_dir(2))
+@task_jit
+def _layer_dir_jk(lo, hi, xyz, s, lam0, lam1, out, kdir):
+    """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_block`: the tiles
+    ``lo <= t < hi`` (:func:`tfi_quat.kernels.by_direction`); compiled once per direction,
+    with the direction a constant, so the index arithmetic folds away."""
+    nt = (xyz.shape[0] + TILE - 1) // TILE
+    for t in range(lo, hi):
+        _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir)
 
 
 @jit(inline="always")
@@ -322,15 +303,15 @@ def _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c):
             _arc_tile_norm(col, cum, den, w)
 
 
-@jit
-def _arc_layer_task_i(xyz, rtol, lam0, lam1, out, t):
-    """Task ``t`` of :func:`_arc_layer_i`: LINES_PER_TASK lines (j, k) from ``t * LINES_PER_TASK`` on."""
-    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
-    nl = nj * nk
+@task_jit
+def _arc_layer_i(lo, hi, xyz, rtol, lam0, lam1, out):
+    """Direction i of :func:`wall_layer_arclength`, the lines ``lo <= jk < hi`` (j, k): each
+    line's arclength, then its layer (:func:`tfi_quat.kernels.by_direction`)."""
+    ni, nj = xyz.shape[0], xyz.shape[1]
     buf = np.empty(ni)
     line = np.empty(ni)
     res = np.empty(ni)
-    for jk in range(t * LINES_PER_TASK, min(nl, (t + 1) * LINES_PER_TASK)):
+    for jk in range(lo, hi):
         j = jk % nj
         k = jk // nj
         if ni == 1:
@@ -352,19 +333,11 @@ def _arc_layer_task_i(xyz, rtol, lam0, lam1, out, t):
             out[ni - 1, j, k, 0] = 1.0
 
 
-@pjit
-def _arc_layer_i(xyz, rtol, lam0, lam1, out):
-    """Direction i of :func:`wall_layer_arclength`: each line's arclength, then its layer."""
-    nl = xyz.shape[1] * xyz.shape[2]
-    for t in prange((nl + LINES_PER_TASK - 1) // LINES_PER_TASK):
-        _arc_layer_task_i(xyz, rtol, lam0, lam1, out, np.int64(t))
-
-
 @jit
 def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir):
-    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_arclength`:
-    the plane of the third direction and tile of TILE lines i; compiled once per direction,
-    with the direction a constant, so the index arithmetic folds away."""
+    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of
+    :func:`wall_layer_arclength`: the plane ``t // nt`` of the third direction and tile
+    ``t % nt`` of TILE lines i (as :func:`_layer_task_jk`)."""
     ni = xyz.shape[0]
     axis = 2 if kdir is not None else 1
     n = xyz.shape[axis]
@@ -389,21 +362,13 @@ def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir):
             out[i, j, k, axis] = col[m, w]
 
 
-def _make_arc_layer(axis: int):
-    """The kernel of direction ``axis`` (1: j, 2: k) of :func:`wall_layer_arclength`: one
-    task per plane of the third direction and tile of TILE lines i (as :func:`_make_layer_dir`)."""
-    kdir = True if axis == 2 else None
-
-    @pjit
-    def arc_layer(xyz, rtol, lam0, lam1, out):
-        nt = (xyz.shape[0] + TILE - 1) // TILE
-        for t in prange(xyz.shape[3 - axis] * nt):
-            _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, np.int64(t), nt, kdir)
-
-    return arc_layer
-
-
-_ARC_LAYER_DIR = (_arc_layer_i, _make_arc_layer(1), _make_arc_layer(2))
+@task_jit
+def _arc_layer_jk(lo, hi, xyz, rtol, lam0, lam1, out, kdir):
+    """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_arclength`: the
+    tiles ``lo <= t < hi`` (as :func:`_layer_dir_jk`)."""
+    nt = (xyz.shape[0] + TILE - 1) // TILE
+    for t in range(lo, hi):
+        _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir)
 
 
 def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
@@ -450,7 +415,7 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
         others = tuple(dims[m] for m in range(3) if m != d)
         l0 = np.ascontiguousarray(lam[2 * d], dtype=np.float64).reshape(others)
         l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
-        _LAYER_DIR[d](xyz, s, l0, l1, out)
+        by_direction(_layer_dir_i, _layer_dir_jk, d, xyz, s, l0, l1, out)
     return out
 
 
@@ -498,5 +463,5 @@ def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_R
             l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
         else:                                   # no layer: the arclength itself
             l0 = l1 = np.zeros(others)
-        _ARC_LAYER_DIR[d](xyz, float(rtol), l0, l1, out)
+        by_direction(_arc_layer_i, _arc_layer_jk, d, xyz, float(rtol), l0, l1, out)
     return out

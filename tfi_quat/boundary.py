@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from ._jit import jit, pjit, prange
+from ._jit import jit, parallel_for, task_jit
 from .errors import DeformationError, GridValueError
 from .quaternion import from_two_units_s, mul_s, kblend
 
@@ -412,9 +412,8 @@ def _interior_quaternion(Pu, Pd, ii, jj):
 
 @jit
 def _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf):
-    """Row ``i`` of the motion kernel of a wall curve (``surf`` None) or surface (True):
-    compiled once per kind, the other's code pruned before typing (one function call per
-    row keeps the parallel kernel small, which keeps compilation short)."""
+    """Row ``i`` of :func:`_motion_rows` (a separate compiled function: inlined into the
+    task kernel's IR it took three times as long to compile)."""
     na = q.shape[0]
     nb = q.shape[1]
     have = False
@@ -459,34 +458,17 @@ def _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf):
         delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
 
 
-def _make_motion_kernel(curve: bool):
-    """The motion kernel of a wall curve (``curve`` True) or surface (made on first use by
-    :func:`_motion_kernel`): a run compiles the code of the walls it has only."""
-    surf = None if curve else True
+@task_jit
+def _motion_rows(lo, hi, Pu, Pd, oi, oj, e, c, q, delta, ok, surf):
+    """Q, delta and the defined flag at every point of the patch rows ``lo <= i < hi`` of a
+    wall curve (``surf`` None) or surface (True): compiled once per kind, the other's code
+    pruned before typing, so a run compiles the code of the walls it has only.
 
-    @pjit
-    def motion(Pu, Pd, oi, oj, e, c, q, delta, ok):
-        """Q, delta and the defined flag at every patch point; rows in parallel.
-
-        Interior surface points try the straight-line :func:`_interior_quaternion`
-        first; within a row the sign of q follows the previous defined point.
-        """
-        for i in prange(q.shape[0]):
-            _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, np.int64(i), surf)
-
-    return motion
-
-
-_MOTION: dict = {}
-
-
-def _motion_kernel(curve: bool):
-    """The motion kernel for wall curves (``curve`` True) or surfaces, made on first use:
-    ``kernel(Pu, Pd, oi, oj, e, c, q, delta, ok)``."""
-    kern = _MOTION.get(bool(curve))
-    if kern is None:
-        kern = _MOTION[bool(curve)] = _make_motion_kernel(bool(curve))
-    return kern
+    Interior surface points try the straight-line :func:`_interior_quaternion`
+    first; within a row the sign of q follows the previous defined point.
+    """
+    for i in range(lo, hi):
+        _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf)
 
 
 @jit
@@ -602,9 +584,10 @@ def _centroid(r):
     return out
 
 
-@pjit
-def _normals_kernel(P, oi, oj, curve, e, out, ok):
-    for i in prange(out.shape[0]):
+@task_jit
+def _normals_rows(lo, hi, P, oi, oj, curve, e, out, ok):
+    """Unit normals of the patch rows ``lo <= i < hi`` (:func:`surface_normals`)."""
+    for i in range(lo, hi):
         for j in range(out.shape[1]):
             x, y, z, good = _normal(P, i + oi, j + oj, curve, e)
             out[i, j, 0] = x
@@ -785,7 +768,7 @@ def motion_padded(Pu, Pd, oi, oj, curve, e, c, na, nb):
     q = np.empty((na, nb, 4))
     delta = np.empty((na, nb, 3))
     ok = np.empty((na, nb), dtype=np.uint8)
-    _motion_kernel(curve)(Pu, Pd, oi, oj, e, c, q, delta, ok)
+    parallel_for(_motion_rows, na, Pu, Pd, oi, oj, e, c, q, delta, ok, None if curve else True)
     if not ok.all():
         _fill_degenerate(Pu, Pd, oi, oj, c, q, delta, ok)
         _align_rows_serial(q)
@@ -820,5 +803,5 @@ def surface_normals(r, halo=None, plane_normal=None):
     nb = 1 if curve else shape[1]
     out = np.empty((na, nb, 3))
     ok = np.empty((na, nb), dtype=np.bool_)
-    _normals_kernel(P, oi, oj, curve, e, out, ok)
+    parallel_for(_normals_rows, na, P, oi, oj, curve, e, out, ok)
     return out.reshape(shape + (3,)), ok.reshape(shape)

@@ -25,8 +25,10 @@ Face indexing
     :func:`face_point` (face coordinates -> block point).
 Arclength walkers
     :func:`arc_line_i` (one line of direction i) and :func:`arc_tile` (a tile
-    of lines of direction j or k, parameterised by the axis), with
-    :func:`dist`, :func:`max_abs`, :func:`at` and :func:`line_point`.
+    of :data:`TILE` lines of direction j or k, parameterised by the axis),
+    with :func:`dist`, :func:`max_abs`, :func:`at` and :func:`line_point`;
+    :func:`by_direction` runs a direction's task kernel on the threads (the
+    one Python function here).
 
 numba caches a kernel by its own file: after editing a helper here, clear the
 package's ``__pycache__`` (see :mod:`tfi_quat._jit`).
@@ -38,7 +40,7 @@ import math
 
 import numpy as np
 
-from ._jit import jit
+from ._jit import jit, parallel_for
 from .quaternion import log_s
 
 __all__ = [
@@ -46,11 +48,15 @@ __all__ = [
     "sinc2", "slerp_angle", "slerp_weights", "rel_log", "exp_times",
     "face_coords", "face_point",
     "u_d", "v_d", "w_d", "u_q", "v_q", "w_q", "fallback_q",
-    "dist", "max_abs", "at", "line_point", "arc_line_i", "arc_tile",
+    "dist", "max_abs", "at", "line_point", "arc_line_i", "arc_tile", "TILE", "by_direction",
 ]
 
 #: a blended quaternion with a smaller norm falls back to the rotation-vector blend
 QNORM_MIN = 1e-3
+#: lines i per tile of the line walkers of directions j and k: a tile's lines are
+#: processed together, i innermost, in (n, TILE) buffers, so memory is read and
+#: written along i, as it lies
+TILE = 128
 
 # Taylor coefficients of sin(x)/x in x**2 (terms up to x**20 / 21!): on
 # 0 <= x <= pi/2 the truncation error is below 2e-16.
@@ -342,3 +348,22 @@ def arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den):
             den[w] = n - 1.0
         else:
             den[w] = ln[w]
+
+
+def by_direction(kern_i, kern_jk, d: int, xyz, *args) -> None:
+    """Run the line kernels of direction ``d`` of the block ``xyz`` (ni, nj, nk, 3) on the
+    threads (:func:`tfi_quat._jit.parallel_for`).
+
+    ``d = 0``: ``kern_i(lo, hi, xyz, *args)`` over the lines ``jk`` (``j = jk % nj``,
+    ``k = jk // nj``); ``d = 1, 2``: ``kern_jk(lo, hi, xyz, *args, kdir)`` over the
+    tiles ``t`` of :data:`TILE` lines i (``nt`` tiles per plane of the third direction,
+    the plane ``t // nt``, the tile ``t % nt``), with ``kdir`` None for j and True for k:
+    its type selects the direction, so each kernel is compiled once per direction with
+    the axis a constant.
+    """
+    ni, nj, nk = xyz.shape[0], xyz.shape[1], xyz.shape[2]
+    if d == 0:
+        parallel_for(kern_i, nj * nk, xyz, *args)
+    else:
+        ntasks = (nk if d == 1 else nj) * ((ni + TILE - 1) // TILE)
+        parallel_for(kern_jk, ntasks, xyz, *args, True if d == 2 else None)

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._jit import jit, pjit, prange
+from ._jit import jit, parallel_for, task_jit
 from .errors import GridValueError
 from .grid import Block, Grid, face_axis, face_cells, face_ijk, face_layer
 from .spec import resolve_patch_specs
@@ -309,34 +309,36 @@ def _row(x, xr, has_ref, ndim, r, s, rtol, rb, rf):
         _quad_row(x, r, s, rtol, xr, has_ref, rb, rf)
 
 
-@pjit
-def _hex_volumes(x, out):
-    ni, nj, nk = x.shape[0], x.shape[1], x.shape[2]
-    for k in prange(nk - 1):
+@task_jit
+def _hex_volumes(lo, hi, x, out):
+    """Hexahedron volumes of the cell planes ``lo <= k < hi`` into ``out``."""
+    ni, nj = x.shape[0], x.shape[1]
+    for k in range(lo, hi):
         for j in range(nj - 1):
             for i in range(ni - 1):
                 out[i, j, k] = _hex_volume(x, i, j, k)
 
 
-@pjit
-def _quad_areas(x, out):
-    ni, nj = x.shape[0], x.shape[1]
-    for j in prange(nj - 1):
+@task_jit
+def _quad_areas(lo, hi, x, out):
+    """Quadrilateral areas of the cell rows ``lo <= j < hi`` into ``out``."""
+    ni = x.shape[0]
+    for j in range(lo, hi):
         for i in range(ni - 1):
             out[i, j, 0] = _quad_area(x, i, j)
 
 
-@pjit
-def _ratio_rows(x, xr, ndim, neg, low, first):
+@task_jit
+def _ratio_rows(lo_k, hi_k, x, xr, ndim, neg, low, first):
     """Cell-volume ratios ``x`` / ``xr`` of one block reduced over each row of cells (fixed j, k),
     without storing them: row ``r = j + (nj - 1) k`` writes ``neg[r]`` (ratios <= 0),
     ``low[r]`` (the smallest ratio, or the first NaN) and ``first[r]`` (its first i; -1 when
     every ratio of the row is infinite).  A ratio is ``v / vr`` (volumes, areas in 2-D), infinite
-    where ``vr == 0``, as :func:`volume_ratio_summary` defines it.  Parallel over the planes k."""
+    where ``vr == 0``, as :func:`volume_ratio_summary` defines it.  Task: the cell planes
+    ``lo_k <= k < hi_k``."""
     nci = x.shape[0] - 1
     ncj = x.shape[1] - 1
-    nck = low.shape[0] // ncj
-    for k in prange(nck):
+    for k in range(lo_k, hi_k):
         q = np.empty(nci)
         for j in range(ncj):
             if ndim == 3:
@@ -362,20 +364,20 @@ def _ratio_rows(x, xr, ndim, neg, low, first):
             first[r] = at
 
 
-@pjit
-def _block_stats(x, xr, has_ref, ndim, s, rtol, lo, hi, tot, arg, cnt, refsum):
-    """Reduce every metric of one block over each row of cells (fixed j, k).
+@task_jit
+def _block_stats(lo, hi, x, xr, has_ref, ndim, s, rtol, vmin, vmax, tot, arg, cnt, refsum):
+    """Reduce every metric of one block over each of the rows of cells ``lo <= r < hi``
+    (fixed j, k).
 
-    Row ``r = j + (nj - 1) * k`` writes ``lo[r, m]``, ``hi[r, m]``, ``tot[r, m]``
+    Row ``r = j + (nj - 1) * k`` writes ``vmin[r, m]``, ``vmax[r, m]``, ``tot[r, m]``
     (min, max and sum of metric m over its finite values), ``arg[r, m, 0/1]``
     (flat cell index ``i + (ni - 1) * r`` of the min / max), ``cnt[r, :]``
     (finite values per metric, then negative, negative-Jacobian, degenerate
     and collapsed cells) and ``refsum[r]`` (sum of the oriented reference volumes).
     """
     nci = x.shape[0] - 1
-    nrows = lo.shape[0]
-    nm = lo.shape[1]
-    for r in prange(nrows):
+    nm = vmin.shape[1]
+    for r in range(lo, hi):
         rb = np.empty((nci, nm + 1))
         rf = np.empty(nci, dtype=np.uint8)
         _row(x, xr, has_ref, ndim, r, s, rtol, rb, rf)
@@ -397,8 +399,8 @@ def _block_stats(x, xr, has_ref, ndim, s, rtol, lo, hi, tot, arg, cnt, refsum):
                     if val > vhi:
                         vhi = val
                         ihi = i
-            lo[r, m] = vlo
-            hi[r, m] = vhi
+            vmin[r, m] = vlo
+            vmax[r, m] = vhi
             tot[r, m] = t
             cnt[r, m] = n
             arg[r, m, 0] = ilo + nci * r
@@ -422,16 +424,16 @@ def _block_stats(x, xr, has_ref, ndim, s, rtol, lo, hi, tot, arg, cnt, refsum):
         refsum[r] = rs
 
 
-@pjit
-def _block_fields(x, xr, has_ref, ndim, s, rtol, rows, out, flags):
-    """Per-cell metrics of the cell rows ``rows`` of one block.
+@task_jit
+def _block_fields(lo, hi, x, xr, has_ref, ndim, s, rtol, rows, out, flags):
+    """Per-cell metrics of the cell rows ``rows[lo:hi]`` of one block.
 
     ``out`` float64 (ni - 1, len(rows), len(METRICS)), ``flags`` uint8
     (ni - 1, len(rows)): NEGATIVE | NEGATIVE_JACOBIAN | DEGENERATE | COLLAPSED.
     """
     nci = x.shape[0] - 1
     nm = out.shape[2]
-    for q in prange(rows.size):
+    for q in range(lo, hi):
         rb = np.empty((nci, nm + 1))
         rf = np.empty(nci, dtype=np.uint8)
         _row(x, xr, has_ref, ndim, rows[q], s, rtol, rb, rf)
@@ -441,42 +443,48 @@ def _block_fields(x, xr, has_ref, ndim, s, rtol, rows, out, flags):
                 out[i, q, m] = rb[i, m]
 
 
-@pjit
-def _invalid_cells(x, ndim, corner_tol):
-    """Count the invalid cells of one block and find the first in C order of ``(i, j, k)``.
+@task_jit
+def _invalid_rows(lo, hi, x, ndim, corner_tol, count, first):
+    """The invalid cells of the rows of cells ``lo <= r < hi`` (``r = j + (nj - 1) k``) of
+    one block: ``count[r]`` of them, the first at ``i = first[r]`` (-1: none).
 
     A cell is invalid unless its volume (area) is positive and its smallest
     scaled corner Jacobian is above ``-corner_tol``, both as right-handed
-    (orientation +1; the per-cell metrics of :func:`_row`).  Rows of cells
-    in parallel, no temporaries the size of the block.  Returns ``(count,
-    i, j, k)``, ``(0, -1, -1, -1)`` when every cell is valid.
+    (orientation +1; the per-cell metrics of :func:`_row`).  No temporaries the
+    size of the block.
     """
     nci = x.shape[0] - 1
+    rb = np.empty((max(nci, 0), _NM + 1))
+    rf = np.empty(max(nci, 0), dtype=np.uint8)
+    for r in range(lo, hi):
+        _row(x, x, False, ndim, r, 1.0, 0.0, rb, rf)
+        n = 0
+        f = -1
+        for i in range(nci):
+            if not (rb[i, 0] > 0.0 and rb[i, 2] > -corner_tol):
+                n += 1
+                if f < 0:
+                    f = i
+        count[r] = n
+        first[r] = f
+
+
+def _invalid_cells(x, ndim: int, corner_tol: float) -> tuple:
+    """Count the invalid cells of one block (:func:`_invalid_rows`, rows of cells on the
+    threads) and find the first in C order of ``(i, j, k)``: ``(count, i, j, k)``,
+    ``(0, -1, -1, -1)`` when every cell is valid."""
     ncj = x.shape[1] - 1
     nck = x.shape[2] - 1 if ndim == 3 else 1
     nrows = max(ncj, 0) * max(nck, 0)
     count = np.zeros(nrows, np.int64)
     first = np.full(nrows, -1, np.int64)
-    for r in prange(nrows):
-        rb = np.empty((max(nci, 0), _NM + 1))
-        rf = np.empty(max(nci, 0), dtype=np.uint8)
-        _row(x, x, False, ndim, r, 1.0, 0.0, rb, rf)
-        for i in range(nci):
-            if not (rb[i, 0] > 0.0 and rb[i, 2] > -corner_tol):
-                count[r] += 1
-                if first[r] < 0:
-                    first[r] = i
-    total = 0
-    best = -1
-    for r in range(nrows):
-        total += count[r]
-        if first[r] >= 0:
-            key = (first[r] * ncj + r % ncj) * nck + r // ncj      # C order of (i, j, k)
-            if best < 0 or key < best:
-                best = key
-    if best < 0:
-        return total, -1, -1, -1
-    return total, best // (ncj * nck), (best // nck) % ncj, best % nck
+    parallel_for(_invalid_rows, nrows, x, ndim, float(corner_tol), count, first)
+    rows = np.flatnonzero(first >= 0)
+    if rows.size == 0:
+        return int(count.sum()), -1, -1, -1
+    key = (first[rows] * ncj + rows % ncj) * nck + rows // ncj      # C order of (i, j, k)
+    best = int(key.min())
+    return int(count.sum()), best // (ncj * nck), (best // nck) % ncj, best % nck
 
 
 @jit(inline="always")
@@ -618,15 +626,15 @@ def _ratio_row(x, xr, ndim, j, k, rat, neg, res):
     res[5] = nnan
 
 
-@pjit
-def _step_check(x, xr, ndim, res):
+@task_jit
+def _step_check(lo, hi, x, xr, ndim, res):
     """Per row of cells ``r = j + (nj - 1) k``, ``res[r]`` (6,): the smallest corner-Jacobian
     ratio to ``xr`` and its i, the negative and negative-Jacobian cells, the first bad i
     (-1: none), the cells whose ratio is NaN (:func:`_ratio_row`).  Rows in parallel, no
-    temporaries the size of the block."""
+    temporaries the size of the block.  Task: the rows ``lo <= r < hi``."""
     ncj = x.shape[1] - 1
     nci = x.shape[0] - 1
-    for r in prange(res.shape[0]):
+    for r in range(lo, hi):
         rat = np.empty(nci)
         neg = np.empty(nci)
         _ratio_row(x, xr, ndim, r % ncj, r // ncj, rat, neg, res[r])
@@ -672,7 +680,10 @@ def cell_volumes(block: Block | np.ndarray, ndim: int | None = None) -> np.ndarr
     ndim = _ndim(xyz, ndim)
     out = np.empty(_cell_shape(xyz.shape[:3], ndim), order="F")
     if out.size:
-        (_quad_areas if ndim == 2 else _hex_volumes)(xyz, out)
+        if ndim == 2:
+            parallel_for(_quad_areas, xyz.shape[1] - 1, xyz, out)
+        else:
+            parallel_for(_hex_volumes, xyz.shape[2] - 1, xyz, out)
     return out
 
 
@@ -689,8 +700,8 @@ def _fields(xyz, xr, ndim, s, rtol, rows):
     out = np.empty((nci, rows.size, _NM), order="F")
     flags = np.empty((nci, rows.size), dtype=np.uint8, order="F")
     if out.size:
-        _block_fields(xyz, xr if xr is not None else xyz, xr is not None, ndim, float(s), float(rtol),
-                      rows, out, flags)
+        parallel_for(_block_fields, rows.size, xyz, xr if xr is not None else xyz, xr is not None,
+                     ndim, float(s), float(rtol), rows, out, flags)
     return out, flags
 
 
@@ -1045,8 +1056,8 @@ def _block_stats_call(xyz, xr, ndim, s, rtol):
     cnt = np.empty((nrows, _NCNT), dtype=np.int64)
     refsum = np.empty(nrows)
     if nci and nrows:
-        _block_stats(xyz, xr if xr is not None else xyz, xr is not None, ndim, float(s), float(rtol),
-                     lo, hi, tot, arg, cnt, refsum)
+        parallel_for(_block_stats, nrows, xyz, xr if xr is not None else xyz, xr is not None, ndim,
+                     float(s), float(rtol), lo, hi, tot, arg, cnt, refsum)
     return lo, hi, tot, arg, cnt, refsum
 
 
@@ -1322,7 +1333,7 @@ def check_block(xyz: np.ndarray, ref: np.ndarray, ndim: int, block: int = 0,
     if nci * ncj * nck == 0:
         return CellCheck(math.inf, None, 0, 0)
     res = np.empty((ncj * nck, 6))
-    _step_check(xyz, ref, ndim, res)
+    parallel_for(_step_check, res.shape[0], xyz, ref, ndim, res)
     nan = np.flatnonzero(res[:, 5] > 0)
     r = int(nan[0]) if nan.size else int(np.argmin(res[:, 0]))
     lo = float(res[r, 0])
@@ -1358,7 +1369,7 @@ def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
         cnt = np.empty(nrows, dtype=np.int64)
         low = np.empty(nrows)
         first = np.empty(nrows, dtype=np.int64)
-        _ratio_rows(x, xr, grid.ndim, cnt, low, first)
+        parallel_for(_ratio_rows, nck, x, xr, grid.ndim, cnt, low, first)
         neg += int(cnt.sum())
         if np.isnan(low).any():
             continue                                # NaN < best is False: as np.argmin's NaN

@@ -71,11 +71,12 @@ from typing import Sequence
 
 import numpy as np
 
-from ._jit import jit, pjit, prange
+from ._jit import jit, parallel_for, task_jit
 from .errors import GridValueError
 from .grid import FACES
-from .kernels import (QNORM_MIN, arc_line_i, arc_tile, at, face_coords, face_point, fallback_q,
-                      line_point, slerp_angle, slerp_weights, u_d, u_q, v_d, v_q, w_d, w_q)
+from .kernels import (QNORM_MIN, TILE, arc_line_i, arc_tile, at, by_direction, face_coords,
+                      face_point, fallback_q, line_point, slerp_angle, slerp_weights, u_d, u_q,
+                      v_d, v_q, w_d, w_q)
 
 __all__ = [
     "S_DTYPE", "QNORM_MIN", "ZERO_LENGTH_RTOL",
@@ -376,8 +377,11 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
 # (on), so that numba compiles the row once per kind with the other kinds'
 # branches pruned before typing (bool flags compiled all eight kinds' code into
 # every kernel: three times the compile time); the kernel made by
-# :func:`_volume_kernel` passes its kind's flags (closure constants) to the row
-# (inlined by LLVM).
+# :func:`_volume_kernel` passes its kind's flags (closure constants) to the row.
+# The row and the point are separate compiled functions that LLVM inlines
+# (``forceinline``): numba types :func:`_point` once per kind although the row
+# calls it at three places (one per role of direction i; IR inlining typed
+# every copy: twice the compile time, the same machine code).
 
 @jit(inline="always")
 def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
@@ -387,7 +391,7 @@ def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
     return xyz[i, j, k, 0] + bx, xyz[i, j, k, 1] + by, xyz[i, j, k, 2] + bz
 
 
-@jit(inline="always")
+@jit(forceinline=True)
 def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, gQ, ma, mb,
            hD, hQ, na, nb, lineB, gB, hB, hasq, based):
     """Fused update of one point; returns 1 when the blended Q needs the fallback.
@@ -500,17 +504,15 @@ def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
     qflag = True if hasq else None
     bflag = True if based else None
 
-    @pjit
-    def volume(xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-               lineB, gB, hB, bad):
-        nj, nk = xyz.shape[1], xyz.shape[2]
-        nouter = nk if hasn else nj
+    @task_jit
+    def volume(lo, hi, xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM,
+               fbN, lineB, gB, hB, bad):
+        nj = xyz.shape[1]
         ninner = nj if hasn else 1
-        for p in prange(nouter):
-            pp = np.int64(p)
+        for p in range(lo, hi):
             for q in range(ninner):
-                j = q if hasn else pp
-                k = pp if hasn else 0
+                j = q if hasn else p
+                k = p if hasn else 0
                 bad[j + nj * k] = _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD,
                                        gQ, hD, hQ, fbM, fbN, lineB, gB, hB, nflag, qflag,
                                        bflag) > 0
@@ -533,20 +535,20 @@ def _run_volume(xyz, s, out, c, order, tables, hasq: bool, base=None) -> None:
     lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = tables
     lineB, gB, hB = (lineD, gD, hD) if base is None else base
     bad = np.zeros(xyz.shape[1] * xyz.shape[2], dtype=np.bool_)
-    _volume_kernel(hasn, hasq, base is not None)(
-        xyz, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
-        lineB, gB, hB, bad)
+    parallel_for(_volume_kernel(hasn, hasq, base is not None), xyz.shape[2 if hasn else 1],
+                 xyz, s, out, c[0], c[1], c[2], L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+                 lineB, gB, hB, bad)
     if hasq and bad.any():
         _fix_rows(xyz, s, out, np.flatnonzero(bad), c[0], c[1], c[2], L, M, N, lineD, lineQ,
                   gD, gQ, hD, hQ, fbM, fbN, hasn, base is not None, lineB, gB, hB)
 
 
-@pjit
-def _fields2(s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
-    """2-D Soni TFI of the fields themselves (Δ and unit Q), for patches; rows in parallel."""
-    ni, nj = s.shape[0], s.shape[1]
-    for jp in prange(nj):
-        j = np.int64(jp)
+@task_jit
+def _fields2(lo, hi, s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
+    """2-D Soni TFI of the fields themselves (Δ and unit Q), for patches: rows ``lo <= j < hi``
+    (a task kernel: :func:`tfi_quat._jit.parallel_for` runs the rows on the threads)."""
+    ni = s.shape[0]
+    for j in range(lo, hi):
         for i in range(ni):
             if L == 0:
                 la, lb, ma, mb = j, 0, i, 0
@@ -572,22 +574,15 @@ def _fields2(s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN):
 
 
 # =================================================================== arclength kernels
-#: lines per task of the direction-i pass of the arclength kernels, and lines
-#: i per tile of the direction-j and -k passes (a tile's lines are summed
-#: together, i innermost, so memory is read along i as it lies)
-ARC_LINES = 64
-ARC_TILE = 128
-
-
 @jit(inline="always")
 def _arc_tile_task(xyz, s, rtol, axis, t, nt):
     """Task ``t`` of the direction-``axis`` pass (1: j, one task per k-plane and tile of
-    ARC_TILE lines i; 2: k, per j-slab and tile): the tile's parameters into ``s``."""
+    TILE lines i; 2: k, per j-slab and tile): the tile's parameters into ``s``."""
     ni = xyz.shape[0]
     n = xyz.shape[axis]
     c = t // nt
-    i0 = (t % nt) * ARC_TILE
-    nw = min(ARC_TILE, ni - i0)
+    i0 = (t % nt) * TILE
+    nw = min(TILE, ni - i0)
     u0 = np.uint64(i0)
     if n == 1:
         for w in range(nw):
@@ -607,14 +602,13 @@ def _arc_tile_task(xyz, s, rtol, axis, t, nt):
         s[i, j, k, axis] = 1.0
 
 
-@jit
-def _arc_task_i(xyz, s, rtol, t):
-    """Task ``t`` of direction i: lines ``jk`` (``j = jk % nj``, ``k = jk // nj``) from
-    ``t * ARC_LINES`` on, ARC_LINES of them."""
+@task_jit
+def _arc_dir_i(lo, hi, xyz, s, rtol):
+    """Direction i of :func:`arclength` (ni >= 2), the lines ``lo <= jk < hi`` (``j = jk %
+    nj``, ``k = jk // nj``; contiguous in memory)."""
     ni, nj = xyz.shape[0], xyz.shape[1]
-    nl = nj * xyz.shape[2]
     buf = np.empty(ni)
-    for jk in range(t * ARC_LINES, min(nl, (t + 1) * ARC_LINES)):
+    for jk in range(lo, hi):
         j = jk % nj
         k = jk // nj
         _, a = arc_line_i(xyz, rtol, j, k, buf)
@@ -623,42 +617,17 @@ def _arc_task_i(xyz, s, rtol, t):
         s[ni - 1, j, k, 0] = 1.0
 
 
-@pjit
-def _arc_dir_i(xyz, s, rtol):
-    """Direction i of :func:`arclength` (ni >= 2): ARC_LINES lines (j, k) per task."""
-    nl = xyz.shape[1] * xyz.shape[2]
-    for t in prange((nl + ARC_LINES - 1) // ARC_LINES):
-        _arc_task_i(xyz, s, rtol, np.int64(t))
-
-
-@jit
-def _arc_task_jk(xyz, s, rtol, t, nt, kdir):
-    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True): compiled once per
-    direction, with the direction a constant, so the tile walker's index arithmetic
-    folds away."""
+@task_jit
+def _arc_dir_jk(lo, hi, xyz, s, rtol, kdir):
+    """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`arclength` (n >= 2), tasks
+    ``lo <= t < hi``: one per plane of the third direction and tile of TILE lines i
+    (:func:`tfi_quat.kernels.by_direction`).
+    Compiled once per direction, with the direction a constant, so the tile walker's index
+    arithmetic folds away."""
     axis = 2 if kdir is not None else 1
-    _arc_tile_task(xyz, s, rtol, axis, t, nt)
-
-
-def _make_arc_dir(axis: int):
-    """The kernel of direction ``axis`` (1: j, 2: k) of :func:`arclength`: one task per
-    plane of the third direction and tile of ARC_TILE lines i (:func:`_arc_task_jk`; the
-    parallel loop only calls it: a small parallel body compiles faster)."""
-    kdir = True if axis == 2 else None
-
-    @pjit
-    def arc_dir(xyz, s, rtol):
-        nt = (xyz.shape[0] + ARC_TILE - 1) // ARC_TILE
-        for t in prange(xyz.shape[3 - axis] * nt):
-            _arc_task_jk(xyz, s, rtol, np.int64(t), nt, kdir)
-
-    arc_dir.__doc__ = f"Direction {'jk'[axis - 1]} of :func:`arclength` (n >= 2)."
-    return arc_dir
-
-
-#: the arclength kernels of directions i, j, k, called only where a direction has
-#: lines of two points or more (a 2-D run compiles two)
-_ARC_DIR = (_arc_dir_i, _make_arc_dir(1), _make_arc_dir(2))
+    nt = (xyz.shape[0] + TILE - 1) // TILE
+    for t in range(lo, hi):
+        _arc_tile_task(xyz, s, rtol, axis, t, nt)
 
 
 @jit
@@ -853,7 +822,7 @@ def arclength(xyz, *, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
         if xyz.shape[d] == 1:
             s[..., d] = 0.0
         else:
-            _ARC_DIR[d](xyz, s, float(rtol))
+            by_direction(_arc_dir_i, _arc_dir_jk, d, xyz, s, float(rtol))
     return s
 
 
@@ -1062,7 +1031,8 @@ def tfi_patch_fast(delta, q, params, lead: int = 0) -> None:
     lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN = _tables(dims, (L, M, 2), fd, fq, fs[:4], False)
     outD = np.empty((na, nb, 3), order="F")
     outQ = np.empty((na, nb, 4), order="F") if q is not None else np.empty((2, 2, 4), order="F")
-    _fields2(s4, outD, outQ, q is not None, L, M, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    parallel_for(_fields2, nb, s4, outD, outQ, q is not None, L, M, lineD, lineQ, gD, gQ, hD,
+                 hQ, fbM, fbN)
     delta[1:-1, 1:-1] = outD[1:-1, 1:-1]
     if q is not None:
         q[1:-1, 1:-1] = outQ[1:-1, 1:-1]

@@ -17,12 +17,13 @@ import numpy as np
 
 from .. import quaternion as qa
 from .. import kernels, tfi
-from .._jit import jit, pjit, prange, serial_below
+from .._jit import jit, parallel_for, serial_below, task_jit
 
-@pjit
-def hermite_kernel(s):
-    """``s <- 3 s^2 - 2 s^3`` in place on a flat array, the sums of the numpy form."""
-    for m in prange(s.shape[0]):
+@task_jit
+def hermite_kernel(lo, hi, s):
+    """``s <- 3 s^2 - 2 s^3`` in place on the items ``lo <= m < hi`` of a flat array, the sums
+    of the numpy form."""
+    for m in range(lo, hi):
         x = s[m]
         s[m] = (x * -2.0 + 3.0) * (x * x)
 
@@ -32,7 +33,7 @@ def hermite(s: np.ndarray) -> np.ndarray:
     if s.flags.f_contiguous or s.flags.c_contiguous:
         flat = s.reshape(-1, order="F" if s.flags.f_contiguous else "C")
         with serial_below(flat.size):
-            hermite_kernel(flat)
+            parallel_for(hermite_kernel, flat.size, flat)
         return s
     s2 = s * s
     s *= -2.0
@@ -258,7 +259,6 @@ def patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD, lineQ, r
                     fl[o + 4 + c] = sg * gq[g, c]
 
 
-@pjit
 def patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
     """Every derived patch of one level: 2-D Soni TFI of (Δ, Q) from the patch's four
     sides, read from and written to the global arrays ``gd`` (G, 3), ``gq`` (G, 4).
@@ -271,9 +271,18 @@ def patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
     hemisphere-aligned residuals of the two other sides, normalised; the
     rotation-vector blend where the norm falls below ``QNORM_MIN``).  Patches only read
     their sides, which earlier levels define, so the tables come first (serially,
-    O(perimeter)) and then the interior lines in parallel.  ``damp``/``shift``
-    (two-level, length G; else empty): Q is faded and K re-based as in :func:`fill_gaps`.
+    O(perimeter): :func:`level_tables`) and then the interior lines on the threads
+    (:func:`patch_lines`).  ``damp``/``shift`` (two-level, length G; else empty): Q is
+    faded and K re-based as in :func:`fill_gaps`.
     """
+    level_tables(gd, gq, use_q, meta, gidf, sf, work)
+    parallel_for(patch_lines, tasks.shape[0], gd, gq, use_q, meta, gidf, sf, wf, tasks, work,
+                 damp, shift)
+
+
+@jit
+def level_tables(gd, gq, use_q, meta, gidf, sf, work):
+    """The tables of every patch of a level (:func:`patch_tables`), serially."""
     lineD, lineQ, resD, resQ, fb = work
     for p in range(meta.shape[0]):
         off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
@@ -281,14 +290,18 @@ def patch_level(gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
         nl, nm = (na, nb) if lead == 0 else (nb, na)
         patch_tables(gd, gq, use_q, off, nb, lead, nl, nm, gidf, sf, lineD[lo:lo + nm],
                       lineQ[lo:lo + nm], resD[ro:ro + nl], resQ[ro:ro + nl], fb[ro:ro + nl])
-    for tk in prange(tasks.shape[0]):
+
+
+@task_jit
+def patch_lines(lo, hi, gd, gq, use_q, meta, gidf, sf, wf, tasks, work, damp, shift):
+    """The interior lines ``tasks[lo:hi]`` (patch, line) of :func:`patch_level`."""
+    for tk in range(lo, hi):
         patch_line(gd, gq, use_q, meta, gidf, sf, wf, work, damp, shift, tasks[tk, 0], tasks[tk, 1])
 
 
 @jit
 def patch_line(gd, gq, use_q, meta, gidf, sf, wf, work, damp, shift, p, m):
-    """Interior line ``m`` of patch ``p`` for :func:`patch_level` (a call from its parallel
-    loop keeps that loop small, which keeps it quick to compile)."""
+    """Interior line ``m`` of patch ``p`` for :func:`patch_lines`."""
     lineD, lineQ, resD, resQ, fb = work
     local = damp.shape[0] > 0
     off, na, nb, lead, lo, ro = meta[p, 0], meta[p, 1], meta[p, 2], meta[p, 3], meta[p, 4], \
