@@ -34,10 +34,8 @@ import datetime
 import json
 import os
 import platform
-import resource
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -45,37 +43,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_hdf5 import make_grid  # noqa: E402
+from bench_hdf5 import best_of, make_grid  # noqa: E402
 from tfi_quat.io import cgns, hdf5  # noqa: E402
 from tfi_quat.spec import PatchSpec  # noqa: E402
 from tfi_quat.topology import Connectivity, Patch  # noqa: E402
-
-
-def cpu_seconds() -> float:
-    """CPU seconds used so far by this process and its waited-for children (the guard's)."""
-    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
-
-
-def best_of(fns: dict, repeat: int) -> tuple[dict, dict]:
-    """Best wall-clock and best CPU time of each ``fns[name] = (fn, remove)`` over ``repeat`` rounds.
-
-    As :func:`bench_hdf5.best_of` (round-robin; ``remove`` deleted and dirty
-    pages flushed before each run, untimed), with the CPU time as well.
-    """
-    wall = {name: [] for name in fns}
-    cpu = {name: [] for name in fns}
-    for _ in range(repeat):
-        for name, (fn, remove) in fns.items():
-            if remove is not None:
-                if os.path.exists(remove):
-                    os.unlink(remove)
-                os.sync()
-            c0, t0 = cpu_seconds(), time.perf_counter()
-            fn()
-            wall[name].append(time.perf_counter() - t0)
-            cpu[name].append(cpu_seconds() - c0)
-    return {n: min(t) for n, t in wall.items()}, {n: min(t) for n, t in cpu.items()}
 
 
 def boundary(grid) -> Connectivity:
@@ -126,14 +97,14 @@ def main(argv=None) -> int:
             "hdf5 write": (lambda: hdf5.write(h5, grid), h5),
             "cgns write (new file)": (lambda: cgns.write(cg, grid, keep=False), cg),
             "cgns write (like its source)": (lambda: cgns.write(cg_like, source), cg_like),
-        }, args.repeat)
+        }, args.repeat, cpu=True)
         reads, reads_cpu = best_of({
             "hdf5 read": (lambda: hdf5.read(h5), None),
             "cgns read": (lambda: cgns.read(cg), None),
             "cgns read (like file)": (lambda: cgns.read(cg_like), None),
             "hdf5 first read (guard walks)": (first(hdf5.read, h5), None),
             "cgns first read (guard walks)": (first(cgns.read, cg), None),
-        }, args.repeat)
+        }, args.repeat, cpu=True)
         back = cgns.read(cg_like)
         assert all(np.array_equal(a.xyz, b.xyz) for a, b in zip(back, grid))
         sizes = {"hdf5": h5.stat().st_size, "cgns": cg.stat().st_size}

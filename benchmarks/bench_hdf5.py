@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import platform
 import sys
 import tempfile
@@ -60,26 +61,36 @@ def make_grid(npoints: int, nblocks: int) -> Grid:
     return Grid(blocks)
 
 
-def best_of(fns: dict, repeat: int) -> dict:
+def cpu_seconds() -> float:
+    """CPU seconds used so far by this process and its waited-for children (the guard's)."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def best_of(fns: dict, repeat: int, cpu: bool = False):
     """Best time of each ``fns[name] = (fn, remove)`` over ``repeat`` rounds.
 
     The functions run round-robin (one of each per round), so a change of the
     machine's load during the run affects all of them alike and the ratios
     stay fair.  With ``remove``, that file is deleted before each run and
     dirty pages are flushed (``os.sync``), untimed: every write goes to a
-    fresh file from a clean page cache.
+    fresh file from a clean page cache.  ``cpu``: return ``(wall, cpu)``, the
+    best CPU seconds (:func:`cpu_seconds`) beside the best wall-clock ones.
     """
-    times = {name: [] for name in fns}
+    wall = {name: [] for name in fns}
+    used = {name: [] for name in fns}
     for _ in range(repeat):
         for name, (fn, remove) in fns.items():
             if remove is not None:
                 if os.path.exists(remove):
                     os.unlink(remove)
                 os.sync()
-            t0 = time.perf_counter()
+            c0, t0 = cpu_seconds(), time.perf_counter()
             fn()
-            times[name].append(time.perf_counter() - t0)
-    return {name: min(t) for name, t in times.items()}
+            wall[name].append(time.perf_counter() - t0)
+            used[name].append(cpu_seconds() - c0)
+    best = {name: min(t) for name, t in wall.items()}
+    return (best, {name: min(t) for name, t in used.items()}) if cpu else best
 
 
 def peak_ratio(fn, nbytes: int) -> float:

@@ -69,38 +69,45 @@ def corner_jacobians(xyz: np.ndarray) -> np.ndarray:
         volume (:func:`cell_volumes`) may still have a negative corner here
         (an arrowhead quad, a twisted hexahedron).  Zero-length edges give 0.
     """
+    return corner_dets(xyz, unit=True).min(axis=-1)
+
+
+def corner_dets(xyz, unit: bool = False) -> np.ndarray:
+    """Per cell and corner, the determinant of the cell's edges leaving the corner along
+    +i, +j (and +k), numpy whole-array code: ``(ni-1, nj-1, 4)`` when ``nk == 1`` (the
+    z-component of ``a x b``), else ``(ni-1, nj-1, nk-1, 8)``.  ``unit``: of the unit
+    edges (zero-length edges give 0)."""
     x = np.asarray(xyz, dtype=np.float64)
 
-    def unit(d):
+    def edge(d):
+        if not unit:
+            return d
         n = np.linalg.norm(d, axis=-1, keepdims=True)
         return d / np.where(n > 0.0, n, np.inf)
 
+    out = []
     if x.shape[2] == 1:
         p = x[:, :, 0, :2]
-        di = unit(p[1:] - p[:-1])                     # (ni-1, nj, 2)
-        dj = unit(p[:, 1:] - p[:, :-1])               # (ni, nj-1, 2)
-        out = None
+        di = edge(p[1:] - p[:-1])                     # (ni-1, nj, 2)
+        dj = edge(p[:, 1:] - p[:, :-1])               # (ni, nj-1, 2)
         for a in (0, 1):
             for b in (0, 1):
                 u = di[:, b:b + dj.shape[1]]
                 v = dj[a:a + di.shape[0]]
-                c = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-                out = c if out is None else np.minimum(out, c)
-        return out
-    di = unit(x[1:] - x[:-1])
-    dj = unit(x[:, 1:] - x[:, :-1])
-    dk = unit(x[:, :, 1:] - x[:, :, :-1])
+                out.append(u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0])
+        return np.stack(out, -1)
+    di = edge(x[1:] - x[:-1])
+    dj = edge(x[:, 1:] - x[:, :-1])
+    dk = edge(x[:, :, 1:] - x[:, :, :-1])
     ni, nj, nk = x.shape[:3]
-    out = None
     for a in (0, 1):
         for b in (0, 1):
             for c in (0, 1):
                 u = di[:, b:b + nj - 1, c:c + nk - 1]
                 v = dj[a:a + ni - 1, :, c:c + nk - 1]
                 w = dk[a:a + ni - 1, b:b + nj - 1]
-                d = np.einsum("...i,...i->...", np.cross(u, v), w)
-                out = d if out is None else np.minimum(out, d)
-    return out
+                out.append(np.einsum("...i,...i->...", np.cross(u, v), w))
+    return np.stack(out, -1)
 
 
 def invalid(xyz: np.ndarray, corner_tol: float):

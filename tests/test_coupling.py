@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import h5py
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
-from tfi_quat.deform import Deformer
+import tfi_quat as tq
+from tfi_quat.deform import Deformer, rigid_motion
+from tfi_quat.errors import DeformationError, GridFormatError, OverwriteError
 from tfi_quat.grid import face_axes
+from tfi_quat.io.surface import read_surface, write_surface
 
 import _deform_grids as G
+from _cells import corner_dets
 
 CASES = {
     "o-grid": G.o_grid,
@@ -68,10 +74,7 @@ def test_surface_ids_are_a_copy():
 
 
 # ------------------------------------------------------------------ deform(xs, ids=...)
-from hypothesis import given, settings, strategies as st  # noqa: E402
 
-from tfi_quat import DeformationError  # noqa: E402
-from tfi_quat.deform import rigid_motion  # noqa: E402
 
 ALL_CASES = dict(CASES, channel=G.channel)
 
@@ -331,44 +334,18 @@ def test_a_step_into_out_allocates_nothing_grid_sized(method):
 
 
 # ------------------------------------------------------------------ check=
-def _corner_dets(x):
-    """Per cell and corner, the Jacobian (the determinant of the edges leaving the corner
-    along +i, +j, +k; 2-D: +i, +j), numpy whole-array code: (ncells..., 8 or 4)."""
-    if x.shape[2] == 1:
-        p = x[:, :, 0, :2]
-        di = p[1:] - p[:-1]
-        dj = p[:, 1:] - p[:, :-1]
-        out = []
-        for a in (0, 1):
-            for b in (0, 1):
-                u = di[:, b:b + dj.shape[1]]
-                v = dj[a:a + di.shape[0]]
-                out.append(u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0])
-        return np.stack(out, -1)
-    di, dj, dk = x[1:] - x[:-1], x[:, 1:] - x[:, :-1], x[:, :, 1:] - x[:, :, :-1]
-    ni, nj, nk = x.shape[:3]
-    out = []
-    for a in (0, 1):
-        for b in (0, 1):
-            for c in (0, 1):
-                u = di[:, b:b + nj - 1, c:c + nk - 1]
-                v = dj[a:a + ni - 1, :, c:c + nk - 1]
-                w = dk[a:a + ni - 1, b:b + nj - 1]
-                out.append(np.einsum("...i,...i->...", np.cross(u, v), w))
-    return np.stack(out, -1)
-
 
 def _cell_ratio(grid, ref, b, i, j, k):
     cell = (i, j) if grid.ndim == 2 else (i, j, k)
-    jr = _corner_dets(ref[b].xyz)[cell]
-    return np.where(jr != 0.0, _corner_dets(grid[b].xyz)[cell] / jr, np.inf).min()
+    jr = corner_dets(ref[b].xyz)[cell]
+    return np.where(jr != 0.0, corner_dets(grid[b].xyz)[cell] / jr, np.inf).min()
 
 
 def _oracle(grid, ref):
     """(min ratio, negative-Jacobian cells) in numpy."""
     lo, nj = np.inf, 0
     for b, r in zip(grid, ref):
-        jd, jr = _corner_dets(b.xyz), _corner_dets(r.xyz)
+        jd, jr = corner_dets(b.xyz), corner_dets(r.xyz)
         with np.errstate(divide="ignore", invalid="ignore"):
             q = np.where(jr != 0.0, jd / jr, np.inf).min(axis=-1)
         lo = min(lo, q.min())
@@ -542,11 +519,6 @@ def test_check_matches_the_numpy_oracle_for_random_wall_waves(name, amp, kx, ky)
 
 
 # ------------------------------------------------------------ surface files and modal motion
-import h5py  # noqa: E402
-
-import tfi_quat as tq  # noqa: E402
-from tfi_quat.errors import DeformationError, GridFormatError, OverwriteError  # noqa: E402
-from tfi_quat.io.surface import read_surface, write_surface  # noqa: E402
 
 
 def _shapes(d):
