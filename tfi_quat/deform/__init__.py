@@ -14,6 +14,14 @@ concern:
 ``stages``
     the compiled stages (numba kernels on the global boundary arrays) and the
     thin driver of each hierarchy level.
+``walls``
+    the wall in the solver's terms (every wall point copy as block, i, j, k)
+    and a step's wall targets from any input form, checked.
+``buffers``
+    the caller's coordinate buffers (``out=``): their checks, layouts and
+    the kept scratch.
+``modal``
+    modal wall motion from mode shapes on the wall.
 ``deformer``
     the front: options, each formulation's step, the result grid.
 """

@@ -33,18 +33,19 @@ import threading
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Callable
 
 import numpy as np
 
 from .. import quaternion as qa
 from .._jit import serial_below, use_threads
 from ..errors import CaseError, DeformationError
-from ..grid import Block, Grid, face_ijk
+from ..grid import Block, Grid
 from ..quality import CellCheck, check_block
-from ..spec import PatchSpec, as_patch_specs, parse_patch_spec
-from . import stages, twolevel
+from ..spec import as_patch_specs
+from . import buffers, stages, twolevel
 from .skeleton import BLENDINGS, FIXED, WALL, ArclengthParams, boundary_points, build_skeleton
+from .walls import WallInput, other_targets
 
 __all__ = ["Deformer", "rigid_motion", "StepTimings", "deformer_from_case", "METHODS",
            "resolve_method"]
@@ -299,10 +300,9 @@ class Deformer:
             self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
         self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
         self._lock = threading.Lock()
-        self._surface_cache = None
-        self._wall_keys = None
-        self._scratch = None
-        self._scratch_grid = None
+        #: the wall copies and the checks of the array form (:class:`.walls.WallInput`)
+        self.walls = WallInput(grid, self.skeleton, dup_tol)
+        self._scratch = buffers.Scratch(grid)
         self._check_seconds = 0.0
         #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
         #: of one that raised for invalid cells), or None when it was not checked
@@ -334,12 +334,12 @@ class Deformer:
             interface crossing a wall) appears once per copy.  2-D grids have
             ``k = 0``.  :meth:`surface_points` gives their coordinates.
         """
-        return self._surface()[0].copy()
+        return self.walls.surface()[0].copy()
 
     def surface_points(self) -> np.ndarray:
         """Undeformed coordinates ``(n, 3)`` of the wall point copies, in
         :meth:`surface_ids` order."""
-        ids = self._surface()[0]
+        ids = self.walls.surface()[0]
         out = np.empty((ids.shape[0], 3))
         for b, blk in enumerate(self.grid):
             sel = ids[:, 0] == b
@@ -368,162 +368,7 @@ class Deformer:
             copy).  Otherwise a list with per block an array
             ``(ni, nj, nk, 3)`` in ``order``, or a tuple ``(x, y, z)``.
         """
-        if order not in ("F", "C"):
-            raise CaseError(f"order must be 'F' or 'C', got {order!r}")
-        ref = self.grid
-        if order == "F" and not separate:
-            return ref.copy()
-        out = []
-        for blk in ref:
-            if separate:
-                out.append(tuple(np.array(blk.xyz[..., c], order=order) for c in range(3)))
-            else:
-                out.append(np.array(blk.xyz, order=order))
-        return out
-
-    def _surface(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(ids (n, 4), gid (n,))``: :meth:`surface_ids` and each copy's global point id;
-        made on first use, then kept."""
-        got = self._surface_cache
-        if got is None:
-            ids, gids = [], []
-            pts = self.skeleton.points
-            for wp in self.skeleton.walls.patches:
-                spec = wp.spec
-                ijk = face_ijk(self.grid[spec.block].dims, spec.face, spec.range)
-                ijk = ijk.reshape(-1, 3, order="F")
-                ids.append(np.column_stack([np.full(ijk.shape[0], spec.block, np.int64), ijk]))
-                gids.append(pts.rect_gid(spec).reshape(-1, order="F").astype(np.int64))
-            got = (np.concatenate(ids) if ids else np.empty((0, 4), np.int64),
-                   np.concatenate(gids) if gids else np.empty(0, np.int64))
-            for a in got:
-                a.flags.writeable = False
-            self._surface_cache = got
-        return got
-
-    def _wall_lookup(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(keys, gid)``: the flat keys (block offset + Fortran index) of every copy of every
-        wall point, ascending, and its global id; made on first use, then kept."""
-        got = self._wall_keys
-        if got is None:
-            pts = self.skeleton.points
-            on_wall = pts.kind[pts.copies_gid] == WALL
-            got = (pts.copies_key[on_wall], pts.copies_gid[on_wall])
-            self._wall_keys = got
-        return got
-
-    def _copy_name(self, b: int, i: int, j: int, k: int) -> str:
-        name = self.grid[b].name
-        return f"(block, i, j, k) = ({b}, {i}, {j}, {k})" + (f" [{name}]" if name else "")
-
-    def _array_targets(self, xs, ids, displacement: bool, rd: np.ndarray) -> np.ndarray:
-        """The array form of :meth:`deform`: wall targets from rows of ``xs`` at the copies
-        ``ids`` (None: :meth:`surface_ids`), checked, into the wall rows of ``rd``."""
-        pts = self.skeleton.points
-        xs = np.asarray(xs)
-        if xs.ndim != 2 or xs.shape[1] != 3:
-            raise DeformationError(f"xs must have shape (n, 3), got {xs.shape}")
-        if not (np.issubdtype(xs.dtype, np.floating) or np.issubdtype(xs.dtype, np.integer)):
-            raise DeformationError(f"xs must hold real numbers, got dtype {xs.dtype}")
-        xs = np.asarray(xs, dtype=np.float64)
-        m = xs.shape[0]
-        if ids is None:
-            sid, gid = self._surface()
-            if m != sid.shape[0]:
-                raise DeformationError(
-                    f"xs has {m} rows; without ids it must have one row per wall point copy of "
-                    f"surface_ids(), {sid.shape[0]} (or give ids)")
-            copy_of = sid
-        else:
-            copy_of = self._check_ids(ids, m)
-            keys, kgid = self._wall_lookup()
-            b, i, j, k = copy_of.T
-            flat = self._flat_keys(b, i, j, k)
-            at = np.minimum(np.searchsorted(keys, flat), keys.size - 1)
-            hit = keys[at] == flat
-            if not hit.all():
-                r = int(np.flatnonzero(~hit)[0])
-                raise DeformationError(f"ids row {r}: {self._copy_name(*copy_of[r])} (0-based) is "
-                                       f"not a wall point ({int((~hit).sum())} such row(s))")
-            gid = kgid[at]
-        bad = ~np.isfinite(xs)
-        if bad.any():
-            r = int(np.flatnonzero(bad.any(axis=1))[0])
-            raise DeformationError(f"xs row {r} ({self._copy_name(*copy_of[r])}, 0-based) is not "
-                                   f"finite ({int(bad.any(axis=1).sum())} such row(s))")
-        # one row per distinct point, the first copy given; the others must agree with it
-        order = np.argsort(gid, kind="stable")
-        g_sorted = gid[order]
-        start = np.ones(m, dtype=bool)
-        start[1:] = g_sorted[1:] != g_sorted[:-1]
-        first = order[start]
-        # the repeated copies (rows of xs) and the first copy of their point
-        rep = np.flatnonzero(~start)
-        lead = order[np.maximum.accumulate(np.where(start, np.arange(m), 0))[rep]]
-        rep = order[rep]
-        dist = np.sqrt(np.sum((xs[rep] - xs[lead]) ** 2, axis=1))
-        over = dist > self.dup_tol
-        if over.any():
-            r = int(np.argmax(np.where(over, dist, -1.0)))
-            a, c = int(lead[r]), int(rep[r])
-            raise DeformationError(
-                f"rows {a} and {c} of xs are copies of one wall point, {self._copy_name(*copy_of[a])} "
-                f"and {self._copy_name(*copy_of[c])} (0-based), and differ by {dist[r]:.6g} > "
-                f"dup_tol = {self.dup_tol:g} ({int(over.sum())} copy(ies) disagree with their "
-                f"first; Deformer(dup_tol=...) sets the tolerance)")
-        g_first = gid[first]
-        seen = np.zeros(pts.n_global, dtype=bool)
-        seen[g_first] = True
-        missing = pts.wall[~seen[pts.wall]]
-        if missing.size:
-            b, flat = self._key_to_copy(int(pts.rep_key[missing[0]]))
-            raise DeformationError(f"{missing.size} wall point(s) have no row in xs, e.g. "
-                                   f"{self._copy_name(b, *flat)} (0-based)")
-        rd[g_first] = xs[first]
-        if displacement:
-            rd[g_first] += pts.P[g_first]
-        if self.ndim == 2 and np.any(rd[pts.wall, 2] != 0.0):
-            what = "displacements" if displacement else "wall points"
-            raise DeformationError(f"the {what} of a 2-D grid must have z = 0")
-        return rd
-
-    def _check_ids(self, ids, m: int) -> np.ndarray:
-        """``ids`` as an (m, 4) int64 array of existing points, else a DeformationError naming
-        the row."""
-        a = np.asarray(ids)
-        if a.ndim != 2 or a.shape[1] != 4:
-            raise DeformationError(f"ids must have shape (m, 4) (block, i, j, k, 0-based), got "
-                                   f"{a.shape}")
-        if a.shape[0] != m:
-            raise DeformationError(f"ids has {a.shape[0]} rows, xs {m}: one id per row of xs")
-        if not np.issubdtype(a.dtype, np.integer):
-            raise DeformationError(f"ids must be integers, got dtype {a.dtype}")
-        a = a.astype(np.int64, copy=False)
-        nb = len(self.grid)
-        bad = (a[:, 0] < 0) | (a[:, 0] >= nb)
-        if bad.any():
-            r = int(np.flatnonzero(bad)[0])
-            raise DeformationError(f"ids row {r}: block {a[r, 0]} out of range 0..{nb - 1} "
-                                   f"(0-based)")
-        dims = np.array(self.grid.dims, dtype=np.int64)[a[:, 0]]
-        bad = ((a[:, 1:] < 0) | (a[:, 1:] >= dims)).any(axis=1)
-        if bad.any():
-            r = int(np.flatnonzero(bad)[0])
-            raise DeformationError(f"ids row {r}: {self._copy_name(*a[r])} (0-based) is outside "
-                                   f"the block's {tuple(int(v) for v in dims[r])} points")
-        return a
-
-    def _flat_keys(self, b, i, j, k) -> np.ndarray:
-        """Flat keys (block offset + Fortran index) of points (block, i, j, k)."""
-        dims = np.array(self.grid.dims, dtype=np.int64)[b]
-        return self.skeleton.points.offsets[b] + i + dims[:, 0] * (j + dims[:, 1] * k)
-
-    def _key_to_copy(self, key: int) -> tuple[int, tuple[int, int, int]]:
-        off = self.skeleton.points.offsets
-        b = int(np.searchsorted(off, key, side="right") - 1)
-        ni, nj, _ = self.grid[b].dims
-        r = key - int(off[b])
-        return b, (r % ni, (r // ni) % nj, r // (ni * nj))
+        return buffers.new_buffers(self.grid, order, separate)
 
     def deform(self, moved, *, ids=None, displacement: bool = False, out=None, check=False,
                callback: Callable[[int, int], None] | None = None) -> Grid:
@@ -618,14 +463,14 @@ class Deformer:
             if not (check is False or check is True or check == "raise"):
                 raise DeformationError(f"check must be False, True or 'raise', got {check!r}")
             self.quality = None
-            dests = None if out is None else self._check_out(out)
+            dests = None if out is None else buffers.check_out(self.grid, out)
             if isinstance(moved, np.ndarray):
-                rd = self._array_targets(moved, ids, bool(displacement), self._work.rd)
+                rd = self.walls.array_targets(moved, ids, bool(displacement), self._work.rd)
             else:
                 if ids is not None or displacement:
                     raise DeformationError("ids= and displacement= go with an array of wall points "
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
-                rd = _wall_targets(self.skeleton, self.grid, moved, self._work.rd)
+                rd = other_targets(self.skeleton, self.grid, moved, self._work.rd)
             if self.two_level is not None:
                 passes, ts, t1, t3 = self._two_level_fields(rd)
             else:
@@ -715,7 +560,7 @@ class Deformer:
         """The block kernels of a step's ``passes`` (each ``(Δ or K, Q, centre, base tables)``
         applied to the previous one's result, the first to the reference; None: copy the
         reference), every boundary copy from the positions, into the buffers ``dests``
-        (:meth:`_check_out`; None: new arrays), each block checked after it is made when
+        (:func:`.buffers.check_out`; None: new arrays), each block checked after it is made when
         ``check``; returns the result grid."""
         sk = self.skeleton
         grid = self.grid
@@ -732,11 +577,11 @@ class Deformer:
             if dest is None:
                 dst = np.empty_like(blk.xyz, order="F")
             elif hold:
-                dst = self._grid_scratch()[b]
-            elif _is_kernel_array(dest):
+                dst = self._scratch.grid()[b]
+            elif buffers.is_kernel_array(dest):
                 dst = dest
             else:
-                dst = self._block_scratch(b)
+                dst = self._scratch.block(b)
             base = blk.xyz
             for p in passes:
                 if p is None:
@@ -759,7 +604,7 @@ class Deformer:
                     reports.append(check_block(dst, blk.xyz, sk.ndim, b))
                 self._check_seconds += time.perf_counter() - tc
             if dst is not dest and dest is not None and not hold:
-                _copy_out(dst, dest)
+                buffers.copy_out(dst, dest)
             arrays.append(dst if dest is None else dest)
         report = CellCheck.merge(reports) if check else None
         self.quality = report
@@ -768,10 +613,10 @@ class Deformer:
                                    ("; the out buffers are unchanged" if hold else ""))
         if hold:
             for b, dest in enumerate(dests):
-                _copy_out(self._grid_scratch()[b], dest)
+                buffers.copy_out(self._scratch.grid()[b], dest)
         if isinstance(out, Grid):
             result = out
-        elif not all(_is_kernel_array(a) for a in arrays):
+        elif not all(buffers.is_kernel_array(a) for a in arrays):
             return None
         else:
             blocks = [Block(a, blk.iblank, blk.name, allow_nonfinite=True)
@@ -780,73 +625,6 @@ class Deformer:
                           connectivity=grid.connectivity)
         result.quality = report
         return result
-
-    def _grid_scratch(self) -> list:
-        """One Fortran (ni, nj, nk, 3) array per block (``check="raise"`` into buffers), made
-        on first use and kept."""
-        if self._scratch_grid is None:
-            self._scratch_grid = [np.empty_like(blk.xyz, order="F") for blk in self.grid]
-        return self._scratch_grid
-
-    def _block_scratch(self, b: int) -> np.ndarray:
-        """A Fortran (ni, nj, nk, 3) array for block ``b``: a view of one buffer the size of
-        the largest block, made on first use and kept (the next block's scratch reuses it)."""
-        if self._scratch_grid is not None:
-            return self._scratch_grid[b]
-        dims = self.grid[b].dims
-        n = 3 * self.grid[b].npoints
-        flat = self._scratch
-        if flat is None:
-            flat = self._scratch = np.empty(3 * max(blk.npoints for blk in self.grid))
-        return flat[:n].reshape(dims + (3,), order="F")
-
-    def _check_out(self, out, what: str = "out", writeable: bool = True) -> list:
-        """The buffers of ``out`` per block: a (ni, nj, nk, 3) float64 array or a tuple of three
-        (ni, nj, nk) ones, checked (shape, dtype; with ``writeable``: writeable and not the
-        reference's memory).  ``what``: the argument's name in messages."""
-        grid = self.grid
-        nb = len(grid)
-        if isinstance(out, Grid):
-            if out is grid and writeable:
-                raise DeformationError(f"{what} is the reference grid: give a buffer of its own "
-                                       "(Deformer.new_grid())")
-            if len(out) != nb:
-                raise DeformationError(f"{what} has {len(out)} blocks, the grid {nb}")
-            items = [blk.xyz for blk in out]
-        elif isinstance(out, (list, tuple)):
-            if len(out) != nb:
-                raise DeformationError(f"{what} has {len(out)} entries, the grid {nb} blocks: "
-                                       "one per block")
-            items = list(out)
-        else:
-            raise DeformationError(f"{what} must be a Grid or a list with one entry per block, "
-                                   f"got {type(out).__name__}")
-        dests = []
-        for b, (item, blk) in enumerate(zip(items, grid)):
-            dims = blk.dims
-            if isinstance(item, np.ndarray):
-                parts, want, name = [item], dims + (3,), f"{what}[{b}]"
-            elif isinstance(item, (tuple, list)) and len(item) == 3:
-                parts, want, name = list(item), dims, f"{what}[{b}] (x, y, z)"
-            else:
-                raise DeformationError(f"{what}[{b}]: expected an array (ni, nj, nk, 3) or a tuple of "
-                                       f"three (ni, nj, nk) arrays x, y, z, got "
-                                       f"{type(item).__name__}")
-            for part in parts:
-                if not isinstance(part, np.ndarray):
-                    raise DeformationError(f"{name}: expected numpy arrays, got "
-                                           f"{type(part).__name__}")
-                if part.shape != want:
-                    raise DeformationError(f"{name}: shape {part.shape}, expected {want} for "
-                                           f"block {b} (0-based)")
-                if part.dtype != np.float64:
-                    raise DeformationError(f"{name}: dtype {part.dtype}, expected float64")
-                if writeable and not part.flags.writeable:
-                    raise DeformationError(f"{name}: the array is read-only")
-                if writeable and np.may_share_memory(part, blk.xyz):
-                    raise DeformationError(f"{name}: shares memory with the reference grid")
-            dests.append(item if isinstance(item, np.ndarray) else tuple(item))
-        return dests
 
     def velocity(self, prev, cur, dt: float, out=None):
         """Grid-point velocities of a step, ``(cur - prev) / dt``, for ALE flow solvers.
@@ -882,28 +660,19 @@ class Deformer:
         if not (math.isfinite(dt) and dt != 0.0):
             raise DeformationError(f"dt must be a finite number other than 0, got {dt!r}")
         with use_threads(self.threads):
-            a = self._layout(prev, "prev")
-            c = self._layout(cur, "cur")
+            a = buffers.layout(self.grid, prev, "prev")
+            c = buffers.layout(self.grid, cur, "cur")
             if out is None:
                 out = [tuple(np.empty_like(p) for p in blk) if isinstance(blk, tuple) else
                        np.empty_like(blk) for blk in c]
                 o = out
             else:
-                o = self._check_out(out)
+                o = buffers.check_out(self.grid, out)
             for b in range(len(self.grid)):
-                for x0, x1, v in zip(_parts(a[b]), _parts(c[b]), _parts(o[b])):
+                for x0, x1, v in zip(buffers.parts(a[b]), buffers.parts(c[b]), buffers.parts(o[b])):
                     np.subtract(x1, x0, out=v)
                     np.divide(v, dt, out=v)
             return out
-
-    def _layout(self, coords, what: str) -> list:
-        """``coords`` (a Grid or a list) as per-block arrays or (x, y, z) tuples, checked."""
-        if isinstance(coords, Grid):
-            if len(coords) != len(self.grid) or coords.dims != self.grid.dims:
-                raise DeformationError(f"{what}: a grid of dimensions {coords.dims}, the "
-                                       f"reference has {self.grid.dims}")
-            return [blk.xyz for blk in coords]
-        return self._check_out(coords, what=what, writeable=False)
 
     def summary(self) -> str:
         """A few lines describing the skeleton (for the CLI and logs)."""
@@ -948,7 +717,7 @@ class Deformer:
             Allow replacing the grid's own file (``grid.source_path``).
         """
         from ..io.surface import write_surface
-        ids = self._surface()[0]
+        ids = self.walls.surface()[0]
         write_surface(path, ids, self.surface_points(), modes, names, ndim=self.ndim,
                       source="" if self.grid.source_path is None else str(self.grid.source_path),
                       overwrite=overwrite, protect=[self.grid.source_path])
@@ -979,7 +748,7 @@ class Deformer:
             of one point whose shapes differ by more than ``dup_tol``, no modes.
         """
         from .modal import ModalMotion, surface_modes
-        ids, gid = self._surface()
+        ids, gid = self.walls.surface()
         shapes, names, where = surface_modes(modes, ids, self.surface_points(), self.grid)
         wall_pos = np.full(self.n_global, -1, dtype=np.int64)
         wall = self.skeleton.points.wall
@@ -1015,73 +784,6 @@ def _centre(pts, centre) -> np.ndarray:
     if c.shape != (3,) or not np.all(np.isfinite(c)):
         raise CaseError(f"centre must be 3 finite numbers, got {centre!r}")
     return c
-
-
-def _wall_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
-    """Deformed positions of every global point, in ``rd`` (only wall rows are written)."""
-    pts = sk.points
-    wall = pts.wall
-    if callable(moved):
-        new = np.asarray(moved(pts.P[wall].copy()), dtype=np.float64)
-        if new.shape != (wall.size, 3):
-            raise DeformationError(f"the motion callable returned shape {new.shape}, expected "
-                                   f"({wall.size}, 3) for the {wall.size} wall points")
-        rd[wall] = new
-    elif isinstance(moved, Grid):
-        if moved.dims != ref.dims:
-            raise DeformationError(f"moved grid dimensions {moved.dims} differ from the "
-                                   f"reference {ref.dims}")
-        key = pts.rep_key[wall]
-        blk_of = np.searchsorted(pts.offsets, key, side="right") - 1
-        for b, blk in enumerate(moved):
-            sel = blk_of == b
-            rd[wall[sel]] = blk.xyz.reshape(-1, 3, order="F")[key[sel] - pts.offsets[b]]
-    elif isinstance(moved, Mapping):
-        seen = np.zeros(pts.n_global, dtype=bool)
-        for k, arr in moved.items():
-            spec = k if isinstance(k, PatchSpec) else parse_patch_spec(str(k))
-            spec = spec.resolve(ref)
-            gid = pts.rect_gid(spec)
-            a = np.asarray(arr, dtype=np.float64)
-            if a.shape[:-1] != gid.shape and a.shape[:-1] != (gid.size,):
-                raise DeformationError(f"moved patch {spec}: array shape {a.shape}, expected "
-                                       f"{gid.shape + (3,)}")
-            rd[gid.ravel()] = a.reshape(-1, 3)
-            seen[gid.ravel()] = True
-        missing = wall[~seen[wall]]
-        if missing.size:
-            raise DeformationError(f"{missing.size} wall point(s) have no new position in the "
-                                   f"mapping, e.g. at {tuple(np.round(pts.P[missing[0]], 6))}")
-    else:
-        raise DeformationError("moved must be a callable, a Grid, or a mapping patch -> array")
-    bad = ~np.isfinite(rd[wall])
-    if bad.any():
-        raise DeformationError(f"{int(bad.any(axis=1).sum())} moved wall point(s) are not finite")
-    if sk.ndim == 2 and np.any(rd[wall, 2] != 0.0):
-        raise DeformationError("moved wall points of a 2-D grid must have z = 0")
-    return rd
-
-
-def _is_kernel_array(a) -> bool:
-    """Whether the volume kernels write ``a`` straight: a Fortran-ordered (ni, nj, nk, 3) array."""
-    return isinstance(a, np.ndarray) and a.ndim == 4 and a.flags.f_contiguous
-
-
-def _parts(blk) -> tuple:
-    """A block's coordinate arrays: ``(xyz,)`` or its ``(x, y, z)``, as arrays of one shape
-    (a (ni, nj, nk, 3) array against x, y, z: the three component views)."""
-    if isinstance(blk, tuple):
-        return blk
-    return tuple(blk[..., c] for c in range(3))
-
-
-def _copy_out(src: np.ndarray, dest) -> None:
-    """A block's result (Fortran (ni, nj, nk, 3)) into the caller's layout ``dest``."""
-    if isinstance(dest, np.ndarray):
-        np.copyto(dest, src)
-    else:
-        for c in range(3):
-            np.copyto(dest[c], src[..., c])
 
 
 def deformer_from_case(case, grid: Grid | None = None, **kw) -> Deformer:
