@@ -83,7 +83,7 @@ class GridFaces:
         ``faces[b][f]``: face ``f`` (numbered as :data:`tfi_quat.grid.FACES`;
         six in 3-D, the four imin..jmax in 2-D) of block ``b``, float64
         ``(na, nb, 3)``, bit-identical to ``Block.face(f)`` of a full read.
-    names : list of str
+    names : list of str or None
         The blocks' names, as a full read names them.
     source_path : str
     source_format : object
