@@ -296,3 +296,23 @@ def test_partition_bad_dims():
         tq.partition([(2, 2, 2), (2, 0, 2)], 1)
     with pytest.raises(GridValueError, match="block 0: dims"):
         tq.partition([(2, 2)], 1)
+
+
+@pytest.mark.parametrize("module, name", [("hdf5", "g.h5"), ("cgns", "g.cgns")])
+def test_hyperslab_faces_match_the_mapped_ones(tmp_path, monkeypatch, module, name):
+    # datasets that cannot be memory-mapped (chunked, filtered, external) are read by hyperslabs
+    import importlib
+    grid = random_grid([(4, 3, 5), (2, 6, 3)], seed=3)
+    path = tmp_path / name
+    tq.write(path, grid)
+    mod = importlib.import_module(f"tfi_quat.io.{module}")
+    offsets = []
+    real = mod.mapped_offset
+    monkeypatch.setattr(mod, "mapped_offset", lambda *a: offsets.append(real(*a)) or offsets[-1])
+    mapped = tq.read_faces(path)
+    assert offsets and None not in offsets          # the files tfi_quat writes are mapped
+    monkeypatch.setattr(mod, "mapped_offset", lambda *a: None)
+    slabs = tq.read_faces(path)
+    check_against_full(path, tq.read(path), [1], tq.read(path, blocks=[1]), slabs)
+    for a, b in zip(mapped.faces, slabs.faces):
+        assert all(np.array_equal(x, y) for x, y in zip(a, b))

@@ -66,8 +66,8 @@ from ..spec import PatchSpec
 from ..topology.model import MAX_DIM, Connectivity, Interface, Patch
 from ._atomic import atomic_output, check_target
 from ._limits import check_points
-from .hdf5 import alloc, check_finite, damaged_file_errors, guard, is_hdf5
-from .partial import GridFaces, block_numbers
+from .hdf5 import alloc, check_finite, damaged_file_errors, guard, is_hdf5, map_file, mapped_offset
+from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
 __all__ = ["CGNSFormat", "CGNSInfo", "read", "read_faces", "write", "info", "bc_kind", "BC_TYPES", "is_adf"]
 
@@ -827,40 +827,74 @@ class _Base:
 
 
     def faces(self, allow_nonfinite: bool) -> list:
-        """Every zone's faces (:func:`tfi_quat.grid.faces_of`), one hyperslab per face and coordinate."""
+        """Every zone's faces (:func:`tfi_quat.grid.faces_of`): through a memory map of the file
+        where a coordinate array is stored contiguously, else one hyperslab per face and coordinate."""
         t = self.tree
-        out = []
-        for z in self.zones:
-            faces = []
-            for f in faces_of(self.ndim):
-                d, side = face_axis(f)
-                arr = np.zeros(face_shape(z.dims, f) + (3,), dtype=np.float64, order="F")
-                # the data's axes are the zone's index axes reversed: (k, j, i) or (j, i)
-                shape = tuple(reversed(z.dims[:self.idim]))
-                ax = self.idim - 1 - d
-                start = [0] * self.idim
-                start[ax] = z.dims[d] - 1 if side else 0
-                count = list(shape)
-                count[ax] = 1
-                tmp = np.empty(count, dtype=np.float64)
-                plane = [1 if m == d else z.dims[m] for m in range(3)]
-                idx = [slice(None)] * 3
-                idx[d] = 0
-                for c, (cname, ds, cnode, dtype) in enumerate(z.coords):
-                    try:
-                        fspace = ds.get_space()
-                        fspace.select_hyperslab(tuple(start), tuple(count))
-                        mspace = h5py.h5s.create_simple(tuple(count))
-                        ds.read(mspace, fspace, tmp, mtype=_mem_type(tmp.dtype))
-                    except (OSError, TypeError, ValueError) as exc:
-                        t.fail(cnode, f"cannot read face {f}: {exc}")
-                    arr[..., c] = tmp.T.reshape(plane, order="C")[tuple(idx)]
-                if not allow_nonfinite:
+        mm = map_file(t.path)
+        try:
+            return [self._zone_faces(z, mm, allow_nonfinite) for z in self.zones]
+        finally:
+            if mm is not None:
+                mm.close()
+
+    def _zone_faces(self, z: _Zone, mm, allow_nonfinite: bool) -> tuple:
+        t = self.tree
+        mapped = []
+        for cname, ds, cnode, dtype in z.coords:
+            try:
+                fdt = ds.dtype
+            except (OSError, TypeError, ValueError):
+                fdt = None
+            off = None
+            if mm is not None and fdt is not None and fdt.kind == "f" and fdt.itemsize == dtype.itemsize:
+                off = mapped_offset(ds, int(np.prod(z.dims)) * fdt.itemsize, len(mm))
+            mapped.append((off, fdt))
+        if all(off is not None for off, _ in mapped):
+            faces = empty_faces(z.dims, self.ndim)      # z = 0 in a base of physical dimension 2
+            for c, (off, fdt) in enumerate(mapped):
+                coord = np.ndarray(z.dims, dtype=fdt, buffer=mm, offset=off, order="F")
+                fill_faces(faces, c, coord, self.ndim)
+                del coord
+            if not allow_nonfinite:
+                for f, arr in zip(faces_of(self.ndim), faces):
+                    d, side = face_axis(f)
                     check_finite(arr, t.path, f"zone {z.name!r} face {f}", f"{z.node}/GridCoordinates",
-                                 face=(d, start[ax]))
-                faces.append(arr)
-            out.append(tuple(faces))
-        return out
+                                 face=(d, z.dims[d] - 1 if side else 0))
+            return tuple(faces)
+        return self._zone_face_slabs(z, allow_nonfinite)
+
+    def _zone_face_slabs(self, z: _Zone, allow_nonfinite: bool) -> tuple:
+        """A zone's faces, one hyperslab per face and coordinate (any storage libhdf5 reads)."""
+        t = self.tree
+        faces = []
+        for f in faces_of(self.ndim):
+            d, side = face_axis(f)
+            arr = np.zeros(face_shape(z.dims, f) + (3,), dtype=np.float64, order="F")
+            # the data's axes are the zone's index axes reversed: (k, j, i) or (j, i)
+            shape = tuple(reversed(z.dims[:self.idim]))
+            ax = self.idim - 1 - d
+            start = [0] * self.idim
+            start[ax] = z.dims[d] - 1 if side else 0
+            count = list(shape)
+            count[ax] = 1
+            tmp = np.empty(count, dtype=np.float64)
+            plane = [1 if m == d else z.dims[m] for m in range(3)]
+            idx = [slice(None)] * 3
+            idx[d] = 0
+            for c, (cname, ds, cnode, dtype) in enumerate(z.coords):
+                try:
+                    fspace = ds.get_space()
+                    fspace.select_hyperslab(tuple(start), tuple(count))
+                    mspace = h5py.h5s.create_simple(tuple(count))
+                    ds.read(mspace, fspace, tmp, mtype=_mem_type(tmp.dtype))
+                except (OSError, TypeError, ValueError) as exc:
+                    t.fail(cnode, f"cannot read face {f}: {exc}")
+                arr[..., c] = tmp.T.reshape(plane, order="C")[tuple(idx)]
+            if not allow_nonfinite:
+                check_finite(arr, t.path, f"zone {z.name!r} face {f}", f"{z.node}/GridCoordinates",
+                             face=(d, start[ax]))
+            faces.append(arr)
+        return tuple(faces)
 
 
 def _one_based(lo, hi, idim) -> list:

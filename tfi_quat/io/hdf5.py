@@ -89,10 +89,11 @@ from ..errors import GridFormatError, GridValueError, TfiQuatError
 from ..grid import FACES, Block, Grid, face_axis, face_index, face_layer, face_shape
 from ._atomic import atomic_output, check_target
 from ._limits import check_points
-from .partial import GridFaces, block_numbers
+from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
 __all__ = ["HDF5Format", "HDF5Info", "read", "write", "read_block", "read_face", "read_faces", "info",
-           "read_extra", "is_hdf5", "guard", "check_finite", "alloc", "damaged_file_errors",
+           "read_extra", "is_hdf5", "guard", "mapped_offset", "map_file", "check_finite", "alloc",
+           "damaged_file_errors",
            "FORMAT_NAME", "LAYOUT_VERSION"]
 
 #: value of the root attribute ``format``
@@ -1011,6 +1012,58 @@ def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None, 
         return grid
 
 
+def _block_faces(r: _Reader, n: int, meta, mm, allow_nonfinite: bool) -> tuple:
+    """The faces of block ``n``: from the memory map ``mm`` where its dataset is contiguous
+    (the pages holding face values only), else one hyperslab each."""
+    _, dims, xyz_ds, _ = meta
+    off = None if mm is None else mapped_offset(xyz_ds.id, xyz_ds.size * xyz_ds.dtype.itemsize, len(mm))
+    if off is None:
+        return tuple(r.face(n, f, allow_nonfinite, meta=meta) for f in range(2 * r.ndim))
+    faces = empty_faces(dims, r.ndim)
+    data = np.ndarray(xyz_ds.shape, dtype=xyz_ds.dtype, buffer=mm, offset=off)
+    try:
+        for c in range(3):
+            fill_faces(faces, c, data[c].T, r.ndim)
+    finally:
+        del data
+    if not allow_nonfinite:
+        for f, arr in enumerate(faces):
+            d = face_axis(f)[0]
+            check_finite(arr, r.path, f"block {n + 1} face {FACES[f]}", xyz_ds.name,
+                         face=(d, face_layer(dims, f)))
+    return tuple(faces)
+
+
+def mapped_offset(dsid, nbytes: int, size: int) -> int | None:
+    """File offset of a dataset's values when they can be read through a memory map, else None.
+
+    They can when the dataset is stored contiguously in the file itself
+    (no chunks, filters or external storage) and its ``nbytes`` lie within
+    the file's ``size`` bytes; the caller then reads them in the dataset's
+    own dtype (byte order included).
+    """
+    try:
+        plist = dsid.get_create_plist()
+        if (plist.get_layout() != h5py.h5d.CONTIGUOUS or plist.get_nfilters()
+                or plist.get_external_count()):
+            return None
+        off = dsid.get_offset()
+    except (OSError, TypeError, ValueError, RuntimeError):
+        return None
+    if off is None or off < 0 or off + nbytes > size:
+        return None
+    return int(off)
+
+
+def map_file(path):
+    """A read-only memory map of a grid file (None for an empty file or where mapping fails)."""
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            return mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError):
+        return None
+
+
 @damaged_file_errors
 def read_faces(path, *, allow_nonfinite: bool = False) -> GridFaces:
     """Read the faces of every block of an HDF5 grid file (one hyperslab each), and their dims.
@@ -1033,9 +1086,12 @@ def read_faces(path, *, allow_nonfinite: bool = False) -> GridFaces:
     """
     with _Reader(path) as r:
         metas = [r.meta(n) for n in range(r.nblocks)]
-        nf = 6 if r.ndim == 3 else 4
-        faces = [tuple(r.face(n, f, allow_nonfinite, meta=m) for f in range(nf))
-                 for n, m in enumerate(metas)]
+        mm = map_file(path)
+        try:
+            faces = [_block_faces(r, n, m, mm, allow_nonfinite) for n, m in enumerate(metas)]
+        finally:
+            if mm is not None:
+                mm.close()
         return GridFaces(r.ndim, [m[1] for m in metas], faces, [m[0] for m in metas], os.fspath(path), r.variant())
 
 

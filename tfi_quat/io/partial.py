@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import GridValueError
-from ..grid import faces_of, face_index
+from ..grid import face_axis, face_index, face_shape, faces_of
 
-__all__ = ["block_numbers", "GridFaces"]
+__all__ = ["block_numbers", "GridFaces", "empty_faces", "fill_faces"]
 
 
 def block_numbers(path, blocks, nblocks: int) -> list[int]:
@@ -63,6 +63,31 @@ def block_numbers(path, blocks, nblocks: int) -> list[int]:
             raise GridValueError(f"{path}: block {n} is given twice in blocks=")
         out.append(n)
     return out
+
+
+def empty_faces(dims, ndim: int) -> list[np.ndarray]:
+    """The face arrays of a block of ``dims``: float64 ``(na, nb, 3)`` Fortran order, z = 0 in 2-D."""
+    out = []
+    for f in faces_of(ndim):
+        arr = np.empty(face_shape(dims, f) + (3,), dtype=np.float64, order="F")
+        if ndim == 2:
+            arr[..., 2] = 0.0
+        out.append(arr)
+    return out
+
+
+def fill_faces(faces, c: int, coord: np.ndarray, ndim: int) -> None:
+    """Set component ``c`` of every face array of a block from ``coord``, its ``(ni, nj, nk)`` values.
+
+    ``coord`` is typically a view of a memory-mapped file in the file's own
+    dtype and byte order: only the pages holding face values are touched,
+    and each value is converted to float64 exactly (as a full read does).
+    """
+    for f, arr in zip(faces_of(ndim), faces):
+        d, side = face_axis(f)
+        idx = [slice(None)] * 3
+        idx[d] = coord.shape[d] - 1 if side else 0
+        arr[..., c] = coord[tuple(idx)]
 
 
 @dataclass

@@ -69,12 +69,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GridFormatError, GridValueError
-from ..grid import Block, Grid, face_axis, face_shape, faces_of, has_z
+from ..grid import Block, Grid, faces_of, has_z
 from .._jit import jit
 from . import register
 from ._atomic import atomic_output, check_target
 from ._limits import BYTES_PER_POINT, available_memory, check_points
-from .partial import GridFaces, block_numbers
+from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
 __all__ = ["Plot3DFormat", "read", "read_faces", "write", "detect", "detect_all"]
 
@@ -744,22 +744,12 @@ def _read_faces(fd, path, fmt, layout, allow_nonfinite) -> GridFaces:
         out = []
         for n, b in enumerate(layout):
             ni, nj, nk = b.dims
-            faces = []
-            for f in names:
-                na, nb = face_shape(b.dims, f)
-                arr = np.empty((na, nb, 3), dtype=np.float64, order="F")
-                if fmt.ndim == 2:
-                    arr[..., 2] = 0.0
-                faces.append(arr)
+            faces = empty_faces(b.dims, fmt.ndim)
             for c in range(fmt.ndim):
                 v = c * b.npoints
                 off = next(o + (v - v0) * fmt.precision for o, v0, cnt in b.runs if v0 <= v < v0 + cnt)
                 coord = np.ndarray((ni, nj, nk), dtype=fdt, buffer=mm, offset=off, order="F")
-                for f, arr in zip(names, faces):
-                    d, side = face_axis(f)
-                    idx = [slice(None)] * 3
-                    idx[d] = b.dims[d] - 1 if side else 0
-                    arr[..., c] = coord[tuple(idx)]
+                fill_faces(faces, c, coord, fmt.ndim)
                 del coord
             if not allow_nonfinite:
                 for f, arr in zip(names, faces):
