@@ -316,3 +316,22 @@ def test_hyperslab_faces_match_the_mapped_ones(tmp_path, monkeypatch, module, na
     check_against_full(path, tq.read(path), [1], tq.read(path, blocks=[1]), slabs)
     for a, b in zip(mapped.faces, slabs.faces):
         assert all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
+@pytest.mark.parametrize("name", ["g.x", "g.g", "g.fmt", "g.h5", "g.cgns"])
+def test_faces_of_some_blocks(tmp_path, name):
+    grid = random_grid([(3, 4, 5), (5, 4, 3), (2, 2, 2)], seed=5)
+    path = tmp_path / name
+    tq.write(path, grid, **(dict(encoding="fortran") if name == "g.g" else {}))
+    full, every = tq.read(path), tq.read_faces(path)
+    some = tq.read_faces(path, blocks=[2, 0])
+    assert some.block_ids == (2, 0) and every.block_ids is None
+    assert some.dims == every.dims and some.names == every.names
+    assert some.faces[1] is None
+    for n in (0, 2):
+        for f in FACES:
+            assert np.array_equal(some.face(n, f), full[n].face(f))
+    with pytest.raises(GridValueError, match=r"faces of block 1 were not read \(read_faces with blocks=\[2, 0\]\)"):
+        some.face(1, "imin")
+    with pytest.raises(GridValueError, match="block 3 out of range"):
+        tq.read_faces(path, blocks=[3])

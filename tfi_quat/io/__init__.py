@@ -207,8 +207,10 @@ def read_faces(path, format: str | None = None, **kw):
     format : {"plot3d", "hdf5", "cgns"}, optional
         Default: from the extension.
     **kw
-        Passed on to the format's faces reader (``allow_nonfinite``,
-        Plot3D variant overrides, the CGNS ``base``).
+        Passed on to the format's faces reader: ``blocks`` (read the faces
+        of these 0-based blocks only, the others None: ranks can split the
+        face reads and exchange them), ``allow_nonfinite``, Plot3D variant
+        overrides, the CGNS ``base``.
 
     Returns
     -------

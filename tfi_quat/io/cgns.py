@@ -826,13 +826,14 @@ class _Base:
         return blocks, single
 
 
-    def faces(self, allow_nonfinite: bool) -> list:
+    def faces(self, allow_nonfinite: bool, ids=None) -> list:
         """Every zone's faces (:func:`tfi_quat.grid.faces_of`): through a memory map of the file
         where a coordinate array is stored contiguously, else one hyperslab per face and coordinate."""
         t = self.tree
         mm = map_file(t.path)
         try:
-            return [self._zone_faces(z, mm, allow_nonfinite) for z in self.zones]
+            return [self._zone_faces(z, mm, allow_nonfinite) if ids is None or n in ids else None
+                    for n, z in enumerate(self.zones)]
         finally:
             if mm is not None:
                 mm.close()
@@ -967,7 +968,7 @@ def read(path, *, base: str | None = None, allow_nonfinite: bool = False,
 
 
 @damaged_file_errors
-def read_faces(path, *, base: str | None = None, allow_nonfinite: bool = False) -> GridFaces:
+def read_faces(path, *, base: str | None = None, allow_nonfinite: bool = False, blocks=None) -> GridFaces:
     """Read the faces of every zone of a CGNS base (hyperslabs), their dims and connectivity.
 
     Parameters
@@ -977,6 +978,8 @@ def read_faces(path, *, base: str | None = None, allow_nonfinite: bool = False) 
         Name of the ``CGNSBase_t`` (default: the first).
     allow_nonfinite : bool
         Accept NaN or infinite coordinates on the faces.
+    blocks : list of int, optional
+        Read the faces of these zones only (0-based); the dims of all.
 
     Returns
     -------
@@ -993,10 +996,12 @@ def read_faces(path, *, base: str | None = None, allow_nonfinite: bool = False) 
     p = Path(os.fspath(path))
     with _tree(p) as t:
         b = _Base(t, base)
-        faces = b.faces(allow_nonfinite)
+        ids = None if blocks is None else block_numbers(p, blocks, len(b.zones))
+        faces = b.faces(allow_nonfinite, ids)
         single = any(dtype.itemsize == 4 for z in b.zones for *_, dtype in z.coords)
         return GridFaces(b.ndim, [z.dims for z in b.zones], faces, [z.name for z in b.zones], os.fspath(p),
-                         CGNSFormat(b.name, single, os.path.abspath(p)), b.connectivity())
+                         CGNSFormat(b.name, single, os.path.abspath(p)), b.connectivity(),
+                         None if ids is None else tuple(ids))
 
 
 @damaged_file_errors

@@ -1065,7 +1065,7 @@ def map_file(path):
 
 
 @damaged_file_errors
-def read_faces(path, *, allow_nonfinite: bool = False) -> GridFaces:
+def read_faces(path, *, allow_nonfinite: bool = False, blocks=None) -> GridFaces:
     """Read the faces of every block of an HDF5 grid file (one hyperslab each), and their dims.
 
     Parameters
@@ -1073,11 +1073,15 @@ def read_faces(path, *, allow_nonfinite: bool = False) -> GridFaces:
     path : str or path-like
     allow_nonfinite : bool
         Accept NaN or infinite coordinates on the faces.
+    blocks : list of int, optional
+        Read the faces of these blocks only (0-based); the dims of all.
 
     Returns
     -------
     GridFaces
-        As :func:`read_face` for every face of every block, from one open file.
+        As :func:`read_face` for every face of every block, from one open file
+        (a contiguous dataset through a memory map, touching the pages that
+        hold face values only).
 
     Raises
     ------
@@ -1088,11 +1092,14 @@ def read_faces(path, *, allow_nonfinite: bool = False) -> GridFaces:
         metas = [r.meta(n) for n in range(r.nblocks)]
         mm = map_file(path)
         try:
-            faces = [_block_faces(r, n, m, mm, allow_nonfinite) for n, m in enumerate(metas)]
+            ids = None if blocks is None else block_numbers(path, blocks, r.nblocks)
+            faces = [_block_faces(r, n, m, mm, allow_nonfinite) if ids is None or n in ids else None
+                     for n, m in enumerate(metas)]
         finally:
             if mm is not None:
                 mm.close()
-        return GridFaces(r.ndim, [m[1] for m in metas], faces, [m[0] for m in metas], os.fspath(path), r.variant())
+        return GridFaces(r.ndim, [m[1] for m in metas], faces, [m[0] for m in metas], os.fspath(path),
+                         r.variant(), block_ids=None if ids is None else tuple(ids))
 
 
 @damaged_file_errors

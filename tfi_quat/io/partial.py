@@ -104,10 +104,11 @@ class GridFaces:
         2 or 3.
     dims : list of (ni, nj, nk)
         Every block's point dimensions, in file order.
-    faces : list of tuple of ndarray
+    faces : list of tuple of ndarray (or None)
         ``faces[b][f]``: face ``f`` (numbered as :data:`tfi_quat.grid.FACES`;
         six in 3-D, the four imin..jmax in 2-D) of block ``b``, float64
-        ``(na, nb, 3)``, bit-identical to ``Block.face(f)`` of a full read.
+        ``(na, nb, 3)``, bit-identical to ``Block.face(f)`` of a full read;
+        None for a block not read (``read_faces(path, blocks=...)``).
     names : list of str or None
         The blocks' names, as a full read names them.
     source_path : str
@@ -117,6 +118,8 @@ class GridFaces:
         What the file records (CGNS), as a full read gives it, except that
         the points of its interfaces are not checked to coincide (that needs
         the volume read); None for formats that record none.
+    block_ids : tuple of int or None
+        The blocks whose faces were read (``blocks=``), None for all.
     """
 
     ndim: int
@@ -126,6 +129,7 @@ class GridFaces:
     source_path: str
     source_format: object = None
     connectivity: object = field(default=None, repr=False)
+    block_ids: tuple | None = None
 
     @property
     def nblocks(self) -> int:
@@ -145,4 +149,8 @@ class GridFaces:
         if not 0 <= int(b) < self.nblocks:
             raise GridValueError(f"{self.source_path}: block {b} out of range: the file holds "
                                  f"{self.nblocks} block(s) (0-based 0..{self.nblocks - 1})")
-        return self.faces[int(b)][f]
+        faces = self.faces[int(b)]
+        if faces is None:
+            raise GridValueError(f"{self.source_path}: the faces of block {b} were not read "
+                                 f"(read_faces with blocks={list(self.block_ids)})")
+        return faces[f]

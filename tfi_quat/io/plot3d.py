@@ -729,20 +729,22 @@ def _read_blocks(fd, path, fmt, blocks, allow_nonfinite, ids=None, nblocks=None)
             for n, (xyz, ib) in enumerate(out)]
 
 
-def _read_faces(fd, path, fmt, layout, allow_nonfinite) -> GridFaces:
+def _read_faces(fd, path, fmt, layout, allow_nonfinite, ids=None) -> GridFaces:
     """The faces of every block of a binary file, read through a memory map of it.
 
     Only the pages holding face values are touched: the k faces are
     contiguous runs, the j faces ``nk`` runs of ``ni`` values, the i faces one
     value per row of ``ni`` (every page of a block whose rows are shorter
-    than a page, but no copy of the volume is made).
+    than a page, but no copy of the volume is made).  ``ids``: the blocks
+    whose faces are read (default all).
     """
     fdt = _float_dtype(fmt)
     names = faces_of(fmt.ndim)
     mm = mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
     try:
-        out = []
-        for n, b in enumerate(layout):
+        out = [None] * len(layout)
+        for n in (range(len(layout)) if ids is None else ids):
+            b = layout[n]
             ni, nj, nk = b.dims
             faces = empty_faces(b.dims, fmt.ndim)
             for c in range(fmt.ndim):
@@ -756,11 +758,12 @@ def _read_faces(fd, path, fmt, layout, allow_nonfinite) -> GridFaces:
                     if _first_nonfinite(arr.reshape(-1, order="F")) is not None:
                         raise GridFormatError(f"{path}: block {n + 1} of {len(layout)}, face {f}: "
                                               "non-finite coordinate (pass allow_nonfinite=True to accept)")
-            out.append(tuple(faces))
+            out[n] = tuple(faces)
     finally:
         mm.close()      # every view of it (coord) is gone by now
     return GridFaces(fmt.ndim, [b.dims for b in layout], out,
-                     [f"block{n + 1}" for n in range(len(layout))], os.fspath(path), fmt)
+                     [f"block{n + 1}" for n in range(len(layout))], os.fspath(path), fmt,
+                     block_ids=None if ids is None else tuple(ids))
 
 
 # ---------------------------------------------------------------- ASCII read
@@ -1308,7 +1311,8 @@ def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "re
             if mode == "detect":
                 return fmt.canonical(), None
             if mode == "faces":
-                return fmt.canonical(), _read_faces(fd, path, fmt.canonical(), layout, allow_nonfinite)
+                ids = None if blocks is None else block_numbers(path, blocks, len(layout))
+                return fmt.canonical(), _read_faces(fd, path, fmt.canonical(), layout, allow_nonfinite, ids)
             if blocks is not None:
                 ids = block_numbers(path, blocks, len(layout))
                 part = [layout[n] for n in ids]
@@ -1321,10 +1325,12 @@ def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "re
         fmt, all_blocks = _dispatch_ascii(path, fh, size, fixed, allow_nonfinite,
                                           "read" if mode == "faces" else mode, max_points)
         if mode == "faces":
+            ids = None if blocks is None else block_numbers(path, blocks, len(all_blocks))
             return fmt, GridFaces(fmt.ndim, [b.dims for b in all_blocks],
                                   [tuple(np.asfortranarray(b.face(f)) for f in faces_of(fmt.ndim))
-                                   for b in all_blocks],
-                                  [b.name for b in all_blocks], os.fspath(path), fmt)
+                                   if ids is None or n in ids else None for n, b in enumerate(all_blocks)],
+                                  [b.name for b in all_blocks], os.fspath(path), fmt,
+                                  block_ids=None if ids is None else tuple(ids))
         if blocks is not None and mode == "read":
             ids = block_numbers(path, blocks, len(all_blocks))
             return fmt, ([all_blocks[n] for n in ids], ids)
@@ -1459,7 +1465,7 @@ def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = Fa
 
 
 def read_faces(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = False,
-               **overrides) -> GridFaces:
+               blocks=None, **overrides) -> GridFaces:
     """Read the faces of every block of a Plot3D file, and the blocks' dims.
 
     Parameters
@@ -1469,6 +1475,8 @@ def read_faces(path, *, format: Plot3DFormat | None = None, allow_nonfinite: boo
         Read as exactly this variant (no detection).
     allow_nonfinite : bool
         Accept NaN and infinite coordinates on the faces.
+    blocks : list of int, optional
+        Read the faces of these blocks only (0-based); the dims of all.
     **overrides
         :class:`Plot3DFormat` fields to take as given.
 
@@ -1483,7 +1491,7 @@ def read_faces(path, *, format: Plot3DFormat | None = None, allow_nonfinite: boo
     GridFormatError
         As :func:`read`; a non-finite face coordinate names block and face.
     """
-    return _open_and_dispatch(path, format, overrides, allow_nonfinite, "faces")[1]
+    return _open_and_dispatch(path, format, overrides, allow_nonfinite, "faces", blocks=blocks)[1]
 
 
 # ---------------------------------------------------------------- write
