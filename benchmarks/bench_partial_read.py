@@ -62,7 +62,8 @@ def drop_cache(path: Path) -> None:
 def bench(path: Path, block: int, repeat: int, cold: bool) -> dict:
     """Best times of the three reads, interleaved so that the load hits them alike."""
     cases = {"full": lambda: tq.read(path), "one block": lambda: tq.read(path, blocks=[block]),
-             "faces": lambda: tq.read_faces(path), "faces of one": lambda: tq.read_faces(path, blocks=[block])}
+             "faces": lambda: tq.read_faces(path),
+             "faces of one": lambda: tq.read_faces(path, blocks=[block])}
     best = {k: float("inf") for k in cases}
     for _ in range(repeat):
         for name, fn in cases.items():

@@ -331,7 +331,7 @@ def test_faces_of_some_blocks(tmp_path, name):
     for n in (0, 2):
         for f in FACES:
             assert np.array_equal(some.face(n, f), full[n].face(f))
-    with pytest.raises(GridValueError, match=r"faces of block 1 were not read \(read_faces with blocks=\[2, 0\]\)"):
+    with pytest.raises(GridValueError, match=r"block 1 were not read \(read_faces with blocks=\[2, 0\]\)"):
         some.face(1, "imin")
     with pytest.raises(GridValueError, match="block 3 out of range"):
         tq.read_faces(path, blocks=[3])
