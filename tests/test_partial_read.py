@@ -322,8 +322,9 @@ def test_hyperslab_faces_match_the_mapped_ones(tmp_path, monkeypatch, module, na
 def test_faces_of_some_blocks(tmp_path, name):
     grid = random_grid([(3, 4, 5), (5, 4, 3), (2, 2, 2)], seed=5)
     path = tmp_path / name
-    tq.write(path, grid, **(dict(encoding="fortran") if name == "g.g" else {}))
+    tq.write(path, grid, **{"g.g": dict(encoding="fortran"), "g.fmt": dict(encoding="ascii")}.get(name, {}))
     full, every = tq.read(path), tq.read_faces(path)
+    assert name != "g.fmt" or full.source_format.encoding == "ascii"
     some = tq.read_faces(path, blocks=[2, 0])
     assert some.block_ids == (2, 0) and every.block_ids is None
     assert some.dims == every.dims and some.names == every.names
@@ -335,3 +336,21 @@ def test_faces_of_some_blocks(tmp_path, name):
         some.face(1, "imin")
     with pytest.raises(GridValueError, match="block 3 out of range"):
         tq.read_faces(path, blocks=[3])
+
+
+@pytest.mark.parametrize("name", ["g.x", "g.h5", "g.cgns"])
+def test_faces_allocate_the_faces_only(tmp_path, name):
+    n = 40
+    grid = random_grid([(n, n, n)] * 4)
+    path = tmp_path / name
+    tq.write(path, grid)
+    del grid
+    tracemalloc.start()
+    try:
+        faces = tq.read_faces(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    face_bytes = 4 * 6 * n * n * 3 * 8                  # 0.9 MB, against 6.1 MB of volume
+    assert face_bytes <= peak < 1.5 * face_bytes + (256 << 10), peak
+    assert faces.npoints == 4 * n ** 3
