@@ -66,7 +66,8 @@ from ..spec import PatchSpec
 from ..topology.model import MAX_DIM, Connectivity, Interface, Patch
 from ._atomic import atomic_output, check_target
 from ._limits import check_points
-from .hdf5 import alloc, check_finite, damaged_file_errors, guard, is_hdf5, map_file, mapped_offset
+from .hdf5 import (alloc, check_finite, close_map, damaged_file_errors, guard, is_hdf5, map_file,
+                   mapped_offset)
 from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
 __all__ = ["CGNSFormat", "CGNSInfo", "read", "read_faces", "write", "info", "bc_kind", "BC_TYPES", "is_adf"]
@@ -835,8 +836,7 @@ class _Base:
             return [self._zone_faces(z, mm, allow_nonfinite) if ids is None or n in ids else None
                     for n, z in enumerate(self.zones)]
         finally:
-            if mm is not None:
-                mm.close()
+            close_map(mm)
 
     def _zone_faces(self, z: _Zone, mm, allow_nonfinite: bool) -> tuple:
         t = self.tree

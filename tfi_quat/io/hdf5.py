@@ -92,8 +92,8 @@ from ._limits import check_points
 from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
 __all__ = ["HDF5Format", "HDF5Info", "read", "write", "read_block", "read_face", "read_faces", "info",
-           "read_extra", "is_hdf5", "guard", "mapped_offset", "map_file", "check_finite", "alloc",
-           "damaged_file_errors",
+           "read_extra", "is_hdf5", "guard", "mapped_offset", "map_file", "close_map", "check_finite",
+           "alloc", "damaged_file_errors",
            "FORMAT_NAME", "LAYOUT_VERSION"]
 
 #: value of the root attribute ``format``
@@ -1064,6 +1064,15 @@ def map_file(path):
         return None
 
 
+def close_map(mm) -> None:
+    """Close a map from :func:`map_file` (None: nothing); one an error left a view of closes when it goes."""
+    if mm is not None:
+        try:
+            mm.close()
+        except BufferError:
+            pass
+
+
 @damaged_file_errors
 def read_faces(path, *, allow_nonfinite: bool = False, blocks=None) -> GridFaces:
     """Read the faces of every block of an HDF5 grid file (one hyperslab each), and their dims.
@@ -1096,8 +1105,7 @@ def read_faces(path, *, allow_nonfinite: bool = False, blocks=None) -> GridFaces
             faces = [_block_faces(r, n, m, mm, allow_nonfinite) if ids is None or n in ids else None
                      for n, m in enumerate(metas)]
         finally:
-            if mm is not None:
-                mm.close()
+            close_map(mm)
         return GridFaces(r.ndim, [m[1] for m in metas], faces, [m[0] for m in metas], os.fspath(path),
                          r.variant(), block_ids=None if ids is None else tuple(ids))
 

@@ -760,7 +760,10 @@ def _read_faces(fd, path, fmt, layout, allow_nonfinite, ids=None) -> GridFaces:
                                               "non-finite coordinate (pass allow_nonfinite=True to accept)")
             out[n] = tuple(faces)
     finally:
-        mm.close()      # every view of it (coord) is gone by now
+        try:
+            mm.close()      # every view of it (coord) is gone by now
+        except BufferError:  # an error left one alive: the map closes when it goes
+            pass
     return GridFaces(fmt.ndim, [b.dims for b in layout], out,
                      [f"block{n + 1}" for n in range(len(layout))], os.fspath(path), fmt,
                      block_ids=None if ids is None else tuple(ids))
