@@ -838,7 +838,6 @@ class _Reader:
                 ib.T[...] = wide
         return Block(xyz, ib, name, allow_nonfinite=True)
 
-
     def face(self, n: int, f: int, allow_nonfinite: bool, max_points=None, meta=None) -> np.ndarray:
         """Face ``f`` (0..5) of block ``n``: one hyperslab of its xyz dataset."""
         path = self.path
