@@ -12,13 +12,13 @@ __version__ = "0.1.0"
 
 from .errors import (CaseError, ConnectivityError, DeformationError, GridFormatError,
                      GridValueError, OverwriteError, TfiQuatError)
-from .grid import FACES, Block, Grid
-from .io import read, write
+from .grid import FACES, Block, Grid, partition
+from .io import read, read_faces, write
 
 __all__ = [
     "__version__",
     "Block", "Grid", "FACES",
-    "read", "write",
+    "read", "read_faces", "write", "partition",
     "TfiQuatError", "GridFormatError", "GridValueError", "ConnectivityError",
     "CaseError", "DeformationError", "OverwriteError",
     "Deformer", "StepTimings", "rigid_motion", "deformer_from_case", "connect", "Connectivity",

@@ -26,7 +26,7 @@ import numpy as np
 from .errors import GridValueError
 
 __all__ = ["Block", "Grid", "FACES", "faces_of", "face_index", "face_axis", "face_axes", "face_shape",
-           "face_layer", "face_ijk", "face_cells"]
+           "face_layer", "face_ijk", "face_cells", "partition"]
 
 #: face names in the order used everywhere (imin=0 ... kmax=5)
 FACES = ("imin", "imax", "jmin", "jmax", "kmin", "kmax")
@@ -366,6 +366,10 @@ class Grid:
     #: filled this grid (a :class:`tfi_quat.quality.CellCheck`), None otherwise
     quality = None
 
+    #: the blocks' 0-based numbers in their file when the grid holds some of its blocks
+    #: (``read(path, blocks=...)``), None for a whole grid; kept by :meth:`copy`
+    block_ids = None
+
     def __init__(self, blocks: Iterable[Block | np.ndarray] | Block, ndim: int | None = None, *,
                  source_format=None, source_path=None, allow_nonfinite: bool = False,
                  connectivity=None):
@@ -436,8 +440,10 @@ class Grid:
     def copy(self) -> "Grid":
         """Deep copy (coordinates and iblank); keeps ``source_format`` and ``connectivity`` (shared),
         drops ``source_path``."""
-        return Grid([b.copy() for b in self.blocks], self.ndim, source_format=self.source_format,
-                    connectivity=self.connectivity)
+        out = Grid([b.copy() for b in self.blocks], self.ndim, source_format=self.source_format,
+                   connectivity=self.connectivity)
+        out.block_ids = self.block_ids
+        return out
 
     def with_blocks(self, blocks: Sequence[Block]) -> "Grid":
         """A new grid with other blocks and this grid's ndim and source format, and its
@@ -461,3 +467,61 @@ class Grid:
         dims = ", ".join("x".join(map(str, d)) for d in self.dims[:4])
         more = ", ..." if len(self) > 4 else ""
         return f"Grid(ndim={self.ndim}, {len(self)} block(s): {dims}{more})"
+
+
+def partition(dims, nparts: int) -> list[list[int]]:
+    """Split blocks over ``nparts`` parts, balanced by point count.
+
+    Greedy, largest block first onto the least-loaded part (ties: the block
+    with the lower number first, the part with the lower number first): a
+    pure function of ``dims`` and ``nparts``, so every rank of an MPI job
+    computes the same partition without communicating.  The largest part
+    holds at most the mean load plus the largest block.
+
+    Parameters
+    ----------
+    dims : sequence of (ni, nj, nk), or a Grid / GridFaces (their ``dims``)
+        The blocks' point dimensions, in file order.
+    nparts : int
+        Number of parts (ranks), 1 to the number of blocks.
+
+    Returns
+    -------
+    list of list of int
+        ``nparts`` lists of 0-based block numbers, each in increasing order;
+        every block in exactly one, none empty.
+
+    Raises
+    ------
+    GridValueError
+        ``nparts`` not an integer, < 1, or more than the blocks (a part
+        would be empty: split the blocks first); bad dims.
+
+    >>> partition([(10, 10, 10), (10, 10, 5), (10, 10, 5), (4, 4, 4)], 2)
+    [[0, 3], [1, 2]]
+    """
+    dims = getattr(dims, "dims", dims)
+    sizes = []
+    for n, d in enumerate(dims):
+        try:
+            ni, nj, nk = (int(v) for v in d)
+        except (TypeError, ValueError):
+            raise GridValueError(f"partition: block {n}: dims must be (ni, nj, nk), got {d!r}") from None
+        if min(ni, nj, nk) < 1:
+            raise GridValueError(f"partition: block {n}: dims {d!r} must all be >= 1")
+        sizes.append(ni * nj * nk)
+    if isinstance(nparts, bool) or not isinstance(nparts, (int, np.integer)):
+        raise GridValueError(f"partition: nparts must be an integer, got {nparts!r}")
+    nparts = int(nparts)
+    if nparts < 1:
+        raise GridValueError(f"partition: nparts must be >= 1, got {nparts}")
+    if nparts > len(sizes):
+        raise GridValueError(f"partition: {nparts} parts for {len(sizes)} block(s): a part would be "
+                             "empty (use at most as many parts as blocks, or split the blocks)")
+    load = [0] * nparts
+    parts: list[list[int]] = [[] for _ in range(nparts)]
+    for n in sorted(range(len(sizes)), key=lambda m: (-sizes[m], m)):
+        p = min(range(nparts), key=lambda q: (load[q], q))
+        load[p] += sizes[n]
+        parts[p].append(n)
+    return [sorted(p) for p in parts]

@@ -30,7 +30,7 @@ from typing import Callable
 
 from ..errors import GridFormatError
 
-__all__ = ["read", "write", "register", "format_for", "check_readable", "FORMATS", "TARGETS"]
+__all__ = ["read", "read_faces", "write", "register", "format_for", "check_readable", "FORMATS", "TARGETS"]
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,8 @@ class _Format:
     variant_type: type | None = None
     #: a solver target (``target=``): a fixed variant of another format with an index mapping
     target: bool = False
+    #: ``faces_reader(path, **kw) -> GridFaces``: the faces of every block (:func:`read_faces`)
+    faces_reader: Callable | None = None
 
 
 #: the registered formats: name -> (name, extensions, reader, writer, variant type), filled by
@@ -54,13 +56,15 @@ FORMATS: dict[str, _Format] = {}
 TARGETS: tuple[str, ...] = ("cfl3d",)
 
 
-def register(name, extensions, reader, writer, variant_type=None) -> None:
+def register(name, extensions, reader, writer, variant_type=None, faces_reader=None) -> None:
     """Register a format: ``reader(path, **kw) -> Grid``, ``writer(path, grid, **kw)``.
 
-    A name in :data:`TARGETS` registers a solver target (no extensions).
+    A name in :data:`TARGETS` registers a solver target (no extensions).  A
+    format whose reader takes ``blocks=`` (a partial read) also gives
+    ``faces_reader(path, **kw) -> GridFaces`` (:func:`read_faces`).
     """
     FORMATS[name] = _Format(name, tuple(e.lower() for e in extensions), reader, writer, variant_type,
-                            name in TARGETS)
+                            name in TARGETS, faces_reader)
 
 
 def _ensure_loaded() -> None:
@@ -131,14 +135,23 @@ def _target(target, format) -> _Format:
     return FORMATS[key]
 
 
-def read(path, format: str | None = None, *, target: str | None = None, **kw):
-    """Read a grid file.
+def read(path, format: str | None = None, *, target: str | None = None, blocks=None, **kw):
+    """Read a grid file, or some of its blocks.
 
     Parameters
     ----------
     path : str or path-like
     format : {"plot3d", "hdf5", "cgns"}, optional
         Default: from the extension.
+    blocks : list of int, optional
+        Read only these blocks (0-based numbers in the file, no repeats), in
+        this order, and allocate only them: binary Plot3D reads their bytes
+        at offsets computed from the header, HDF5 their datasets, CGNS those
+        zones (a text Plot3D file is parsed whole, then the blocks kept).
+        The grid's ``block_ids`` gives their numbers; its blocks keep the
+        names a full read gives them; a CGNS grid read so carries no
+        ``connectivity`` (it is made for all blocks: :func:`read_faces` has
+        it).  Not with ``target``.
     target : {"cfl3d"}, optional
         The file was written for this solver: read exactly its variant and
         undo its index mapping (:func:`tfi_quat.io.cfl3d.read`; ``ndim=``
@@ -163,11 +176,60 @@ def read(path, format: str | None = None, *, target: str | None = None, **kw):
     GridFormatError
         The file is not a grid of the format (or of the target's variant),
         or declares one too large.
+    GridValueError
+        ``blocks`` empty, repeated, or a number outside the file's blocks
+        (naming the file and the block).
     """
     p = Path(os.fspath(path))
     check_readable(p)
-    fmt = _target(target, format) if target is not None else format_for(p, format)
-    return fmt.reader(p, **kw)
+    if blocks is None:
+        fmt = _target(target, format) if target is not None else format_for(p, format)
+        return fmt.reader(p, **kw)
+    if target is not None:
+        raise GridFormatError(f"{p}: blocks= reads a file as it is stored; it does not combine with "
+                              f"target={target!r} (read the file with format='plot3d')")
+    return format_for(p, format).reader(p, blocks=blocks, **kw)
+
+
+def read_faces(path, format: str | None = None, **kw):
+    """Read the boundary faces of every block of a grid file, and every block's dims.
+
+    What each rank of a distributed deformation needs besides its own
+    blocks: the O(surface) data to build the skeleton and the partition,
+    without the volume.  Binary Plot3D touches only the file pages holding
+    face values (a memory map: runs for the k and j faces, strided values for
+    the i faces), HDF5 and CGNS read one hyperslab per face and coordinate; a
+    text Plot3D file is parsed whole.
+
+    Parameters
+    ----------
+    path : str or path-like
+    format : {"plot3d", "hdf5", "cgns"}, optional
+        Default: from the extension.
+    **kw
+        Passed on to the format's faces reader: ``blocks`` (read the faces
+        of these 0-based blocks only, the others None: ranks can split the
+        face reads and exchange them), ``allow_nonfinite``, Plot3D variant
+        overrides, the CGNS ``base``.
+
+    Returns
+    -------
+    tfi_quat.io.partial.GridFaces
+        ``faces[b][f]`` float64 ``(na, nb, 3)``, bit-identical to
+        ``read(path)[b].face(f)``; ``dims``, ``names``, ``ndim``.
+
+    Raises
+    ------
+    FileNotFoundError, IsADirectoryError, PermissionError
+    GridFormatError
+        As :func:`read`.
+    """
+    p = Path(os.fspath(path))
+    check_readable(p)
+    fmt = format_for(p, format)
+    if fmt.faces_reader is None:
+        raise GridFormatError(f"{p}: the {fmt.name} format has no faces reader")
+    return fmt.faces_reader(p, **kw)
 
 
 def write(path, grid, format: str | None = None, *, like=None, target: str | None = None,

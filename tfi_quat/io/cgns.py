@@ -61,14 +61,16 @@ import h5py
 import numpy as np
 
 from ..errors import ConnectivityError, GridFormatError, GridValueError, TfiQuatError
-from ..grid import Block, Grid, face_axes, face_index
+from ..grid import Block, Grid, face_axes, face_axis, face_index, face_shape, faces_of
 from ..spec import PatchSpec
 from ..topology.model import MAX_DIM, Connectivity, Interface, Patch
 from ._atomic import atomic_output, check_target
 from ._limits import check_points
-from .hdf5 import alloc, check_finite, damaged_file_errors, guard, is_hdf5
+from .hdf5 import (alloc, check_finite, close_map, damaged_file_errors, guard, is_hdf5, map_file,
+                   mapped_offset)
+from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
-__all__ = ["CGNSFormat", "CGNSInfo", "read", "write", "info", "bc_kind", "BC_TYPES", "is_adf"]
+__all__ = ["CGNSFormat", "CGNSInfo", "read", "read_faces", "write", "info", "bc_kind", "BC_TYPES", "is_adf"]
 
 #: every BCType_t value of the CGNS standard (SIDS 9.3), as the files spell them
 BC_TYPES = (
@@ -800,12 +802,15 @@ class _Base:
         return conn
 
     # ------------------------------------------------------------------ coordinates
-    def blocks(self, allow_nonfinite: bool, max_points):
+    def blocks(self, allow_nonfinite: bool, max_points, ids=None):
+        """The zones' blocks (those numbered ``ids``, 0-based, when given) and whether any is R4."""
         t = self.tree
-        check_points(f"{t.path}: base {self.name!r}, {len(self.zones)} zone(s)",
-                     sum(int(np.prod(z.dims)) for z in self.zones), max_points=max_points)
+        zones = self.zones if ids is None else [self.zones[n] for n in ids]
+        what = f"{len(self.zones)} zone(s)" if ids is None else f"{len(zones)} of {len(self.zones)} zone(s)"
+        check_points(f"{t.path}: base {self.name!r}, {what}",
+                     sum(int(np.prod(z.dims)) for z in zones), max_points=max_points)
         blocks, single = [], False
-        for z in self.zones:
+        for z in zones:
             xyz = alloc(z.dims + (3,), np.float64, t.path, f"zone {z.name!r}")
             if len(z.coords) < 3:
                 xyz[..., 2] = 0.0
@@ -822,6 +827,77 @@ class _Base:
         return blocks, single
 
 
+    def faces(self, allow_nonfinite: bool, ids=None) -> list:
+        """Every zone's faces (:func:`tfi_quat.grid.faces_of`): through a memory map of the file
+        where a coordinate array is stored contiguously, else one hyperslab per face and coordinate."""
+        t = self.tree
+        mm = map_file(t.path)
+        try:
+            return [self._zone_faces(z, mm, allow_nonfinite) if ids is None or n in ids else None
+                    for n, z in enumerate(self.zones)]
+        finally:
+            close_map(mm)
+
+    def _zone_faces(self, z: _Zone, mm, allow_nonfinite: bool) -> tuple:
+        t = self.tree
+        mapped = []
+        for cname, ds, cnode, dtype in z.coords:
+            try:
+                fdt = ds.dtype
+            except (OSError, TypeError, ValueError):
+                fdt = None
+            off = None
+            if mm is not None and fdt is not None and fdt.kind == "f" and fdt.itemsize == dtype.itemsize:
+                off = mapped_offset(ds, int(np.prod(z.dims)) * fdt.itemsize, len(mm))
+            mapped.append((off, fdt))
+        if all(off is not None for off, _ in mapped):
+            faces = empty_faces(z.dims, self.ndim)      # z = 0 in a base of physical dimension 2
+            for c, (off, fdt) in enumerate(mapped):
+                coord = np.ndarray(z.dims, dtype=fdt, buffer=mm, offset=off, order="F")
+                fill_faces(faces, c, coord, self.ndim)
+                del coord
+            if not allow_nonfinite:
+                for f, arr in zip(faces_of(self.ndim), faces):
+                    d, side = face_axis(f)
+                    check_finite(arr, t.path, f"zone {z.name!r} face {f}", f"{z.node}/GridCoordinates",
+                                 face=(d, z.dims[d] - 1 if side else 0))
+            return tuple(faces)
+        return self._zone_face_slabs(z, allow_nonfinite)
+
+    def _zone_face_slabs(self, z: _Zone, allow_nonfinite: bool) -> tuple:
+        """A zone's faces, one hyperslab per face and coordinate (any storage libhdf5 reads)."""
+        t = self.tree
+        faces = []
+        for f in faces_of(self.ndim):
+            d, side = face_axis(f)
+            arr = np.zeros(face_shape(z.dims, f) + (3,), dtype=np.float64, order="F")
+            # the data's axes are the zone's index axes reversed: (k, j, i) or (j, i)
+            shape = tuple(reversed(z.dims[:self.idim]))
+            ax = self.idim - 1 - d
+            start = [0] * self.idim
+            start[ax] = z.dims[d] - 1 if side else 0
+            count = list(shape)
+            count[ax] = 1
+            tmp = np.empty(count, dtype=np.float64)
+            plane = [1 if m == d else z.dims[m] for m in range(3)]
+            idx = [slice(None)] * 3
+            idx[d] = 0
+            for c, (cname, ds, cnode, dtype) in enumerate(z.coords):
+                try:
+                    fspace = ds.get_space()
+                    fspace.select_hyperslab(tuple(start), tuple(count))
+                    mspace = h5py.h5s.create_simple(tuple(count))
+                    ds.read(mspace, fspace, tmp, mtype=_mem_type(tmp.dtype))
+                except (OSError, TypeError, ValueError) as exc:
+                    t.fail(cnode, f"cannot read face {f}: {exc}")
+                arr[..., c] = tmp.T.reshape(plane, order="C")[tuple(idx)]
+            if not allow_nonfinite:
+                check_finite(arr, t.path, f"zone {z.name!r} face {f}", f"{z.node}/GridCoordinates",
+                             face=(d, start[ax]))
+            faces.append(arr)
+        return tuple(faces)
+
+
 def _one_based(lo, hi, idim) -> list:
     return [[v + 1 for v in lo[:idim]], [v + 1 for v in hi[:idim]]]
 
@@ -835,12 +911,16 @@ def _show(r) -> str:
 
 @damaged_file_errors
 def read(path, *, base: str | None = None, allow_nonfinite: bool = False,
-         max_points: int | None = None) -> Grid:
+         max_points: int | None = None, blocks=None) -> Grid:
     """Read a CGNS/HDF5 file: the structured zones of one base with their connectivity.
 
     Parameters
     ----------
     path : str or path-like
+    blocks : list of int, optional
+        Read only these zones (0-based, in the base's order, which a full
+        read keeps), in this order; the grid's ``block_ids`` records them
+        and it carries no ``connectivity`` (:func:`read_faces` has it).
     base : str, optional
         Name of the ``CGNSBase_t`` to read (default: the first).
     allow_nonfinite : bool
@@ -874,13 +954,54 @@ def read(path, *, base: str | None = None, allow_nonfinite: bool = False,
     p = Path(os.fspath(path))
     with _tree(p) as t:
         b = _Base(t, base)
-        blocks, single = b.blocks(allow_nonfinite, max_points)
+        ids = None if blocks is None else block_numbers(p, blocks, len(b.zones))
+        got, single = b.blocks(allow_nonfinite, max_points, ids)
         try:
-            grid = Grid(blocks, b.ndim, source_format=CGNSFormat(b.name, single, os.path.abspath(p)), source_path=p)
+            grid = Grid(got, b.ndim, source_format=CGNSFormat(b.name, single, os.path.abspath(p)), source_path=p)
         except GridValueError as exc:
             raise GridFormatError(f"{p}: base {b.name!r}: {exc}") from None
-        grid.connectivity = b.connectivity(grid)
+        if ids is None:
+            grid.connectivity = b.connectivity(grid)
+        else:
+            grid.block_ids = tuple(ids)
     return grid
+
+
+@damaged_file_errors
+def read_faces(path, *, base: str | None = None, allow_nonfinite: bool = False, blocks=None) -> GridFaces:
+    """Read the faces of every zone of a CGNS base (hyperslabs), their dims and connectivity.
+
+    Parameters
+    ----------
+    path : str or path-like
+    base : str, optional
+        Name of the ``CGNSBase_t`` (default: the first).
+    allow_nonfinite : bool
+        Accept NaN or infinite coordinates on the faces.
+    blocks : list of int, optional
+        Read the faces of these zones only (0-based); the dims of all.
+
+    Returns
+    -------
+    GridFaces
+        With ``connectivity`` as :func:`read` gives it, except that the
+        points of the 1-to-1 interfaces are not checked to coincide (that
+        needs the volumes); ``source_format`` says R4 when any zone is.
+
+    Raises
+    ------
+    GridFormatError
+        As :func:`read`.
+    """
+    p = Path(os.fspath(path))
+    with _tree(p) as t:
+        b = _Base(t, base)
+        ids = None if blocks is None else block_numbers(p, blocks, len(b.zones))
+        faces = b.faces(allow_nonfinite, ids)
+        single = any(dtype.itemsize == 4 for z in b.zones for *_, dtype in z.coords)
+        return GridFaces(b.ndim, [z.dims for z in b.zones], faces, [z.name for z in b.zones], os.fspath(p),
+                         CGNSFormat(b.name, single, os.path.abspath(p)), b.connectivity(),
+                         None if ids is None else tuple(ids))
 
 
 @damaged_file_errors
@@ -1348,4 +1469,4 @@ def write(path, grid: Grid, *, like=None, overwrite: bool = False, connectivity=
 
 from . import register  # noqa: E402  (registers the format on import)
 
-register("cgns", (".cgns",), read, write, CGNSFormat)
+register("cgns", (".cgns",), read, write, CGNSFormat, read_faces)

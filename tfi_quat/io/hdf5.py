@@ -89,9 +89,11 @@ from ..errors import GridFormatError, GridValueError, TfiQuatError
 from ..grid import FACES, Block, Grid, face_axis, face_index, face_layer, face_shape
 from ._atomic import atomic_output, check_target
 from ._limits import check_points
+from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
-__all__ = ["HDF5Format", "HDF5Info", "read", "write", "read_block", "read_face", "info",
-           "read_extra", "is_hdf5", "guard", "check_finite", "alloc", "damaged_file_errors",
+__all__ = ["HDF5Format", "HDF5Info", "read", "write", "read_block", "read_face", "read_faces", "info",
+           "read_extra", "is_hdf5", "guard", "mapped_offset", "map_file", "close_map", "check_finite",
+           "alloc", "damaged_file_errors",
            "FORMAT_NAME", "LAYOUT_VERSION"]
 
 #: value of the root attribute ``format``
@@ -836,6 +838,27 @@ class _Reader:
                 ib.T[...] = wide
         return Block(xyz, ib, name, allow_nonfinite=True)
 
+    def face(self, n: int, f: int, allow_nonfinite: bool, max_points=None, meta=None) -> np.ndarray:
+        """Face ``f`` (0..5) of block ``n``: one hyperslab of its xyz dataset."""
+        path = self.path
+        _, dims, xyz_ds, _ = self.meta(n) if meta is None else meta
+        d = face_axis(f)[0]
+        pos = face_layer(dims, f)
+        run = face_shape(dims, f)
+        where = f"block {n + 1} face {FACES[f]}"
+        check_points(f"{path}: {where}", run[0] * run[1], max_points=max_points,
+                     bytes_per_point=3 * 8)
+        out = alloc((run[0], run[1], 3), np.float64, path, where)
+        # dataset axes are (c, k, j, i): block axis a is dataset axis 3 - a
+        sel = [slice(None)] * 4
+        sel[3 - d] = slice(pos, pos + 1)
+        view = out.T.reshape(tuple(1 if a == 3 - d else s for a, s in
+                                   enumerate((3, dims[2], dims[1], dims[0]))))
+        self.read_into(xyz_ds, view, where, np.s_[tuple(sel)])
+        if not allow_nonfinite:
+            check_finite(out, path, where, xyz_ds.name, face=(d, pos))
+        return out
+
 
 def _inflate(raw, mask: int, filters, cbytes: int, name: str):
     """Undo the deflate filter of one stored chunk, never inflating beyond ``cbytes``.
@@ -937,12 +960,15 @@ def damaged_file_errors(fn):
 
 
 @damaged_file_errors
-def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None) -> Grid:
+def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None, blocks=None) -> Grid:
     """Read an HDF5 grid file (layout :data:`LAYOUT_VERSION` or older).
 
     Parameters
     ----------
     path : str or path-like
+    blocks : list of int, optional
+        Read only these blocks (0-based numbers, in this order; their
+        datasets only); the grid's ``block_ids`` records them.
     allow_nonfinite : bool
         Accept NaN or infinite coordinates (default: GridFormatError).
     max_points : int, optional
@@ -970,15 +996,117 @@ def read(path, *, allow_nonfinite: bool = False, max_points: int | None = None) 
         From the operating system, naming the path.
     """
     with _Reader(path) as r:
-        metas = [r.meta(n) for n in range(r.nblocks)]
-        check_points(f"{path}: {r.nblocks} block(s)", sum(int(np.prod(m[1])) for m in metas),
-                     max_points=max_points)
-        blocks = [r.block(n, allow_nonfinite, m) for n, m in enumerate(metas)]
+        ids = list(range(r.nblocks)) if blocks is None else block_numbers(path, blocks, r.nblocks)
+        metas = [r.meta(n) for n in ids]
+        what = f"{r.nblocks} block(s)" if blocks is None else f"{len(ids)} of {r.nblocks} block(s)"
+        check_points(f"{path}: {what}", sum(int(np.prod(m[1])) for m in metas), max_points=max_points)
+        got = [r.block(n, allow_nonfinite, m) for n, m in zip(ids, metas)]
         variant = r.variant()
         try:
-            return Grid(blocks, r.ndim, source_format=variant, source_path=path)
+            grid = Grid(got, r.ndim, source_format=variant, source_path=path)
         except GridValueError as exc:
             raise GridFormatError(f"{path}: {exc}") from None
+        if blocks is not None:
+            grid.block_ids = tuple(ids)
+        return grid
+
+
+def _block_faces(r: _Reader, n: int, meta, mm, allow_nonfinite: bool) -> tuple:
+    """The faces of block ``n``: from the memory map ``mm`` where its dataset is contiguous
+    (the pages holding face values only), else one hyperslab each."""
+    _, dims, xyz_ds, _ = meta
+    off = None if mm is None else mapped_offset(xyz_ds.id, xyz_ds.size * xyz_ds.dtype.itemsize, len(mm))
+    if off is None:
+        return tuple(r.face(n, f, allow_nonfinite, meta=meta) for f in range(2 * r.ndim))
+    faces = empty_faces(dims, r.ndim)
+    data = np.ndarray(xyz_ds.shape, dtype=xyz_ds.dtype, buffer=mm, offset=off)
+    try:
+        for c in range(3):
+            fill_faces(faces, c, data[c].T, r.ndim)
+    finally:
+        del data
+    if not allow_nonfinite:
+        for f, arr in enumerate(faces):
+            d = face_axis(f)[0]
+            check_finite(arr, r.path, f"block {n + 1} face {FACES[f]}", xyz_ds.name,
+                         face=(d, face_layer(dims, f)))
+    return tuple(faces)
+
+
+def mapped_offset(dsid, nbytes: int, size: int) -> int | None:
+    """File offset of a dataset's values when they can be read through a memory map, else None.
+
+    They can when the dataset is stored contiguously in the file itself
+    (no chunks, filters or external storage) and its ``nbytes`` lie within
+    the file's ``size`` bytes; the caller then reads them in the dataset's
+    own dtype (byte order included).
+    """
+    try:
+        plist = dsid.get_create_plist()
+        if (plist.get_layout() != h5py.h5d.CONTIGUOUS or plist.get_nfilters()
+                or plist.get_external_count()):
+            return None
+        off = dsid.get_offset()
+    except (OSError, TypeError, ValueError, RuntimeError):
+        return None
+    if off is None or off < 0 or off + nbytes > size:
+        return None
+    return int(off)
+
+
+def map_file(path):
+    """A read-only memory map of a grid file (None for an empty file or where mapping fails)."""
+    try:
+        with open(os.fspath(path), "rb") as fh:
+            return mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError):
+        return None
+
+
+def close_map(mm) -> None:
+    """Close a map from :func:`map_file` (None: nothing); one an error left a view of closes when it goes."""
+    if mm is not None:
+        try:
+            mm.close()
+        except BufferError:
+            pass
+
+
+@damaged_file_errors
+def read_faces(path, *, allow_nonfinite: bool = False, blocks=None) -> GridFaces:
+    """Read the faces of every block of an HDF5 grid file (one hyperslab each), and their dims.
+
+    Parameters
+    ----------
+    path : str or path-like
+    allow_nonfinite : bool
+        Accept NaN or infinite coordinates on the faces.
+    blocks : list of int, optional
+        Read the faces of these blocks only (0-based); the dims of all.
+
+    Returns
+    -------
+    GridFaces
+        As :func:`read_face` for every face of every block, from one open file
+        (a contiguous dataset through a memory map, touching the pages that
+        hold face values only).
+
+    Raises
+    ------
+    GridFormatError
+        As :func:`read`.
+    """
+    with _Reader(path) as r:
+        metas = [r.meta(n) for n in range(r.nblocks)]
+        mm = map_file(path)
+        try:
+            ids = None if blocks is None else block_numbers(path, blocks, r.nblocks)
+            faces = [_block_faces(r, n, m, mm, allow_nonfinite) if ids is None or n in ids else None
+                     for n, m in enumerate(metas)]
+        finally:
+            close_map(mm)
+        return GridFaces(r.ndim, [m[1] for m in metas], faces, [m[0] for m in metas], os.fspath(path),
+                         r.variant(), block_ids=None if ids is None else tuple(ids))
 
 
 @damaged_file_errors
@@ -1033,23 +1161,7 @@ def read_face(path, b, face, *, allow_nonfinite: bool = False,
     f = face_index(face)
     with _Reader(path) as r:
         n = r.index(b)
-        _, dims, xyz_ds, _ = r.meta(n)
-        d = face_axis(f)[0]
-        pos = face_layer(dims, f)
-        run = face_shape(dims, f)
-        where = f"block {n + 1} face {FACES[f]}"
-        check_points(f"{path}: {where}", run[0] * run[1], max_points=max_points,
-                     bytes_per_point=3 * 8)
-        out = alloc((run[0], run[1], 3), np.float64, path, where)
-        # dataset axes are (c, k, j, i): block axis a is dataset axis 3 - a
-        sel = [slice(None)] * 4
-        sel[3 - d] = slice(pos, pos + 1)
-        view = out.T.reshape(tuple(1 if a == 3 - d else s for a, s in
-                                   enumerate((3, dims[2], dims[1], dims[0]))))
-        r.read_into(xyz_ds, view, where, np.s_[tuple(sel)])
-        if not allow_nonfinite:
-            check_finite(out, path, where, xyz_ds.name, face=(d, pos))
-        return out
+        return r.face(n, f, allow_nonfinite, max_points)
 
 
 @damaged_file_errors
@@ -1254,4 +1366,4 @@ def _write_array(g: h5py.Group, key: str, data: np.ndarray, comp, level) -> None
 
 from . import register  # noqa: E402  (registers the format on import)
 
-register("hdf5", (".h5", ".hdf5", ".hdf"), read, write, HDF5Format)
+register("hdf5", (".h5", ".hdf5", ".hdf"), read, write, HDF5Format, read_faces)

@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import functools
 import math
+import mmap
 import os
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -68,13 +69,14 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import GridFormatError, GridValueError
-from ..grid import Block, Grid, has_z
+from ..grid import Block, Grid, faces_of, has_z
 from .._jit import jit
 from . import register
 from ._atomic import atomic_output, check_target
 from ._limits import BYTES_PER_POINT, available_memory, check_points
+from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
-__all__ = ["Plot3DFormat", "read", "write", "detect", "detect_all"]
+__all__ = ["Plot3DFormat", "read", "read_faces", "write", "detect", "detect_all"]
 
 #: allowed values of each field, the preferred (most common) value first
 _CHOICES = {
@@ -669,7 +671,11 @@ def _first_nonfinite(a: np.ndarray) -> int | None:
     return int(np.argmax(bad)) if bad.any() else None
 
 
-def _read_blocks(fd, path, fmt, blocks, allow_nonfinite) -> list[Block]:
+def _read_blocks(fd, path, fmt, blocks, allow_nonfinite, ids=None, nblocks=None) -> list[Block]:
+    """Read the blocks of these layouts; ``ids`` their 0-based numbers in the file (default
+    0, 1, ...) out of ``nblocks`` (default ``len(blocks)``), for names and messages."""
+    ids = list(range(len(blocks))) if ids is None else ids
+    nblocks = len(blocks) if nblocks is None else nblocks
     fdt, idt = _float_dtype(fmt), _int_dtype(fmt)
     out, tasks = [], []
     for n, b in enumerate(blocks):
@@ -704,7 +710,7 @@ def _read_blocks(fd, path, fmt, blocks, allow_nonfinite) -> list[Block]:
             continue
         n, kind = t[0], t[1]
         b = blocks[n]
-        where = f"{path}: block {n + 1} of {len(blocks)}"
+        where = f"{path}: block {ids[n] + 1} of {nblocks}"
         if r[0] == "short":
             raise GridFormatError(f"{where}: the file ended at byte offset {r[1]} while reading "
                                   f"its {kind} values (truncated while being read?)")
@@ -719,8 +725,48 @@ def _read_blocks(fd, path, fmt, blocks, allow_nonfinite) -> list[Block]:
         raise GridFormatError(f"{where}: non-finite coordinate {'xyz'[c]} = {out[n][0][i, j, k, c]} "
                               f"at (i, j, k) = ({i + 1}, {j + 1}, {k + 1}) (1-based), byte offset "
                               f"{off} (pass allow_nonfinite=True to accept)")
-    return [Block(xyz, ib, name=f"block{n + 1}", allow_nonfinite=True)
+    return [Block(xyz, ib, name=f"block{ids[n] + 1}", allow_nonfinite=True)
             for n, (xyz, ib) in enumerate(out)]
+
+
+def _read_faces(fd, path, fmt, layout, allow_nonfinite, ids=None) -> GridFaces:
+    """The faces of every block of a binary file, read through a memory map of it.
+
+    Only the pages holding face values are touched: the k faces are
+    contiguous runs, the j faces ``nk`` runs of ``ni`` values, the i faces one
+    value per row of ``ni`` (every page of a block whose rows are shorter
+    than a page, but no copy of the volume is made).  ``ids``: the blocks
+    whose faces are read (default all).
+    """
+    fdt = _float_dtype(fmt)
+    names = faces_of(fmt.ndim)
+    mm = mmap.mmap(fd, 0, access=mmap.ACCESS_READ)
+    try:
+        out = [None] * len(layout)
+        for n in (range(len(layout)) if ids is None else ids):
+            b = layout[n]
+            ni, nj, nk = b.dims
+            faces = empty_faces(b.dims, fmt.ndim)
+            for c in range(fmt.ndim):
+                v = c * b.npoints
+                off = next(o + (v - v0) * fmt.precision for o, v0, cnt in b.runs if v0 <= v < v0 + cnt)
+                coord = np.ndarray((ni, nj, nk), dtype=fdt, buffer=mm, offset=off, order="F")
+                fill_faces(faces, c, coord, fmt.ndim)
+                del coord
+            if not allow_nonfinite:
+                for f, arr in zip(names, faces):
+                    if _first_nonfinite(arr.reshape(-1, order="F")) is not None:
+                        raise GridFormatError(f"{path}: block {n + 1} of {len(layout)}, face {f}: "
+                                              "non-finite coordinate (pass allow_nonfinite=True to accept)")
+            out[n] = tuple(faces)
+    finally:
+        try:
+            mm.close()      # every view of it (coord) is gone by now
+        except BufferError:  # an error left one alive: the map closes when it goes
+            pass
+    return GridFaces(fmt.ndim, [b.dims for b in layout], out,
+                     [f"block{n + 1}" for n in range(len(layout))], os.fspath(path), fmt,
+                     block_ids=None if ids is None else tuple(ids))
 
 
 # ---------------------------------------------------------------- ASCII read
@@ -1230,10 +1276,12 @@ def _mostly_text(fd, size) -> bool:
 
 
 def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "read",
-                       max_points=None):
+                       max_points=None, blocks=None):
     """Detect (and read) a file.
 
-    ``mode``: ``"read"`` returns ``(fmt, blocks)``, ``"detect"`` ``(fmt, None)``,
+    ``mode``: ``"read"`` returns ``(fmt, blocks)`` (with ``blocks``, 0-based
+    numbers: ``(fmt, (those blocks, their numbers))``), ``"faces"`` ``(fmt,
+    GridFaces)``, ``"detect"`` ``(fmt, None)``,
     ``"all"`` ``([every variant that fits, preferred first], None)``.  A
     missing file, a folder or a file without read permission raise
     ``open``'s own FileNotFoundError, IsADirectoryError, PermissionError.
@@ -1265,9 +1313,31 @@ def _open_and_dispatch(path, format, overrides, allow_nonfinite, mode: str = "re
             fmt, dims, layout = fits[0][1:]
             if mode == "detect":
                 return fmt.canonical(), None
+            if mode == "faces":
+                ids = None if blocks is None else block_numbers(path, blocks, len(layout))
+                return fmt.canonical(), _read_faces(fd, path, fmt.canonical(), layout, allow_nonfinite, ids)
+            if blocks is not None:
+                ids = block_numbers(path, blocks, len(layout))
+                part = [layout[n] for n in ids]
+                _check_size(path, fmt, sum(b.npoints for b in part), max_points)
+                return fmt.canonical(), (_read_blocks(fd, path, fmt, part, allow_nonfinite, ids, len(layout)),
+                                         ids)
             _check_size(path, fmt, sum(b.npoints for b in layout), max_points)
             return fmt.canonical(), _read_blocks(fd, path, fmt, layout, allow_nonfinite)
-        return _dispatch_ascii(path, fh, size, fixed, allow_nonfinite, mode, max_points)
+        # text: every number is parsed, then the blocks (faces) asked for are kept
+        fmt, all_blocks = _dispatch_ascii(path, fh, size, fixed, allow_nonfinite,
+                                          "read" if mode == "faces" else mode, max_points)
+        if mode == "faces":
+            ids = None if blocks is None else block_numbers(path, blocks, len(all_blocks))
+            return fmt, GridFaces(fmt.ndim, [b.dims for b in all_blocks],
+                                  [tuple(np.asfortranarray(b.face(f)) for f in faces_of(fmt.ndim))
+                                   if ids is None or n in ids else None for n, b in enumerate(all_blocks)],
+                                  [b.name for b in all_blocks], os.fspath(path), fmt,
+                                  block_ids=None if ids is None else tuple(ids))
+        if blocks is not None and mode == "read":
+            ids = block_numbers(path, blocks, len(all_blocks))
+            return fmt, ([all_blocks[n] for n in ids], ids)
+        return fmt, all_blocks
 
 
 def _check_size(path, fmt, npoints: int, max_points) -> None:
@@ -1348,7 +1418,7 @@ def detect_all(path, **overrides) -> list[Plot3DFormat]:
 
 
 def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = False,
-         max_points: int | None = None, **overrides) -> Grid:
+         max_points: int | None = None, blocks=None, **overrides) -> Grid:
     """Read a Plot3D grid file of any supported variant.
 
     Parameters
@@ -1356,6 +1426,11 @@ def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = Fa
     path : str or path-like
     format : Plot3DFormat, optional
         Read as exactly this variant (no detection; the file must fit it).
+    blocks : list of int, optional
+        Read only these blocks (0-based numbers in the file), in this order;
+        the grid's ``block_ids`` records them.  A binary file is read at the
+        offsets its header gives, those blocks' bytes only; a text file is
+        parsed whole and the blocks kept.
     allow_nonfinite : bool
         Accept NaN and infinite coordinates (default: error naming the block).
     max_points : int, optional
@@ -1384,8 +1459,42 @@ def read(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = Fa
     FileNotFoundError, IsADirectoryError, PermissionError
         The path is missing, a folder, or not readable.
     """
-    fmt, blocks = _open_and_dispatch(path, format, overrides, allow_nonfinite, "read", max_points)
-    return Grid(blocks, fmt.ndim, source_format=fmt, source_path=path)
+    fmt, got = _open_and_dispatch(path, format, overrides, allow_nonfinite, "read", max_points, blocks)
+    if blocks is None:
+        return Grid(got, fmt.ndim, source_format=fmt, source_path=path)
+    grid = Grid(got[0], fmt.ndim, source_format=fmt, source_path=path)
+    grid.block_ids = tuple(got[1])
+    return grid
+
+
+def read_faces(path, *, format: Plot3DFormat | None = None, allow_nonfinite: bool = False,
+               blocks=None, **overrides) -> GridFaces:
+    """Read the faces of every block of a Plot3D file, and the blocks' dims.
+
+    Parameters
+    ----------
+    path : str or path-like
+    format : Plot3DFormat, optional
+        Read as exactly this variant (no detection).
+    allow_nonfinite : bool
+        Accept NaN and infinite coordinates on the faces.
+    blocks : list of int, optional
+        Read the faces of these blocks only (0-based); the dims of all.
+    **overrides
+        :class:`Plot3DFormat` fields to take as given.
+
+    Returns
+    -------
+    GridFaces
+        A binary file is read through a memory map, face values only (see
+        :mod:`tfi_quat.io.partial`); a text file is parsed whole.
+
+    Raises
+    ------
+    GridFormatError
+        As :func:`read`; a non-finite face coordinate names block and face.
+    """
+    return _open_and_dispatch(path, format, overrides, allow_nonfinite, "faces", blocks=blocks)[1]
 
 
 # ---------------------------------------------------------------- write
@@ -1575,4 +1684,4 @@ def _write_ascii(fh, grid: Grid, fmt: Plot3DFormat, path="Plot3D file") -> None:
 
 
 register("plot3d", (".x", ".xyz", ".g", ".grd", ".p3d", ".p2dfmt", ".p3dfmt", ".fmt", ".bin", ".xyzb"),
-         read, write, Plot3DFormat)
+         read, write, Plot3DFormat, read_faces)
