@@ -37,14 +37,13 @@ from __future__ import annotations
 import contextlib
 import os
 import pickle
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import GridFormatError, GridValueError, ParallelError
 from ..grid import Block, Grid
-from ._atomic import check_target
+from ._atomic import check_target, install, new_temp
 
 __all__ = ["write", "require_mpi", "INSTALL_HINT"]
 
@@ -255,11 +254,8 @@ def _variant(path, comm, grid, make):
 
 
 def _create_temp(target: Path) -> str:
-    """A new temporary file next to ``target`` (rank 0), as :func:`atomic_output` makes it."""
-    folder = target.parent if str(target.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{target}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=folder)
+    """A new temporary file next to ``target`` (rank 0), closed."""
+    fd, tmp = new_temp(target)
     os.close(fd)
     return tmp
 
@@ -275,10 +271,7 @@ def _finish(comm, target: Path, tmp: str | None, exc) -> None:
                 os.unlink(tmp)
         else:
             try:
-                umask = os.umask(0)       # the usual permissions of a new file (mkstemp: 0600)
-                os.umask(umask)
-                os.chmod(tmp, 0o666 & ~umask)
-                os.replace(tmp, target)
+                install(tmp, target)
             except Exception as e:      # noqa: BLE001
                 rename_exc = e
                 with contextlib.suppress(OSError):
