@@ -5,20 +5,22 @@ the same grid (:func:`make_grid`), keeps its blocks (the partition of the
 spec), and for each entry of ``spec["writes"]`` calls ``tfi_quat.write(path,
 local, comm=MPI.COMM_WORLD, ...)``; rank r stores ``"OK"`` or ``"ERROR Type:
 message"`` per write in ``SPEC.json.rank<r>`` (a JSON list): the ranks go on
-after an error.
+after an error.  With ``spec["trace"]`` a success reads ``"OK <bytes>"``: the
+peak of the memory traced by tracemalloc during the write.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+import tracemalloc
 
 import numpy as np
 
 
 def make_grid(kind: str):
     """A multiblock grid of varied block sizes: ``3d`` (one block with IBLANK), ``2d``,
-    ``pair`` (the first two blocks of ``3d``)."""
+    ``pair`` (the first two blocks of ``3d``), ``big`` (six blocks of 40^3 points)."""
     from tfi_quat import Block, Grid
     rng = np.random.default_rng(17)
     if kind == "2d":
@@ -36,6 +38,9 @@ def make_grid(kind: str):
         blocks.append(Block(np.asfortranarray(xyz), iblank, name=f"b{n}"))
     if kind == "pair":
         blocks = blocks[:2]
+    if kind == "big":       # six blocks of 1.5 MB each: memory measurements
+        blocks = [Block(np.asfortranarray(np.random.default_rng(n).standard_normal((40, 40, 40, 3))),
+                        name=f"big{n}") for n in range(6)]
     return Grid(blocks, ndim=2 if kind == "2d" else 3)
 
 
@@ -56,6 +61,8 @@ def main() -> None:
     from mpi4py import MPI
 
     import tfi_quat as tq
+    import tfi_quat.io.mpi  # noqa: F401
+    tq.io.format_for("any.x")       # every format module imported before any tracing
     comm = MPI.COMM_WORLD
     with open(sys.argv[1], encoding="utf-8") as fh:
         spec = json.load(fh)
@@ -72,12 +79,15 @@ def main() -> None:
         grid = whole.with_blocks(grid) if grid else None
         if w.get("fail") == "not_a_grid_on_rank1" and comm.rank == 1:
             grid = {"blocks": local}
+        if spec.get("trace"):       # the bytes numpy and Python allocate during the write
+            tracemalloc.start()
         try:
             tq.write(w["path"], grid, comm=comm, blocks=blocks, **w.get("options", {}))
         except Exception as exc:    # noqa: BLE001  (the test reads the line)
             report.append(f"ERROR {type(exc).__name__}: {exc}")
         else:
-            report.append("OK")
+            report.append(f"OK {tracemalloc.get_traced_memory()[1]}" if spec.get("trace") else "OK")
+        tracemalloc.stop()
     # one file per rank: the ranks' standard outputs interleave
     with open(f"{sys.argv[1]}.rank{comm.rank}", "w", encoding="utf-8") as fh:
         json.dump(report, fh)

@@ -150,6 +150,20 @@ def test_error_on_one_rank_reaches_every_rank(tmp_path, monkeypatch):
     assert sorted(p.name for p in out.iterdir()) == ["folder.h5", "ok1.x", "ok2.h5"]
 
 
+def test_memory_is_the_ranks_own_blocks(tmp_path, monkeypatch):
+    """Plot3D: a rank allocates next to nothing while writing (its blocks go to the file
+    as they are); HDF5: rank 0 holds one other rank's block at a time, the others nothing."""
+    block = 40 ** 3 * 3 * 8
+    writes = [{"path": str(tmp_path / "big.x")}, {"path": str(tmp_path / "big.h5")}]
+    result = run_job(tmp_path, 3, {"grid": "big", "partition": "given", "trace": True, "writes": writes})
+    peaks = {i: [int(line.split()[1]) for line in lines] for i, lines in result.items()}
+    assert all(p < block // 4 for p in peaks[0]), peaks            # Plot3D, every rank
+    assert block <= peaks[1][0] < 1.5 * block, peaks                # HDF5 rank 0: one block
+    assert all(p < block // 4 for p in peaks[1][1:]), peaks        # HDF5 other ranks
+    assert Path(writes[0]["path"]).read_bytes() == serial(tmp_path / "s.x", "big", {}, monkeypatch)
+    assert Path(writes[1]["path"]).read_bytes() == serial(tmp_path / "s.h5", "big", {}, monkeypatch)
+
+
 def test_ascii_refused_on_every_rank(tmp_path):
     writes = [{"path": str(tmp_path / "a.fmt"), "options": {"encoding": "ascii"}}]
     result = run_job(tmp_path, 2, {"grid": "3d", "partition": "default", "writes": writes})

@@ -1260,8 +1260,8 @@ def write_blocks(path, blocks, *, ndim: int, nblocks: int, source_path=None, sou
         _set_text(f, "source_format", src_fmt)
         group = f.create_group("blocks")
         count = 0
-        for n, b in enumerate(blocks):
-            g = group.create_group(_block_group_name(n))
+        for b in blocks:        # not enumerate(): its cached tuple would keep the last block
+            g = group.create_group(_block_group_name(count))
             _set_text(g, "name", b.name or "")
             g.attrs["dims"] = np.asarray(b.dims, dtype=np.int64)
             _write_array(g, "xyz", b.xyz.T, comp, level)
@@ -1269,6 +1269,7 @@ def write_blocks(path, blocks, *, ndim: int, nblocks: int, source_path=None, sou
                 _write_array(g, "iblank", np.asarray(b.iblank, dtype=np.int32, order="F").T,
                              comp, level)
             count += 1
+            del b           # a generator's next block may come from elsewhere: hold one at a time
         if count != nblocks:
             raise GridValueError(f"{path}: {count} blocks given for a file of {nblocks}")
         if extra_text is not None:

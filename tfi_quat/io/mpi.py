@@ -365,23 +365,29 @@ def _write_hdf5(path, grid, local, numbers, owner, dims, ndim, protect,
 
 
 def _fetch_blocks(comm, MPI, owner, mine):
-    """Rank 0: every block in order, its own or received from its owner when asked for."""
+    """Rank 0: every block in order, its own or received from its owner when asked for.
+
+    No reference to a received block stays here once the next is asked for:
+    rank 0 holds one other rank's block at a time.
+    """
     for n, r in enumerate(owner):
-        if r == 0:
-            yield mine[n]
-            continue
-        comm.send(n, dest=r, tag=_TAG_ASK)
-        meta = comm.recv(source=r, tag=_TAG_META)
-        if isinstance(meta, BaseException):
-            raise meta
-        name, dims, has_iblank = meta
-        xyz = np.empty((*dims, 3), dtype=np.float64, order="F")
-        comm.Recv([xyz, MPI.DOUBLE], source=r, tag=_TAG_DATA)
-        iblank = None
-        if has_iblank:
-            iblank = np.empty(dims, dtype=np.int32, order="F")
-            comm.Recv([iblank, MPI.INT32_T], source=r, tag=_TAG_DATA)
-        yield Block(xyz, iblank, name=name, allow_nonfinite=True)   # checked on its rank
+        yield mine[n] if r == 0 else _receive(comm, MPI, n, r)
+
+
+def _receive(comm, MPI, n: int, r: int) -> Block:
+    """Rank 0: ask rank ``r`` for block ``n`` and receive it (its error raised here)."""
+    comm.send(n, dest=r, tag=_TAG_ASK)
+    meta = comm.recv(source=r, tag=_TAG_META)
+    if isinstance(meta, BaseException):
+        raise meta
+    name, dims, has_iblank = meta
+    xyz = np.empty((*dims, 3), dtype=np.float64, order="F")
+    comm.Recv([xyz, MPI.DOUBLE], source=r, tag=_TAG_DATA)
+    iblank = None
+    if has_iblank:
+        iblank = np.empty(dims, dtype=np.int32, order="F")
+        comm.Recv([iblank, MPI.INT32_T], source=r, tag=_TAG_DATA)
+    return Block(xyz, iblank, name=name, allow_nonfinite=True)    # checked on its rank
 
 
 def _serve_blocks(comm, MPI, mine) -> None:
