@@ -21,7 +21,8 @@ How each format is written:
   HDF5, and the bytes of a serial write come only from the same sequence of
   library calls, so rank 0 writes the file and asks each block's owner for
   it when its turn comes (point to point, coordinates as raw buffers): rank
-  0 holds its own blocks plus one other at a time, the other ranks their own.
+  0 holds its own blocks plus one other at a time, the other ranks their own
+  (tests/test_mpi.py measures both).
 
 Atomic as the serial writers (:mod:`tfi_quat.io._atomic`): a temporary file
 in the target's folder (which every rank must see: a shared file system),
