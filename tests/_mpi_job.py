@@ -20,7 +20,8 @@ import numpy as np
 
 def make_grid(kind: str):
     """A multiblock grid of varied block sizes: ``3d`` (one block with IBLANK), ``2d``,
-    ``pair`` (the first two blocks of ``3d``), ``big`` (six blocks of 40^3 points)."""
+    ``pair`` and ``one`` (the first
+    two blocks of ``3d``, the first), ``big`` (six blocks of 40^3 points)."""
     from tfi_quat import Block, Grid
     rng = np.random.default_rng(17)
     if kind == "2d":
@@ -36,8 +37,8 @@ def make_grid(kind: str):
         if kind == "3d" and n == 2:
             iblank = rng.integers(-1, 2, size=d).astype(np.int32)
         blocks.append(Block(np.asfortranarray(xyz), iblank, name=f"b{n}"))
-    if kind == "pair":
-        blocks = blocks[:2]
+    if kind in ("pair", "one"):
+        blocks = blocks[:2 if kind == "pair" else 1]
     if kind == "big":       # six blocks of 1.5 MB each: memory measurements
         blocks = [Block(np.asfortranarray(np.random.default_rng(n).standard_normal((40, 40, 40, 3))),
                         name=f"big{n}") for n in range(6)]

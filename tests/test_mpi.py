@@ -95,7 +95,8 @@ def test_collective_write_equals_serial(tmp_path, monkeypatch, nranks, partition
 
 
 def test_collective_write_2d_and_idle_rank(tmp_path, monkeypatch):
-    """A 2-D grid as 2-D Plot3D; then 3 ranks for 2 blocks: rank 2 holds none (grid None)."""
+    """A 2-D grid as 2-D Plot3D; then 3 ranks for 2 blocks: rank 2 holds none (grid None);
+    a single-block file (no block count) from 2 ranks."""
     writes = [{"path": str(tmp_path / "g2.x"), "options": {"encoding": "fortran"}},
               {"path": str(tmp_path / "g2.h5")}]
     result = run_job(tmp_path, 3, {"grid": "2d", "partition": "given", "writes": writes})
@@ -110,6 +111,13 @@ def test_collective_write_2d_and_idle_rank(tmp_path, monkeypatch):
     assert all(lines == ["OK"] * 3 for lines in result.values()), result
     assert Path(writes[0]["path"]).read_bytes() == serial(tmp_path / "p.x", "pair", {}, monkeypatch)
     assert Path(writes[1]["path"]).read_bytes() == serial(tmp_path / "p.h5", "pair", {}, monkeypatch)
+
+    (tmp_path / "one").mkdir()
+    single = {"multiblock": False, "encoding": "fortran", "endian": ">"}
+    writes = [{"path": str(tmp_path / "one" / "o.x"), "options": single}]
+    result = run_job(tmp_path, 2, {"grid": "one", "partition": "default", "writes": writes})
+    assert result[0] == ["OK"] * 2, result
+    assert Path(writes[0]["path"]).read_bytes() == serial(tmp_path / "o.x", "one", single, monkeypatch)
 
 
 def test_error_on_one_rank_reaches_every_rank(tmp_path, monkeypatch):
