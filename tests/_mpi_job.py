@@ -80,10 +80,15 @@ def main() -> None:
         grid = whole.with_blocks(grid) if grid else None
         if w.get("fail") == "not_a_grid_on_rank1" and comm.rank == 1:
             grid = {"blocks": local}
+        options = dict(w.get("options", {}))
+        if w.get("fail") == "ndim3_on_rank1" and comm.rank == 1:
+            grid = tq.Grid(grid.blocks, ndim=3)
+        if w.get("fail") == "float32_variant_on_rank1" and comm.rank == 1:
+            options["precision"] = 4
         if spec.get("trace"):       # the bytes numpy and Python allocate during the write
             tracemalloc.start()
         try:
-            tq.write(w["path"], grid, comm=comm, blocks=blocks, **w.get("options", {}))
+            tq.write(w["path"], grid, comm=comm, blocks=blocks, **options)
         except Exception as exc:    # noqa: BLE001  (the test reads the line)
             report.append(f"ERROR {type(exc).__name__}: {exc}")
         else:

@@ -95,12 +95,22 @@ def test_collective_write_equals_serial(tmp_path, monkeypatch, nranks, partition
 
 
 def test_collective_write_2d_and_idle_rank(tmp_path, monkeypatch):
-    """A 2-D grid as 2-D Plot3D; then 3 ranks for 2 blocks: rank 2 holds none (grid None);
+    """A 2-D grid as 2-D Plot3D (ranks disagreeing on ndim or on the variant: refused on
+    every rank); then 3 ranks for 2 blocks: rank 2 holds none (grid None);
     a single-block file (no block count) from 2 ranks."""
     writes = [{"path": str(tmp_path / "g2.x"), "options": {"encoding": "fortran"}},
-              {"path": str(tmp_path / "g2.h5")}]
+              {"path": str(tmp_path / "g2.h5")},
+              {"path": str(tmp_path / "bad.h5"), "fail": "ndim3_on_rank1"},
+              {"path": str(tmp_path / "bad.x"), "fail": "float32_variant_on_rank1"}]
     result = run_job(tmp_path, 3, {"grid": "2d", "partition": "given", "writes": writes})
-    assert all(lines == ["OK"] * 3 for lines in result.values()), result
+    assert result[0] == result[1] == ["OK"] * 3, result
+    assert len(set(result[2])) == 1 and re.match(
+        r"ERROR ParallelError: .*bad\.h5: the ranks' grids disagree on ndim \(rank 0: 2-D, rank 1: 3-D, "
+        r"rank 2: 2-D\)", result[2][0]), result[2]
+    assert len(set(result[3])) == 1 and re.match(
+        r"ERROR ParallelError: .*bad\.x: the ranks would write different variants "
+        r"\(rank 0: C binary.*float64.*; rank 1: C binary.*float32", result[3][0]), result[3]
+    assert not (tmp_path / "bad.h5").exists() and not (tmp_path / "bad.x").exists()
     assert Path(writes[0]["path"]).read_bytes() == serial(tmp_path / "s.x", "2d", {"encoding": "fortran"},
                                                           monkeypatch)
     assert Path(writes[1]["path"]).read_bytes() == serial(tmp_path / "s.h5", "2d", {}, monkeypatch)
