@@ -11,7 +11,7 @@ from __future__ import annotations
 __version__ = "0.1.0"
 
 from .errors import (CaseError, ConnectivityError, DeformationError, GridFormatError,
-                     GridValueError, OverwriteError, TfiQuatError)
+                     GridValueError, OverwriteError, ParallelError, TfiQuatError)
 from .grid import FACES, Block, Grid, partition
 from .io import read, read_faces, write
 
@@ -20,7 +20,7 @@ __all__ = [
     "Block", "Grid", "FACES",
     "read", "read_faces", "write", "partition",
     "TfiQuatError", "GridFormatError", "GridValueError", "ConnectivityError",
-    "CaseError", "DeformationError", "OverwriteError",
+    "CaseError", "DeformationError", "OverwriteError", "ParallelError",
     "Deformer", "StepTimings", "rigid_motion", "deformer_from_case", "connect", "Connectivity",
 ]
 

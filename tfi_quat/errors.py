@@ -15,6 +15,7 @@ __all__ = [
     "CaseError",
     "DeformationError",
     "OverwriteError",
+    "ParallelError",
 ]
 
 
@@ -44,3 +45,8 @@ class DeformationError(TfiQuatError, RuntimeError):
 
 class OverwriteError(TfiQuatError, FileExistsError):
     """A write would replace an input or an existing file without permission."""
+
+
+class ParallelError(TfiQuatError, RuntimeError):
+    """An MPI collective cannot run: mpi4py not installed, a bad communicator, ranks
+    whose grids or file variants disagree."""

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from ..errors import GridFormatError
+from ..errors import GridFormatError, ParallelError
 
 __all__ = ["read", "read_faces", "write", "register", "format_for", "check_readable", "FORMATS", "TARGETS"]
 
@@ -233,8 +233,8 @@ def read_faces(path, format: str | None = None, **kw):
 
 
 def write(path, grid, format: str | None = None, *, like=None, target: str | None = None,
-          overwrite: bool = False, **kw) -> None:
-    """Write a grid file atomically.
+          overwrite: bool = False, comm=None, blocks=None, **kw) -> None:
+    """Write a grid file atomically (under MPI: collectively, from each rank's blocks).
 
     Parameters
     ----------
@@ -254,9 +254,33 @@ def write(path, grid, format: str | None = None, *, like=None, target: str | Non
         planes in CFL3D's x-z plane); takes no variant options, no ``like``.
     overwrite : bool
         Allow writing over the grid's own input file (``grid.source_path``).
+    comm : mpi4py.MPI.Intracomm, optional
+        Write one file collectively (:func:`tfi_quat.io.mpi.write`): every
+        rank calls ``write`` with its own blocks as ``grid`` (None: none) and
+        the same other arguments; the file is byte for byte that of a serial
+        write of the whole grid.  Plot3D (binary, Fortran) and HDF5.  Needs
+        the ``mpi`` extra: ``pip install "tfi_quat[mpi]"``.
+    blocks : sequence of int, optional
+        With ``comm``: the 0-based global numbers of this rank's blocks
+        (default: the ranks' blocks in rank order).
     **kw
         Variant options of the format's writer (override ``like``).
+
+    Raises
+    ------
+    ParallelError
+        ``comm`` given without mpi4py installed (the message names the
+        extra), or not a communicator; ``blocks`` given without ``comm``.
     """
+    if comm is not None:
+        if target is not None:
+            raise GridFormatError(f"{path}: a collective write (comm=) does not write solver "
+                                  f"targets (target={target!r})")
+        from . import mpi      # imports mpi4py: only under MPI
+        return mpi.write(path, grid, comm, blocks=blocks, format=format, like=like,
+                         overwrite=overwrite, **kw)
+    if blocks is not None:
+        raise ParallelError("blocks= numbers a rank's blocks in a collective write; give comm= too")
     if target is not None:
         fmt = _target(target, format)
         if like is not None:

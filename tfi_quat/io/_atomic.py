@@ -24,7 +24,7 @@ from pathlib import Path
 
 from ..errors import OverwriteError
 
-__all__ = ["atomic_output", "check_target", "read_text", "TEXT_LIMIT"]
+__all__ = ["atomic_output", "check_target", "new_temp", "install", "read_text", "TEXT_LIMIT"]
 
 #: largest text input read by :func:`read_text` (bytes)
 TEXT_LIMIT = 64 << 20
@@ -56,6 +56,28 @@ def check_target(path, *, overwrite: bool, protect=(), replace_existing: bool = 
     return target
 
 
+def new_temp(path) -> tuple[int, str]:
+    """Create the hidden temporary file ``.TARGET.XXXXXXXX.tmp`` in the target's folder.
+
+    Returns its open descriptor and path.  FileNotFoundError when the folder
+    does not exist.
+    """
+    target = Path(os.fspath(path))
+    folder = target.parent if str(target.parent) else Path(".")
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{target}: folder {folder} does not exist")
+    return tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=folder)
+
+
+def install(tmp, path) -> None:
+    """Give a complete, synced temporary file the usual permissions and rename it over ``path``."""
+    # keep the usual permissions of a new file (mkstemp makes it 0600)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    os.replace(tmp, os.fspath(path))
+
+
 @contextlib.contextmanager
 def atomic_output(path, mode: str = "wb"):
     """Yield a temporary file object in the target's folder; rename into place on success.
@@ -64,10 +86,7 @@ def atomic_output(path, mode: str = "wb"):
     temporary *path* instead (for libraries such as h5py that open files themselves).
     """
     target = Path(os.fspath(path))
-    folder = target.parent if str(target.parent) else Path(".")
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{target}: folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=folder)
+    fd, tmp = new_temp(target)
     ok = False
     try:
         if mode == "path":
@@ -85,11 +104,7 @@ def atomic_output(path, mode: str = "wb"):
                 yield fh
                 fh.flush()
                 os.fsync(fh.fileno())
-        # keep the usual permissions of a new file (mkstemp makes it 0600)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, target)
+        install(tmp, target)
         ok = True
     finally:
         if not ok:

@@ -94,7 +94,7 @@ from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 __all__ = ["HDF5Format", "HDF5Info", "read", "write", "read_block", "read_face", "read_faces", "info",
            "read_extra", "is_hdf5", "guard", "mapped_offset", "map_file", "close_map", "check_finite",
            "alloc", "damaged_file_errors",
-           "FORMAT_NAME", "LAYOUT_VERSION"]
+           "FORMAT_NAME", "LAYOUT_VERSION", "write_options", "write_blocks"]
 
 #: value of the root attribute ``format``
 FORMAT_NAME = "tfi_quat-grid"
@@ -1288,6 +1288,10 @@ def write(path, grid: Grid, *, like=None, overwrite: bool = False, compression=N
         A JSON-serialisable object stored as text in ``/extra``
         (see :func:`read_extra`).
 
+    The root attribute ``created`` is the time of the write, or the time the
+    environment variable ``SOURCE_DATE_EPOCH`` (seconds since 1970, UTC)
+    gives, for reproducible files.
+
     Raises
     ------
     OverwriteError
@@ -1297,6 +1301,25 @@ def write(path, grid: Grid, *, like=None, overwrite: bool = False, compression=N
     """
     if not isinstance(grid, Grid):
         raise GridValueError(f"write needs a Grid, got {type(grid).__name__}")
+    options = write_options(like, compression, compression_level, extra_json)
+    target = check_target(path, overwrite=overwrite, protect=[grid.source_path])
+    with atomic_output(target, mode="path") as tmp:
+        # Let HDF5 create the file rather than truncate the empty temporary
+        # one: on ext4, closing a file that was opened with O_TRUNC forces a
+        # flush of all its data (auto_da_alloc), 0.15 s per 0.5 GB.
+        os.unlink(tmp)
+        write_blocks(tmp, grid.blocks, ndim=grid.ndim, nblocks=grid.nblocks,
+                     source_path=grid.source_path, source_format=grid.source_format, **options)
+
+
+def write_options(like=None, compression=None, compression_level=None, extra_json=None) -> dict:
+    """The checked options of :func:`write_blocks` from those of :func:`write`.
+
+    Raises
+    ------
+    GridValueError
+        An unknown compression, ``extra_json`` not a JSON object.
+    """
     like = getattr(like, "source_format", like)
     comp, level = _resolve_compression(compression, compression_level, like)
     extra_text = None
@@ -1307,38 +1330,60 @@ def write(path, grid: Grid, *, like=None, overwrite: bool = False, compression=N
             extra_text = json.dumps(extra_json, allow_nan=False, sort_keys=True)
         except (TypeError, ValueError) as exc:
             raise GridValueError(f"extra_json is not JSON-serialisable: {exc}") from None
-    target = check_target(path, overwrite=overwrite, protect=[grid.source_path])
-    with atomic_output(target, mode="path") as tmp:
-        # Let HDF5 create the file rather than truncate the empty temporary
-        # one: on ext4, closing a file that was opened with O_TRUNC forces a
-        # flush of all its data (auto_da_alloc), 0.15 s per 0.5 GB.
-        os.unlink(tmp)
-        _write_file(tmp, grid, comp, level, extra_text)
+    return {"compression": comp, "compression_level": level, "extra_text": extra_text}
 
 
-def _write_file(path, grid: Grid, comp, level, extra_text) -> None:
-    """Create the HDF5 file ``path`` (it must not exist) holding ``grid``: the bytes of a write."""
+def _created() -> str:
+    """The ``created`` stamp: now, or ``SOURCE_DATE_EPOCH`` when set (reproducible files)."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    if epoch:
+        try:
+            when = _dt.datetime.fromtimestamp(int(epoch), _dt.timezone.utc)
+        except (ValueError, OverflowError, OSError):
+            raise GridValueError(f"SOURCE_DATE_EPOCH={epoch!r} is not a time in seconds since 1970") from None
+    else:
+        when = _dt.datetime.now(_dt.timezone.utc)
+    return when.strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def write_blocks(path, blocks, *, ndim: int, nblocks: int, source_path=None, source_format=None,
+                 compression=None, compression_level=None, extra_text=None) -> None:
+    """Create the HDF5 file ``path`` (it must not exist) from blocks given one at a time.
+
+    The bytes of :func:`write` (which calls it on a temporary file), for
+    writers that hold one block at a time: ``blocks`` is an iterable of the
+    ``nblocks`` blocks in order (a generator may fetch each when asked).
+    ``compression``, ``compression_level`` and ``extra_text`` are the
+    checked options of :func:`write_options`; not atomic by itself.
+    """
     from .. import __version__
-    src_fmt = "" if grid.source_format is None else repr(grid.source_format)
+    src_fmt = "" if source_format is None else repr(source_format)
+    comp, level = compression, compression_level
+    created = _created()
     # file-format objects of HDF5 1.10: every piece of metadata carries a checksum
     with h5py.File(path, "x", libver=_LIBVER) as f:
         _set_text(f, "format", FORMAT_NAME)
         f.attrs["version"] = np.int64(LAYOUT_VERSION)
-        f.attrs["ndim"] = np.int64(grid.ndim)
-        f.attrs["nblocks"] = np.int64(grid.nblocks)
+        f.attrs["ndim"] = np.int64(ndim)
+        f.attrs["nblocks"] = np.int64(nblocks)
         _set_text(f, "creator", f"tfi_quat {__version__}")
-        _set_text(f, "created", _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"))
-        _set_text(f, "source", "" if grid.source_path is None else str(grid.source_path))
+        _set_text(f, "created", created)
+        _set_text(f, "source", "" if source_path is None else str(source_path))
         _set_text(f, "source_format", src_fmt)
-        blocks = f.create_group("blocks")
-        for n, b in enumerate(grid.blocks):
-            g = blocks.create_group(_block_group_name(n))
+        group = f.create_group("blocks")
+        count = 0
+        for b in blocks:        # not enumerate(): its cached tuple would keep the last block
+            g = group.create_group(_block_group_name(count))
             _set_text(g, "name", b.name or "")
             g.attrs["dims"] = np.asarray(b.dims, dtype=np.int64)
             _write_array(g, "xyz", b.xyz.T, comp, level)
             if b.iblank is not None:
                 _write_array(g, "iblank", np.asarray(b.iblank, dtype=np.int32, order="F").T,
                              comp, level)
+            count += 1
+            del b           # a generator's next block may come from elsewhere: hold one at a time
+        if count != nblocks:
+            raise GridValueError(f"{path}: {count} blocks given for a file of {nblocks}")
         if extra_text is not None:
             data = extra_text.encode("utf-8")
             f.create_dataset("extra", data=np.bytes_(data),

@@ -76,7 +76,8 @@ from ._atomic import atomic_output, check_target
 from ._limits import BYTES_PER_POINT, available_memory, check_points
 from .partial import GridFaces, block_numbers, empty_faces, fill_faces
 
-__all__ = ["Plot3DFormat", "read", "read_faces", "write", "detect", "detect_all"]
+__all__ = ["Plot3DFormat", "read", "read_faces", "write", "detect", "detect_all", "write_format",
+           "check_write", "block_offsets", "write_header", "write_block"]
 
 #: allowed values of each field, the preferred (most common) value first
 _CHOICES = {
@@ -1499,7 +1500,8 @@ def read_faces(path, *, format: Plot3DFormat | None = None, allow_nonfinite: boo
 
 # ---------------------------------------------------------------- write
 
-def _resolve_write_format(grid: Grid, like, options) -> Plot3DFormat:
+def write_format(grid: Grid, like=None, **options) -> Plot3DFormat:
+    """The variant :func:`write` writes ``grid`` in (``like`` and ``options`` as there)."""
     _check_names(options, "Plot3D write")
     if like is None:
         base = grid.source_format if isinstance(grid.source_format, Plot3DFormat) else Plot3DFormat()
@@ -1549,31 +1551,122 @@ def write(path, grid: Grid, *, like: Plot3DFormat | None = None, overwrite: bool
     """
     if not isinstance(grid, Grid):
         raise GridValueError(f"write needs a Grid, got {type(grid).__name__}")
-    fmt = _resolve_write_format(grid, like, options)
-    if not fmt.multiblock and len(grid) > 1:
-        raise GridFormatError(f"{path}: a single-block Plot3D variant cannot hold {len(grid)} blocks "
-                              "(write with multiblock=True)")
-    if fmt.ndim == 2:
-        for n, b in enumerate(grid):
-            if b.dims[2] != 1 or has_z(b.xyz):
-                raise GridFormatError(f"{path}: block {n + 1} is 3-D (nk = {b.dims[2]}, or z != 0); "
-                                      "it cannot be written as a 2-D Plot3D file")
-    if fmt.encoding == "fortran":
-        limit = (1 << (8 * fmt.marker_size - 1)) - 1
-        _, layouts, _, _ = _layout(fmt, [b.dims for b in grid])
-        for n, lay in enumerate(layouts):
-            longest = max(length for _, length in lay.markers)
-            if longest > limit:
-                raise GridFormatError(f"{path}: block {n + 1} needs a Fortran record of {longest} "
-                                      f"bytes, more than {fmt.marker_size}-byte markers can frame; "
-                                      "write with marker_size=8 or records='coordinate'")
+    fmt = write_format(grid, like, **options)
+    dims = [b.dims for b in grid]
+    check_write(path, fmt, dims, grid.blocks, range(len(grid)))
     target = check_target(path, overwrite=overwrite, protect=[grid.source_path])
     if fmt.encoding == "ascii":
         with atomic_output(target, "w") as fh:
             _write_ascii(fh, grid, fmt, path)
     else:
         with atomic_output(target, "wb") as fh:
-            _write_binary(fh, grid, fmt, path)
+            write_header(fh, fmt, dims)
+            for n, b in enumerate(grid):
+                write_block(fh, b, fmt, f"{path}: block {n + 1} of {len(grid)}")
+
+
+def check_write(path, fmt: Plot3DFormat, dims, blocks, numbers) -> None:
+    """Check that a grid of blocks with ``dims`` can be written as ``fmt``.
+
+    ``dims`` lists the ``(ni, nj, nk)`` of every block of the file; ``blocks``
+    the blocks whose coordinates are at hand (all of them in a serial write,
+    a rank's own under MPI), ``numbers`` their 0-based block numbers.
+
+    Raises
+    ------
+    GridFormatError
+        Several blocks in a single-block variant, a 3-D block written as 2-D,
+        a Fortran record too long for its markers.
+    """
+    if not fmt.multiblock and len(dims) > 1:
+        raise GridFormatError(f"{path}: a single-block Plot3D variant cannot hold {len(dims)} blocks "
+                              "(write with multiblock=True)")
+    if fmt.ndim == 2:
+        for n, b in zip(numbers, blocks):
+            if b.dims[2] != 1 or has_z(b.xyz):
+                raise GridFormatError(f"{path}: block {n + 1} is 3-D (nk = {b.dims[2]}, or z != 0); "
+                                      "it cannot be written as a 2-D Plot3D file")
+    if fmt.encoding == "fortran":
+        limit = (1 << (8 * fmt.marker_size - 1)) - 1
+        _, layouts, _, _ = _layout(fmt, dims)
+        for n, lay in enumerate(layouts):
+            longest = max(length for _, length in lay.markers)
+            if longest > limit:
+                raise GridFormatError(f"{path}: block {n + 1} needs a Fortran record of {longest} "
+                                      f"bytes, more than {fmt.marker_size}-byte markers can frame; "
+                                      "write with marker_size=8 or records='coordinate'")
+
+
+def block_offsets(fmt: Plot3DFormat, dims) -> tuple[list[int], int]:
+    """Where each block starts in a binary or Fortran file of ``fmt``, and the file size.
+
+    ``dims`` lists every block's ``(ni, nj, nk)``.  The first block starts
+    where the header (:func:`write_header`) ends; :func:`write_block` writes
+    a block's bytes from its offset on.
+    """
+    if fmt.encoding == "ascii":
+        raise GridFormatError("an ASCII Plot3D file has no fixed block offsets")
+    _, layouts, size, _ = _layout(fmt, [tuple(d) for d in dims])
+    return [lay.start for lay in layouts], size
+
+
+def write_header(fh, fmt: Plot3DFormat, dims) -> None:
+    """Write the header of a binary or Fortran file: block count (multi-block) and dims."""
+    nd = fmt.ndim
+    ms = fmt.marker_size if fmt.encoding == "fortran" else 0
+    mdt = np.dtype(f"{fmt.endian}i{ms}") if ms else None
+    idt = _int_dtype(fmt)
+
+    def marker(length):
+        if ms:
+            fh.write(np.array([length], dtype=mdt).tobytes())
+
+    if fmt.multiblock:
+        marker(fmt.int_size)
+        fh.write(np.array([len(dims)], dtype=idt).tobytes())
+        marker(fmt.int_size)
+    header = np.array([tuple(d)[:nd] for d in dims], dtype=idt).reshape(-1)
+    marker(header.nbytes)
+    fh.write(header.tobytes())
+    marker(header.nbytes)
+
+
+def write_block(fh, b: Block, fmt: Plot3DFormat, where: str) -> None:
+    """Write one block's records (binary or Fortran) at the file's current position.
+
+    ``where`` names the block in errors (a coordinate beyond float32).
+    """
+    nd = fmt.ndim
+    ms = fmt.marker_size if fmt.encoding == "fortran" else 0
+    mdt = np.dtype(f"{fmt.endian}i{ms}") if ms else None
+    idt, fdt = _int_dtype(fmt), _float_dtype(fmt)
+
+    def marker(length):
+        if ms:
+            fh.write(np.array([length], dtype=mdt).tobytes())
+
+    n = b.npoints
+    flat = b.xyz.reshape(-1, order="F")
+    ib = None
+    if fmt.iblank:
+        # blocks without IBLANK are written as all 1 (only built when written)
+        ib = b.iblank.reshape(-1, order="F") if b.iblank is not None else np.ones(n, dtype=np.int32)
+    if fmt.encoding == "fortran" and fmt.records == "coordinate":
+        for c in range(nd):
+            marker(n * fmt.precision)
+            _write_array(fh, flat[c * n:(c + 1) * n], fdt, where)
+            marker(n * fmt.precision)
+        if fmt.iblank:
+            marker(n * fmt.int_size)
+            _write_array(fh, ib, idt)
+            marker(n * fmt.int_size)
+    else:
+        length = n * (nd * fmt.precision + (fmt.int_size if fmt.iblank else 0))
+        marker(length)
+        _write_array(fh, flat[:nd * n], fdt, where)
+        if fmt.iblank:
+            _write_array(fh, ib, idt)
+        marker(length)
 
 
 def _write_array(fh, arr: np.ndarray, dtype: np.dtype, where: str = "") -> None:
@@ -1596,53 +1689,6 @@ def _convert(chunk: np.ndarray, dtype: np.dtype, where: str) -> np.ndarray:
             raise GridFormatError(f"{where}: coordinate {float(v)!r} is beyond the float32 range; "
                                   "write with precision=8")
     return out
-
-
-def _write_binary(fh, grid: Grid, fmt: Plot3DFormat, path="Plot3D file") -> None:
-    nd = fmt.ndim
-    dims = [b.dims[:nd] for b in grid]
-    ms = fmt.marker_size if fmt.encoding == "fortran" else 0
-    mdt = np.dtype(f"{fmt.endian}i{ms}") if ms else None
-    idt, fdt = _int_dtype(fmt), _float_dtype(fmt)
-
-    def marker(length):
-        if ms:
-            fh.write(np.array([length], dtype=mdt).tobytes())
-
-    if fmt.multiblock:
-        marker(fmt.int_size)
-        fh.write(np.array([len(grid)], dtype=idt).tobytes())
-        marker(fmt.int_size)
-    header = np.array(dims, dtype=idt).reshape(-1)
-    marker(header.nbytes)
-    fh.write(header.tobytes())
-    marker(header.nbytes)
-    def where(bn):
-        return f"{path}: block {bn + 1} of {len(grid)}"
-
-    for bn, b in enumerate(grid):
-        n = b.npoints
-        flat = b.xyz.reshape(-1, order="F")
-        ib = None
-        if fmt.iblank:
-            # blocks without IBLANK are written as all 1 (only built when written)
-            ib = b.iblank.reshape(-1, order="F") if b.iblank is not None else np.ones(n, dtype=np.int32)
-        if fmt.encoding == "fortran" and fmt.records == "coordinate":
-            for c in range(nd):
-                marker(n * fmt.precision)
-                _write_array(fh, flat[c * n:(c + 1) * n], fdt, where(bn))
-                marker(n * fmt.precision)
-            if fmt.iblank:
-                marker(n * fmt.int_size)
-                _write_array(fh, ib, idt)
-                marker(n * fmt.int_size)
-        else:
-            length = n * (nd * fmt.precision + (fmt.int_size if fmt.iblank else 0))
-            marker(length)
-            _write_array(fh, flat[:nd * n], fdt, where(bn))
-            if fmt.iblank:
-                _write_array(fh, ib, idt)
-            marker(length)
 
 
 _PER_LINE = 4
