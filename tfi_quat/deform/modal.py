@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import DeformationError
 from ..grid import Grid
 from ..io.surface import check_names, read_surface
+from .walls import point_keys
 
 __all__ = ["ModalMotion", "surface_modes", "POINT_TOL"]
 
@@ -35,9 +36,9 @@ def _row_name(ids: np.ndarray, r: int) -> str:
     return f"row {r} (block, i, j, k) = {tuple(int(v) for v in ids[r])}"
 
 
-def _flat_keys(ids: np.ndarray, grid: Grid, where: str) -> np.ndarray:
-    """Point number (block offset + Fortran index) of each row of ``ids``, checked in range."""
-    dims = np.array([blk.dims for blk in grid], dtype=np.int64)
+def _check_in_grid(ids: np.ndarray, grid: Grid, where: str) -> None:
+    """A DeformationError naming the first row of ``ids`` whose block or point is not in ``grid``."""
+    dims = np.array(grid.dims, dtype=np.int64)
     b = ids[:, 0]
     bad = (b < 0) | (b >= len(grid))
     if bad.any():
@@ -50,8 +51,6 @@ def _flat_keys(ids: np.ndarray, grid: Grid, where: str) -> np.ndarray:
         r = int(np.flatnonzero(bad)[0])
         raise DeformationError(f"{where}: ids {_row_name(ids, r)} (0-based) lies outside block "
                                f"{int(b[r])}'s dims {tuple(int(v) for v in d[r])}")
-    offsets = np.concatenate([[0], np.cumsum(np.prod(dims, axis=1))[:-1]])
-    return offsets[b] + ids[:, 1] + d[:, 0] * (ids[:, 2] + d[:, 1] * ids[:, 3])
 
 
 def _permutation(ids: np.ndarray, surface: np.ndarray, grid: Grid, where: str) -> np.ndarray:
@@ -62,8 +61,9 @@ def _permutation(ids: np.ndarray, surface: np.ndarray, grid: Grid, where: str) -
     if ids.shape != surface.shape:
         raise DeformationError(f"{where}: {ids.shape[0]} ids, expected {surface.shape[0]} (one per "
                                "wall point copy of surface_ids())")
-    fk = _flat_keys(ids, grid, where)
-    sk = _flat_keys(surface, grid, "surface_ids()")
+    _check_in_grid(ids, grid, where)
+    fk = point_keys(grid, ids)
+    sk = point_keys(grid, surface)
     order = np.argsort(fk, kind="stable")
     fs = fk[order]
     dup = np.flatnonzero(fs[1:] == fs[:-1])

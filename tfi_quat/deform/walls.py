@@ -19,7 +19,18 @@ from ..grid import Grid, face_ijk
 from ..spec import PatchSpec, parse_patch_spec
 from .skeleton import WALL
 
-__all__ = ["WallInput", "other_targets"]
+__all__ = ["WallInput", "other_targets", "point_keys"]
+
+
+def point_keys(grid: Grid, ids: np.ndarray) -> np.ndarray:
+    """Flat keys (block offset + Fortran index: the numbering of
+    :class:`~tfi_quat.deform.skeleton.BoundaryPoints`) of the points ``ids`` (m, 4) int64,
+    ``(block, i, j, k)`` 0-based and inside ``grid``."""
+    dims = np.array(grid.dims, dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(np.prod(dims, axis=1))[:-1]])
+    b = ids[:, 0]
+    d = dims[b]
+    return offsets[b] + ids[:, 1] + d[:, 0] * (ids[:, 2] + d[:, 1] * ids[:, 3])
 
 
 class WallInput:
@@ -95,8 +106,7 @@ class WallInput:
         else:
             copy_of = self._check_ids(ids, m)
             keys, kgid = self._wall_lookup()
-            b, i, j, k = copy_of.T
-            flat = self._flat_keys(b, i, j, k)
+            flat = point_keys(self.grid, copy_of)
             at = np.minimum(np.searchsorted(keys, flat), keys.size - 1)
             hit = keys[at] == flat
             if not hit.all():
@@ -170,11 +180,6 @@ class WallInput:
             raise DeformationError(f"ids row {r}: {self._copy_name(*a[r])} (0-based) is outside "
                                    f"the block's {tuple(int(v) for v in dims[r])} points")
         return a
-
-    def _flat_keys(self, b, i, j, k) -> np.ndarray:
-        """Flat keys (block offset + Fortran index) of points (block, i, j, k)."""
-        dims = np.array(self.grid.dims, dtype=np.int64)[b]
-        return self.skeleton.points.offsets[b] + i + dims[:, 0] * (j + dims[:, 1] * k)
 
     def _key_to_copy(self, key: int) -> tuple[int, tuple[int, int, int]]:
         off = self.skeleton.points.offsets
