@@ -89,22 +89,25 @@ def amplitudes(text: str) -> tuple[float, ...]:
     return tuple(out)
 
 
-def _check_modes(args) -> None:
+def _check_modes(args):
     """--modes and --amplitudes go together, without another motion; the file is read (and
-    checked) before the set-up."""
+    checked) before the set-up and returned (:class:`tfi_quat.io.surface.SurfaceFile`; None
+    without --modes)."""
     if args.amplitudes is not None and not args.modes:
         raise CaseError("--amplitudes goes with --modes MODES.h5")
     if not args.modes:
-        return
+        return None
     if args.amplitudes is None:
         raise CaseError(f"--modes {args.modes}: give the amplitudes (--amplitudes A1,A2,...)")
     if args.moved or any(v is not None for v in (args.rotate, args.axis, args.about, args.translate)):
         raise CaseError("give either --modes or --moved or --rotate/--axis/--about/--translate, "
                         "not more than one")
     from ..io.surface import read_surface
-    n = read_surface(args.modes).n_modes
-    if n != len(args.amplitudes):
-        raise CaseError(f"{args.modes}: {n} mode(s), but {len(args.amplitudes)} amplitude(s) given")
+    surface = read_surface(args.modes)
+    if surface.n_modes != len(args.amplitudes):
+        raise CaseError(f"{args.modes}: {surface.n_modes} mode(s), but {len(args.amplitudes)} "
+                        "amplitude(s) given")
+    return surface
 
 
 def _motion(args, case):
@@ -172,6 +175,7 @@ def run(args) -> int:
 
     case, path = case_and_grid(args)
     inputs = [path, args.moved, args.case, args.nmf, args.connectivity, args.modes]
+    surface = None
     if args.write_surface:
         if args.output or args.modes or args.moved or args.amplitudes is not None:
             raise CaseError("--write-surface writes the walls only: give no -o, --modes, "
@@ -181,7 +185,7 @@ def run(args) -> int:
         out = args.output or (case.output if case is not None else None)
         if out is None:
             raise CaseError("no output file: give -o OUT")
-        _check_modes(args)
+        surface = _check_modes(args)
     check_output(out, args.force, inputs=inputs)
     if args.nmf and args.connectivity:
         raise CaseError("give --nmf or --connectivity, not both")
@@ -220,7 +224,7 @@ def run(args) -> int:
         return 0
     progress = _Progress(not args.quiet and grid.npoints > 2_000_000)
     if args.modes:
-        result = deformer.modal(args.modes)(args.amplitudes, callback=progress)
+        result = deformer.modal(surface)(args.amplitudes, callback=progress)
     else:
         result = deformer.deform(moved, callback=progress)
     t2 = time.perf_counter()

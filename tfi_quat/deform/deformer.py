@@ -727,10 +727,11 @@ class Deformer:
 
         Parameters
         ----------
-        modes : array_like (n_modes, n, 3), or str / path-like
+        modes : array_like (n_modes, n, 3), str / path-like, or SurfaceFile
             Mode shapes (displacement per unit amplitude) in
             :meth:`surface_ids` order, or a surface file (``MODES.h5``,
-            :meth:`write_surface`; its rows in any order, matched by their ids).
+            :meth:`write_surface`; its rows in any order, matched by their ids),
+            or such a file already read (:func:`tfi_quat.io.surface.read_surface`).
 
         Returns
         -------

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import DeformationError
 from ..grid import Grid
-from ..io.surface import check_names, read_surface
+from ..io.surface import SurfaceFile, check_names, read_surface
 from .walls import point_keys
 
 __all__ = ["ModalMotion", "surface_modes", "POINT_TOL"]
@@ -91,9 +91,9 @@ def surface_modes(modes, surface_ids: np.ndarray, surface_points: np.ndarray, gr
 
     Parameters
     ----------
-    modes : array_like (n_modes, n, 3), or str / path-like
-        Shapes in ``surface_ids`` order, or a surface file
-        (:func:`tfi_quat.io.surface.read_surface`) with its rows in any order.
+    modes : array_like (n_modes, n, 3), str / path-like, or SurfaceFile
+        Shapes in ``surface_ids`` order, or a surface file, or one already read
+        (:func:`tfi_quat.io.surface.read_surface`), with its rows in any order.
     surface_ids : ndarray, int64, shape (n, 4)
     surface_points : ndarray, float64, shape (n, 3)
     grid : Grid
@@ -107,8 +107,8 @@ def surface_modes(modes, surface_ids: np.ndarray, surface_points: np.ndarray, gr
         The file (or ``"modes"``), for messages.
     """
     n = surface_ids.shape[0]
-    if isinstance(modes, (str, bytes)) or hasattr(modes, "__fspath__"):
-        f = read_surface(modes, n_points=n)
+    if isinstance(modes, (str, bytes, SurfaceFile)) or hasattr(modes, "__fspath__"):
+        f = modes if isinstance(modes, SurfaceFile) else read_surface(modes, n_points=n)
         where = f.path
         if f.ndim != grid.ndim:
             raise DeformationError(f"{where}: written for a {f.ndim}-D grid, this grid is "
