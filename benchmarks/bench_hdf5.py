@@ -153,7 +153,8 @@ def main(argv=None) -> int:
 
         def h5_writer_alone():
             # the HDF5 file as write() makes it, without the temporary file, fsync and rename
-            hdf5._write_file(h5, grid, None, None, None)
+            hdf5.write_blocks(h5, grid.blocks, ndim=grid.ndim, nblocks=grid.nblocks,
+                              source_path=grid.source_path, source_format=grid.source_format)
 
         def os_write():
             fd = os.open(raw, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)

@@ -87,7 +87,9 @@ def tofile_same_bytes(grid: Grid, path: Path, fsync: bool) -> None:
 def writer_only(grid: Grid, path: Path, fmt: Plot3DFormat) -> None:
     """The Plot3D byte writer into a plain file: no temporary file, rename or fsync."""
     with open(path, "wb") as fh:
-        plot3d._write_binary(fh, grid, fmt)
+        plot3d.write_header(fh, fmt, [b.dims for b in grid])
+        for n, b in enumerate(grid):
+            plot3d.write_block(fh, b, fmt, f"{path}: block {n + 1}")
 
 
 PEAK_SCRIPT = """
