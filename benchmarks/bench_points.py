@@ -177,7 +177,7 @@ def bench_nearest(grid, bp, conn, args) -> bool:
     ref = outs[1]
     print(f"{'':54s}{'time (best of %d)' % args.repeat:>20s}{'within bound':>14s}{'vs best cKDTree':>17s}")
     t_kd = min(times[:2])
-    labels = [runs[0][0], runs[1][0] + " compact_nodes=False)", f"nearest_within ({threads} threads)",
+    labels = [runs[0][0], runs[1][0] + " compact_nodes=False)", f"nearest_within ({threads()} threads)",
               "nearest_within (1 thread)"]
     ok = True
     for label, t, out in zip(labels, times + [t1], outs + [out1]):
