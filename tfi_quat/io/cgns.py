@@ -178,8 +178,18 @@ def is_adf(path) -> bool:
         return False
 
 
-def _open(path) -> h5py.File:
-    """Check the file kind, walk its metadata in the guard, open it with h5py."""
+def _stamp(p: Path) -> tuple:
+    st = os.stat(p)
+    return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns
+
+
+def _open(path) -> tuple:
+    """Check the file kind, walk its metadata in the guard, open it with h5py.
+
+    Returns the open file and the guard's catalogue of its objects (None when
+    the guard did not walk it: a file that passed before), which is dropped
+    when the file changed between the walk and the opening.
+    """
     p = Path(os.fspath(path))
     with open(p, "rb") as fh:  # the OS's own FileNotFoundError / IsADirectoryError / PermissionError
         size = os.fstat(fh.fileno()).st_size
@@ -191,18 +201,22 @@ def _open(path) -> h5py.File:
                               f"with 'adf2hdf {p.name} NEW.cgns' from the CGNS tools (cgns-convert)")
     if not is_hdf5(p):
         raise GridFormatError(f"{p}: not a CGNS/HDF5 file (no HDF5 signature)")
-    guard(p, str(p))
+    before = _stamp(p)
+    catalogue = guard(p, str(p), catalogue=True)
     try:
-        return h5py.File(p, "r")
+        f = h5py.File(p, "r")
     except OSError as exc:
         raise GridFormatError(f"{p}: cannot open as HDF5: {exc}") from None
+    if catalogue is not None and _stamp(p) != before:
+        catalogue = None
+    return f, catalogue
 
 
 @contextlib.contextmanager
 def _tree(path):
     """The checked :class:`_Tree` of a CGNS file (guarded, opened, closed on leaving)."""
-    f = _open(path)
-    t = _Tree(Path(os.fspath(path)), f)
+    f, catalogue = _open(path)
+    t = _Tree(Path(os.fspath(path)), f, catalogue)
     try:
         yield t
     finally:
@@ -222,15 +236,21 @@ class _Tree:
     """Checked access to the CGNS nodes of an open file; errors name the file and node.
 
     Nodes are named by their paths (``/Base/zone/ZoneBC``; the root is ``""``).
-    The links of a whole base are listed by one ``H5Lvisit`` (:meth:`prefetch`),
+    On a first read, the guard's child has walked every node already and
+    handed back its catalogue (:func:`tfi_quat.io.hdf5.guard`): links, labels,
+    the headers of the datasets and the values of the small ones come from
+    it, and only the datasets read in full (the coordinates) are opened here.
+    Otherwise (a file the guard passed before, or what the catalogue lacks)
+    the links of a whole base are listed by one ``H5Lvisit`` (:meth:`prefetch`),
     every node is opened once and its label read once (cached): a CGNS tree has
     hundreds of small nodes, and per-node lookups through h5py's high-level
     objects cost ten times more.
     """
 
-    def __init__(self, path, f: h5py.File):
+    def __init__(self, path, f: h5py.File, catalogue: dict | None = None):
         self.path = path
         self.f = f
+        self.cat = catalogue or {}
         self._links: dict = {}    # node -> {child key: link type}, in the file's order
         self._objs: dict = {}     # node -> its GroupID or DatasetID
         self._labels: dict = {}
@@ -242,6 +262,8 @@ class _Tree:
     # ------------------------------------------------------------------ links and objects
     def prefetch(self, node: str) -> None:
         """List the links of ``node`` and of every group below it in one pass."""
+        if node in self.cat:
+            return  # the catalogue has them
         gid = self._group_id(node)
         found: dict = {}
 
@@ -260,6 +282,10 @@ class _Tree:
         """``{key: link type}`` of the children of group ``node``, in the file's order."""
         links = self._links.get(node)
         if links is None:
+            entry = self.cat.get(node)
+            if entry is not None and entry[0] == 0 and entry[2] is not None:
+                self._links[node] = entry[2]
+                return entry[2]
             gid = self._group_id(node)
             links = {}
 
@@ -283,6 +309,13 @@ class _Tree:
         if not isinstance(oid, h5py.h5g.GroupID):
             self.fail(node, "is not a CGNS node (not an HDF5 group)")
         return oid
+
+    def is_group(self, node: str) -> bool:
+        """Whether the object at ``node`` is an HDF5 group."""
+        entry = self.cat.get(node)
+        if entry is not None:
+            return entry[0] == 0
+        return isinstance(self.obj(node), h5py.h5g.GroupID)
 
     def obj(self, node: str):
         """The GroupID or DatasetID at ``node`` (reached through hard links only)."""
@@ -316,6 +349,9 @@ class _Tree:
     # ------------------------------------------------------------------ attributes
     def attr(self, g: str, key: str, node: str) -> str:
         """A string attribute of any form (the general, slower way)."""
+        entry = self.cat.get(g)
+        if entry is not None and key in entry[1]:
+            return _text(entry[1][key])
         kb = key.encode("ascii")
         oid = self._group_id(g)
         try:
@@ -339,6 +375,10 @@ class _Tree:
         """The node's ``label`` attribute (read once)."""
         have = self._labels.get(g)
         if have is not None:
+            return have
+        entry = self.cat.get(g)
+        if entry is not None and "label" in entry[1]:
+            have = self._labels[g] = _text(entry[1]["label"])
             return have
         oid = self._group_id(g)
         try:
@@ -369,7 +409,7 @@ class _Tree:
                 if label is None:
                     continue
                 self.fail(sub, "is a link; tfi_quat does not follow CGNS links")
-            if not isinstance(self.obj(sub), h5py.h5g.GroupID):
+            if not self.is_group(sub):
                 continue
             if label is None or self.label(sub, sub) == label:
                 out.append((key, sub, sub))
@@ -382,7 +422,7 @@ class _Tree:
             if required:
                 self.fail(sub, "is missing")
             return None, sub
-        if not isinstance(self.obj(sub), h5py.h5g.GroupID):
+        if not self.is_group(sub):
             self.fail(sub, "is not a CGNS node (not an HDF5 group)")
         if label is not None:
             have = self.label(sub, sub)
@@ -399,6 +439,9 @@ class _Tree:
         sub = f"{node}/ data"
         if not self._hard(g, " data", sub):
             self.fail(node, "has no data")
+        entry = self.cat.get(sub)
+        if entry is not None and entry[0] == 1 and entry[2]:
+            return self.obj(sub), np.dtype(entry[2])
         dsid = self.obj(sub)
         if not isinstance(dsid, h5py.h5d.DatasetID):
             self.fail(node, "its ' data' is not a dataset")
@@ -421,8 +464,27 @@ class _Tree:
             self.fail(node, f"cannot read the type of its data: {exc}")
         self.fail(node, f"data of type {what} is not numbers or characters")
 
+    def storage(self, g: str, node: str, dsid) -> tuple:
+        """``(shape, chunked, filtered, stored bytes)`` of the node's data ``dsid``."""
+        entry = self.cat.get(f"{node}/ data")
+        if entry is not None and entry[0] == 1:
+            return entry[3], entry[4], entry[5], entry[6]
+        try:
+            plist = dsid.get_create_plist()
+            return (dsid.shape, plist.get_layout() == h5py.h5d.CHUNKED, plist.get_nfilters(),
+                    dsid.get_storage_size())
+        except (OSError, TypeError, ValueError, RuntimeError) as exc:
+            self.fail(node, f"cannot read the header of its data: {exc}")
+
     def data(self, g: str, node: str, max_values: int = 1 << 16) -> np.ndarray:
         """The node's value, at most ``max_values`` values (metadata, not coordinates)."""
+        sub = f"{node}/ data"
+        entry = self.cat.get(sub)
+        if entry is not None and entry[0] == 1 and entry[7] is not None and self._hard(g, " data", sub):
+            shape = entry[3]
+            if math.prod(shape) > max_values:
+                self.fail(node, f"holds {math.prod(shape):,} values, more than the {max_values:,} expected")
+            return np.frombuffer(entry[7], dtype=entry[2]).reshape(shape).copy()
         dsid, dtype = self.dataset(g, node)
         try:
             shape = dsid.shape
@@ -545,13 +607,7 @@ class _Base:
         for c in comps:
             cg, cnode = t.child(gc, c, gcnode, "DataArray_t")
             ds, dtype = t.dataset(cg, cnode)
-            try:
-                have = ds.shape
-                plist = ds.get_create_plist()
-                filtered, chunked = plist.get_nfilters(), plist.get_layout() == h5py.h5d.CHUNKED
-                stored = ds.get_storage_size()
-            except (OSError, TypeError, ValueError, RuntimeError) as exc:
-                t.fail(cnode, f"cannot read the header of its data: {exc}")
+            have, chunked, filtered, stored = t.storage(cg, cnode, ds)
             if have is None:
                 t.fail(cnode, "its data has an empty (null) dataspace")
             if have != shape:
@@ -1345,7 +1401,7 @@ def _write_like(path, grid: Grid, fmt: CGNSFormat, single: bool, conn, families)
                             zg = _copy_attrs_node(w, t, gsrc, zdst, zk)
                             for ck2, ltype2 in t.links(gsrc).items():
                                 node = f"{gsrc}/{ck2}"
-                                if ltype2 == h5py.h5l.TYPE_HARD and isinstance(t.obj(node), h5py.h5g.GroupID) \
+                                if ltype2 == h5py.h5l.TYPE_HARD and t.is_group(node) \
                                         and t.label(node, node) == "GridConnectivity1to1_t":
                                     continue
                                 _copy(t, gsrc, ck2, zg)
@@ -1370,7 +1426,7 @@ def _replace_coords(w: _Writer, t: _Tree, gsrc: str, zdst, block: Block, ndim: i
         w.attrs(g, cname, "DataArray_t", "R4" if single else "R8")
         w.data(g, view.astype(np.float32) if single else view)
         csrc = f"{gsrc}/{cname}"
-        if links.get(cname) == h5py.h5l.TYPE_HARD and isinstance(t.obj(csrc), h5py.h5g.GroupID):
+        if links.get(cname) == h5py.h5l.TYPE_HARD and t.is_group(csrc):
             for extra in t.links(csrc):  # DataClass, DimensionalUnits, ... of the coordinate
                 if extra != " data":
                     _copy(t, csrc, extra, g)

@@ -67,6 +67,8 @@ import faulthandler
 import functools
 import gc
 import json
+import marshal
+import math
 import mmap
 import os
 import select
@@ -234,7 +236,34 @@ _PLAIN_CLASSES = frozenset((h5py.h5t.INTEGER, h5py.h5t.FLOAT, h5py.h5t.BITFIELD,
                             h5py.h5t.ENUM, h5py.h5t.TIME))
 
 
-def _walk_metadata(source, report, close: bool = True) -> None:
+#: values of at most this many bytes go into a catalogue (:func:`guard`)
+CATALOGUE_VALUE_BYTES = 4096
+#: fixed-length string attributes of at most this many bytes go into a catalogue
+_CATALOGUE_TEXT_BYTES = 256
+
+
+def _number_dtype(tid) -> str:
+    """The native numpy type code of an HDF5 integer or float type (``'i4'``, ``'f8'``), else ``''``."""
+    cls, size = tid.get_class(), tid.get_size()
+    if cls == h5py.h5t.INTEGER and size in (1, 2, 4, 8):
+        return f"{'u' if tid.get_sign() == h5py.h5t.SGN_NONE else 'i'}{size}"
+    if cls == h5py.h5t.FLOAT and size in (2, 4, 8):
+        return f"f{size}"
+    return ""
+
+
+_NATIVE: dict = {}
+
+
+def _native_type(code: str):
+    """The HDF5 memory type of a numpy type code from :func:`_number_dtype` (made once)."""
+    tid = _NATIVE.get(code)
+    if tid is None:
+        tid = _NATIVE[code] = h5py.h5t.py_create(np.dtype(code))
+    return tid
+
+
+def _walk_metadata(source, report, close: bool = True, catalogue: dict | None = None) -> None:
     """Read every piece of metadata the reader may use; what the guard's child runs.
 
     Opens the file; reads every attribute of every object (opening one decodes
@@ -251,6 +280,20 @@ def _walk_metadata(source, report, close: bool = True) -> None:
     h5py's low-level calls throughout, each object opened relative to its
     parent: a CGNS tree has hundreds of small groups with four attributes
     each, and the high-level objects cost several times more per item.
+
+    ``catalogue``, a dict, is filled with what the walk saw, by object path
+    (``""`` the root, ``"/a/b"``; an object reached by several hard links
+    under one of its paths only): for a group ``(0, attrs, links)``, for a
+    dataset ``(1, attrs, dtype, shape, chunked, nfilters, stored, value)``.
+    ``attrs`` maps attribute names to the bytes of the fixed-length string
+    attributes of one value (at most ``_CATALOGUE_TEXT_BYTES``), read as
+    h5py reads them (NUL-padded); ``links`` maps child names (decoded with
+    ``surrogateescape``) to their link types, in creation order where the
+    group tracks it, else by name; ``dtype`` is the native numpy code of
+    an integer or float type (``''`` for any other), ``shape`` None for an
+    empty dataspace, ``stored`` the bytes stored, ``value`` the native bytes
+    of a contiguous or compact dataset of numbers of at most
+    :data:`CATALOGUE_VALUE_BYTES` (else None).  Only marshal-able types.
     """
     report("the superblock")
     f = h5py.File(source, "r")
@@ -262,6 +305,7 @@ def _walk_metadata(source, report, close: bool = True) -> None:
             report(f"the attribute list of {where}")
             names = []
             h5py.h5a.iterate(oid, lambda name, *_: names.append(name))
+            texts = {}
             for name in names:
                 report(f"attribute {name.decode('utf-8', 'replace')!r} of {where}")
                 # opening decodes the attribute's message: its type, its shape and its value
@@ -269,8 +313,17 @@ def _walk_metadata(source, report, close: bool = True) -> None:
                 aid = h5py.h5a.open(oid, name)
                 tid = aid.get_type()
                 cls = tid.get_class()
-                if cls in _PLAIN_CLASSES or (cls == h5py.h5t.STRING and not tid.is_variable_str()):
-                    continue  # a value of fixed size, in memory now: reading it reads no more of the file
+                if cls == h5py.h5t.STRING and not tid.is_variable_str():
+                    # a value of fixed size, in memory now: reading it reads no more of the file
+                    if catalogue is not None and tid.get_size() <= _CATALOGUE_TEXT_BYTES:
+                        shape = aid.shape
+                        if shape == () or shape == (1,):
+                            buf = np.zeros(shape, dtype=f"S{tid.get_size()}")
+                            aid.read(buf)
+                            texts[name.decode("utf-8", "replace")] = bytes(buf.reshape(-1)[0])
+                    continue
+                if cls in _PLAIN_CLASSES:
+                    continue
                 shape = aid.shape
                 if shape is None:  # an empty (null) dataspace holds no value
                     continue
@@ -284,14 +337,16 @@ def _walk_metadata(source, report, close: bool = True) -> None:
                     f[where].attrs[name.decode("utf-8", "replace")]
                     continue
                 aid.read(value)
+            return texts
 
-        def dataset(dsid, where):
+        def dataset(dsid, where, key, texts):
             report(f"the header of dataset {where}")
-            dsid.get_space()  # the dataspace message
+            shape = dsid.get_space().shape  # the dataspace message
             tid = dsid.get_type()
             cls, itemsize = tid.get_class(), tid.get_size()
             plist = dsid.get_create_plist()
-            chunks = plist.get_chunk() if plist.get_layout() == h5py.h5d.CHUNKED else None
+            layout = plist.get_layout()
+            chunks = plist.get_chunk() if layout == h5py.h5d.CHUNKED else None
             filters = [plist.get_filter(i)[0] for i in range(plist.get_nfilters())]
             report(f"the storage of dataset {where}")
             stored = dsid.get_storage_size()
@@ -300,6 +355,18 @@ def _walk_metadata(source, report, close: bool = True) -> None:
                 if offset is not None and offset + stored > eof:
                     raise ValueError(f"dataset {where}: its data (bytes {offset}..{offset + stored}) "
                                      f"lie beyond the end of the file ({eof} bytes)")
+            if catalogue is not None:
+                code, value = _number_dtype(tid), None
+                if (code and shape is not None and stored and not filters
+                        and layout in (h5py.h5d.CONTIGUOUS, h5py.h5d.COMPACT)
+                        and not plist.get_external_count()
+                        and math.prod(shape) * itemsize <= CATALOGUE_VALUE_BYTES):
+                    report(f"the value of dataset {where}")
+                    out = np.empty(shape, dtype=code)
+                    dsid.read(h5py.h5s.ALL, h5py.h5s.ALL, out, mtype=_native_type(code))
+                    value = out.tobytes()
+                catalogue[key] = (1, texts, code, shape, chunks is not None, len(filters), stored, value)
+            if chunks is None:
                 if cls in (h5py.h5t.STRING, h5py.h5t.VLEN, h5py.h5t.REFERENCE):
                     report(f"the value of dataset {where}")
                     h5py.Dataset(dsid)[()]
@@ -313,26 +380,40 @@ def _walk_metadata(source, report, close: bool = True) -> None:
                                      f"byte {c.byte_offset} does not fit (file of {eof} bytes, "
                                      f"chunk of at most {bound} bytes)")
 
-        def links(gid, where):
-            report(f"the links of group {where}")
-            gid.links.iterate(lambda name, info: None, info=True)
+        def links(gid, where, key, texts):
+            # in creation order where the group tracks it (as the CGNS reader lists them), else by
+            # name (h5o.visit below reads the name index of every group)
+            report(f"the links of {where}")
+            found = {}
+
+            def seen(name, info):
+                found[name.decode("utf-8", "surrogateescape")] = info.type
+            listed = True
+            try:
+                gid.links.iterate(seen, idx_type=h5py.h5.INDEX_CRT_ORDER, info=True)
+            except Exception as exc:  # RuntimeError: no creation-order index
+                listed = isinstance(exc, RuntimeError)  # else the reader reports it
+                found.clear()
+                gid.links.iterate(seen, idx_type=h5py.h5.INDEX_NAME, info=True)
+            if catalogue is not None:
+                catalogue[key] = (0, texts, found if listed else None)
 
         def visit(name, info):
             where = "/" + name.decode("utf-8", "replace")
-            parent, _, key = name.rpartition(b"/")
+            key = "/" + name.decode("utf-8", "surrogateescape")
+            parent, _, base = name.rpartition(b"/")
             loc = groups.get(parent)
-            oid = h5py.h5o.open(loc, key) if loc is not None else h5py.h5o.open(f.id, name)
-            attrs(oid, where)
+            oid = h5py.h5o.open(loc, base) if loc is not None else h5py.h5o.open(f.id, name)
+            texts = attrs(oid, where)
             if info.type == h5py.h5o.TYPE_GROUP:
                 groups[name] = oid
-                links(oid, where)
+                links(oid, f"group {where}", key, texts)
             elif info.type == h5py.h5o.TYPE_DATASET:
-                dataset(oid, where)
+                dataset(oid, where, key, texts)
 
         try:
-            attrs(f.id, "the root group")
-            report("the links of the root group")
-            f.id.links.iterate(lambda name, info: None, info=True)
+            texts = attrs(f.id, "the root group")
+            links(f.id, "the root group", "", texts)
             report("the object tree")
             h5py.h5o.visit(f.id, visit, info=True)
         finally:
@@ -369,13 +450,14 @@ _WHERE_MAX = _PROGRESS_BYTES - 16
 _REARM_SECONDS = 0.1
 
 
-def _guard_child(source, size: int, wfd, progress) -> None:
+def _guard_child(source, size: int, wfd, progress, want: bool = False) -> None:
     """Body of the guard's child: walk, write the outcome to ``wfd``, ``os._exit``.
 
     Before each step the child writes the step count and what it is about to
     read into ``progress`` (a page shared with the parent): no system call and
     no wake-up of the parent per step, and the parent still knows where a
-    crash or an overrun happened.
+    crash or an overrun happened.  With ``want``, a file that passed is
+    followed by its catalogue (:func:`_walk_metadata`) in :mod:`marshal` form.
     """
     status = 3
     try:
@@ -410,21 +492,25 @@ def _guard_child(source, size: int, wfd, progress) -> None:
             text = where.encode("utf-8", "replace")[:_WHERE_MAX]
             progress[0:16 + len(text)] = steps.to_bytes(8, "little") + len(text).to_bytes(8, "little") + text
 
+        catalogue = {} if want else None
         try:
             _limit_child()
-            _walk_metadata(source, report, close=False)
+            _walk_metadata(source, report, close=False, catalogue=catalogue)
             outcome = "="
         except MemoryError:
             outcome = f"!needs more than {GUARD_MEMORY / 2**20:.0f} MiB of memory"
         except BaseException as exc:  # everything ends up in the parent's message
             outcome = f"!{type(exc).__name__}: {exc}"[:2000]
-        os.write(wfd, outcome.replace("\n", " ").encode("utf-8", "replace") + b"\n")
+        message = memoryview(outcome.replace("\n", " ").encode("utf-8", "replace") + b"\n"
+                             + (marshal.dumps(catalogue) if outcome == "=" and want else b""))
+        while message:
+            message = message[os.write(wfd, message):]
         status = 0
     finally:
         os._exit(status)
 
 
-def guard(source, name: str) -> None:
+def guard(source, name: str, *, catalogue: bool = False) -> dict | None:
     """Walk the HDF5 metadata of ``source`` in a forked child before this process touches it.
 
     libhdf5 can crash, loop forever or allocate gigabytes on damaged metadata
@@ -440,9 +526,17 @@ def guard(source, name: str) -> None:
     remembered by device, inode, size, modification and change time, and not
     walked again while these stay the same.  Without ``os.fork`` (Windows)
     there is no guard.
+
+    With ``catalogue=True`` a walk that passes also hands back what it saw:
+    every object's links, its fixed-length string attributes, every
+    dataset's type, shape and storage and the values of small datasets of
+    numbers (the layout is described in ``_walk_metadata``), so that a
+    reader of a file of many small objects (CGNS) need not open them a
+    second time.  Returns that dict, or None when nothing was walked (a file
+    that passed before, no ``os.fork``) or without ``catalogue``.
     """
     if not hasattr(os, "fork"):
-        return
+        return None
     key = None
     if hasattr(source, "seek"):
         pos = source.tell()
@@ -452,7 +546,7 @@ def guard(source, name: str) -> None:
         st = os.stat(source)
         key, size = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns), st.st_size
         if key in _PASSED:
-            return
+            return None
     progress = mmap.mmap(-1, _PROGRESS_BYTES)  # anonymous and shared with the child
     rfd, wfd = os.pipe()
     try:
@@ -468,9 +562,9 @@ def guard(source, name: str) -> None:
         raise
     if pid == 0:  # pragma: no cover  (the child; coverage cannot follow it)
         os.close(rfd)
-        _guard_child(source, size, wfd, progress)
+        _guard_child(source, size, wfd, progress, catalogue)
     os.close(wfd)
-    outcome, overrun, pending, seen = None, False, b"", 0
+    outcome, overrun, pending, payload, seen = None, False, bytearray(), b"", 0
     deadline = time.monotonic() + GUARD_WALL_SECONDS
     try:
         while True:
@@ -491,7 +585,7 @@ def guard(source, name: str) -> None:
                 break
             pending += chunk
         if pending:
-            outcome = pending.split(b"\n")[0]
+            outcome, _, payload = bytes(pending).partition(b"\n")
     finally:
         os.close(rfd)
         if outcome is None:
@@ -513,7 +607,13 @@ def guard(source, name: str) -> None:
             if len(_PASSED) >= _PASSED_MAX:
                 _PASSED.pop(next(iter(_PASSED)))
             _PASSED[key] = None
-        return
+        if not catalogue:
+            return None
+        try:
+            found = marshal.loads(payload)
+        except (EOFError, ValueError, TypeError):  # pragma: no cover  (our own child wrote it)
+            return None
+        return found if isinstance(found, dict) else None
     if outcome is not None:
         raise GridFormatError(f"{name}: damaged HDF5 file: reading {where}: "
                               f"{outcome[1:].decode('utf-8', 'replace')}")
