@@ -9,6 +9,7 @@ through ``cgns_to_plot3d`` to the same coordinates and open in VTK's
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -22,7 +23,7 @@ from hypothesis import strategies as st
 import tfi_quat as tq
 from tfi_quat import Block, Grid, GridFormatError, GridValueError
 from tfi_quat.cli import main
-from tfi_quat.io import cgns
+from tfi_quat.io import cgns, hdf5
 from tfi_quat.io.cgns import CGNSFormat
 from tfi_quat.spec import PatchSpec
 from tfi_quat.topology import Connectivity, Interface, Patch, connect
@@ -554,3 +555,172 @@ def test_cli_info_on_cgns(capsys):
     assert main(["info", str(MULTI), "--base", "coarse", "--json"]) == 0
     s = json.loads(capsys.readouterr().out)
     assert s["cgns"]["base"] == "coarse" and s["nblocks"] == 1
+
+
+# ----------------------------------------------------------------------------- the guard's catalogue
+
+_STAMP = [1_700_000_000 * 10**9]
+
+
+def renew(path):
+    """Give ``path`` times the guard has not seen: its next read walks it (and hands back a catalogue)."""
+    _STAMP[0] += 10**9
+    os.utime(path, ns=(_STAMP[0], _STAMP[0]))
+    return path
+
+
+def odd_tree(tmp_path):
+    """MULTI with groups stored densely (with and without creation order), odd attributes and
+    datasets of every kind the catalogue sorts: big, compact, chunked, strings, an empty dataspace."""
+    path = tmp_path / "odd.cgns"
+    shutil.copyfile(MULTI, path)
+    with h5py.File(path, "r+") as f:
+        for name, order in (("Dense", True), ("DenseByName", False)):
+            g = f.create_group(f"wing/{name}", track_order=order)
+            g.attrs["label"] = np.bytes_("UserDefinedData_t")
+            for n in range(20, 0, -1):
+                g.create_group(f"n{n:02d}").attrs["label"] = np.bytes_("UserDefinedData_t")
+        u = f["wing/Dense"]
+        u.attrs["pair"] = np.array([b"ab", b"cd"])
+        u.attrs["spaced"] = np.array(b"x  ", dtype="S8")
+        u.attrs.create("vlen", "variable", dtype=h5py.string_dtype())
+        u.attrs["number"] = 7
+        u.create_dataset("big", data=np.arange(2000, dtype=">f8"))
+        u.create_dataset("small_be", data=np.arange(6, dtype=">i4").reshape(2, 3))
+        u.create_dataset("chunked", data=np.arange(10, dtype="i4"), chunks=(5,))
+        u.create_dataset("text", data="hello", dtype=h5py.string_dtype())
+        u.create_dataset("nothing", data=h5py.Empty("f8"))
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_layout(h5py.h5d.COMPACT)
+        sid = h5py.h5s.create_simple((4,))
+        h5py.h5d.create(u.id, b"compact", h5py.h5t.STD_U16LE, sid, dcpl=dcpl).write(
+            h5py.h5s.ALL, h5py.h5s.ALL, np.arange(4, dtype="u2"))
+    return path
+
+
+def test_catalogue_is_what_h5py_reads(tmp_path):
+    """Every object of the guard's catalogue against h5py: links in the order h5py lists them,
+    one-value string attributes, dataset types, shapes and the values of small ones."""
+    path = odd_tree(tmp_path)
+    cat = hdf5.guard(renew(path), str(path), catalogue=True)
+    assert hdf5.guard(path, str(path), catalogue=True) is None          # passed: not walked again
+    seen = set()
+    with h5py.File(path) as f:
+        def check(name, obj):
+            key = "" if name == "/" else "/" + name
+            seen.add(key)
+            entry = cat[key]
+            texts = {}
+            for a in obj.attrs:
+                aid = h5py.h5a.open(obj.id, a.encode())
+                tid = aid.get_type()
+                if tid.get_class() == h5py.h5t.STRING and not tid.is_variable_str() and aid.get_storage_size() == tid.get_size():
+                    texts[a] = np.asarray(obj.attrs[a]).reshape(-1)[0]
+            assert {k: v.split(b"\0")[0].rstrip() for k, v in entry[1].items()} == \
+                {k: v.rstrip() for k, v in texts.items()}, name
+            if isinstance(obj, h5py.Group):
+                assert entry[0] == 0 and list(entry[2]) == list(obj), name
+                return
+            kind, _, code, shape, chunked, nfilters, stored, value = entry
+            assert kind == 1 and shape == obj.shape and chunked == (obj.chunks is not None), name
+            assert stored == obj.id.get_storage_size() and nfilters == 0
+            assert code == (obj.dtype.newbyteorder("=").str[1:] if obj.dtype.kind in "iuf" else ""), name
+            small = obj.dtype.kind in "iuf" and obj.nbytes <= hdf5.CATALOGUE_VALUE_BYTES and not chunked
+            if small and stored:
+                np.testing.assert_array_equal(np.frombuffer(value, code).reshape(shape), obj[()])
+            else:
+                assert value is None, name
+        check("/", f)
+        f.visititems(check)
+    assert seen == set(cat)
+    assert list(cat["/wing/Dense"][2])[:3] == ["n20", "n19", "n18"]      # creation order
+    assert list(cat["/wing/DenseByName"][2])[:3] == ["n01", "n02", "n03"]
+    assert cat["/wing/Dense/big"][7] is None and cat["/wing/Dense/compact"][7] is not None
+
+
+def test_first_read_from_the_catalogue_equals_a_read_of_the_file(tmp_path, monkeypatch):
+    """read, info and read_faces give the same from the guard's catalogue (first read) as from
+    the file itself (the guard passed it before), for the CGNS library's files and ours."""
+    g = tq.read(MULTI)
+    fam = tmp_path / "fam.cgns"
+    cgns.write(fam, g, keep=False, families={"wall": "walls", "BCFarfield": "far"})
+    like = tmp_path / "like.cgns"
+    tq.write(like, Grid([Block(b.xyz * 2.0, name=b.name) for b in g], source_format=g.source_format))
+    handed = []
+    real = cgns.guard
+
+    def spy(*args, **kwargs):
+        handed.append(real(*args, **kwargs))
+        return handed[-1]
+    monkeypatch.setattr(cgns, "guard", spy)
+    for src, base in ((MULTI, None), (MULTI, "coarse"), (CGRID, None), (fam, None), (like, None),
+                      (odd_tree(tmp_path), None)):
+        path = tmp_path / f"copy_{len(handed)}.cgns"
+        shutil.copyfile(src, path)
+        got = []
+        for first in (True, False):
+            if first:
+                renew(path)
+            handed.clear()
+            grid = cgns.read(path, base=base)
+            info = cgns.info(path, base=base)
+            faces = cgns.read_faces(path, base=base)
+            assert (handed[0] is not None) == first and handed[1:] == [None, None]
+            got.append((grid, info, faces))
+        (a, ia, fa), (b, ib, fb) = got
+        assert [x.name for x in a] == [x.name for x in b] and a.connectivity == b.connectivity
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x.xyz, y.xyz)
+        assert ia == ib and fa.connectivity == fb.connectivity and fa.dims == fb.dims
+        for x, y in zip(fa.faces, fb.faces):
+            for p, q in zip(x, y):
+                np.testing.assert_array_equal(p, q)
+
+
+def test_hard_link_cycles_and_shared_nodes(tmp_path):
+    """A group linked below itself and nodes reached by two paths: the walk ends, each object
+    once; the reader follows its paths as before (a second path from the file itself)."""
+    path = tmp_path / "loop.cgns"
+    shutil.copyfile(MULTI, path)
+    with h5py.File(path, "r+") as f:
+        f["wing/inner/Loop"] = f["wing"]                                 # a cycle
+        f["wing/inner/Again"] = f["wing/inner/ZoneBC"]                  # a second path, not read
+    cat = hdf5.guard(renew(path), str(path), catalogue=True)
+    assert len(cat) == len({k for k in cat if "/Loop" not in k})     # the cycle is not walked again
+    assert ("/wing/inner/Again" in cat) != ("/wing/inner/ZoneBC" in cat)
+    want = tq.read(MULTI)
+    for _ in range(2):                                                # from the catalogue, then not
+        g = tq.read(renew(path) if _ == 0 else path)
+        assert g.connectivity == want.connectivity
+        for a, b in zip(g, want):
+            np.testing.assert_array_equal(a.xyz, b.xyz)
+    with h5py.File(path, "r+") as f:                                  # right's X is inner's X
+        del f["wing/right/GridCoordinates/CoordinateX"]
+        f["wing/right/GridCoordinates/CoordinateX"] = f["wing/inner/GridCoordinates/CoordinateX"]
+    for _ in range(2):
+        with pytest.raises(GridFormatError, match="right/GridCoordinates/CoordinateX: data of shape .* "
+                                                  "does not match the zone size"):
+            tq.read(renew(path) if _ == 0 else path)
+
+
+def test_a_file_changed_after_the_walk_is_read_from_the_file(tmp_path, monkeypatch):
+    """The catalogue is dropped when the file changes between the guard's walk and the opening."""
+    g = tq.read(MULTI)
+    other = tmp_path / "fam.cgns"
+    cgns.write(other, g, keep=False, families={"wall": "walls", "BCFarfield": "far"})
+    path = tmp_path / "f.cgns"
+    shutil.copyfile(MULTI, path)
+    renew(path)
+    real = cgns.guard
+
+    def swap(*args, **kwargs):
+        out = real(*args, **kwargs)
+        assert out is not None
+        shutil.copyfile(other, path)         # in place: same inode, new size and times
+        return out
+    monkeypatch.setattr(cgns, "guard", swap)
+    h = tq.read(path)
+    monkeypatch.undo()
+    want = tq.read(other)
+    assert h.connectivity == want.connectivity
+    assert {p.name for p in h.connectivity.patches if p.kind == "wall"} == {"walls"}

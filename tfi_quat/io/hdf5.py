@@ -285,9 +285,9 @@ def _walk_metadata(source, report, close: bool = True, catalogue: dict | None = 
     (``""`` the root, ``"/a/b"``; an object reached by several hard links
     under one of its paths only): for a group ``(0, attrs, links)``, for a
     dataset ``(1, attrs, dtype, shape, chunked, nfilters, stored, value)``.
-    ``attrs`` maps attribute names to the bytes of the fixed-length string
-    attributes of one value (at most ``_CATALOGUE_TEXT_BYTES``), read as
-    h5py reads them (NUL-padded); ``links`` maps child names (decoded with
+    ``attrs`` maps attribute names to the stored bytes of the fixed-length
+    string attributes of one value (at most ``_CATALOGUE_TEXT_BYTES``);
+    ``links`` maps child names (decoded with
     ``surrogateescape``) to their link types, in creation order where the
     group tracks it, else by name; ``dtype`` is the native numpy code of
     an integer or float type (``''`` for any other), ``shape`` None for an
@@ -299,7 +299,6 @@ def _walk_metadata(source, report, close: bool = True, catalogue: dict | None = 
     f = h5py.File(source, "r")
     with f if close else contextlib.nullcontext(f):
         eof = f.id.get_filesize()
-        groups = {b"": f.id}  # the groups met so far: their children are opened from them
 
         def attrs(oid, where):
             report(f"the attribute list of {where}")
@@ -315,12 +314,14 @@ def _walk_metadata(source, report, close: bool = True, catalogue: dict | None = 
                 cls = tid.get_class()
                 if cls == h5py.h5t.STRING and not tid.is_variable_str():
                     # a value of fixed size, in memory now: reading it reads no more of the file
-                    if catalogue is not None and tid.get_size() <= _CATALOGUE_TEXT_BYTES:
-                        shape = aid.shape
-                        if shape == () or shape == (1,):
-                            buf = np.zeros(shape, dtype=f"S{tid.get_size()}")
-                            aid.read(buf)
-                            texts[name.decode("utf-8", "replace")] = bytes(buf.reshape(-1)[0])
+                    if catalogue is not None:
+                        size = tid.get_size()
+                        # one value (whatever the rank): read as stored, in the attribute's own type
+                        # (the reader's text is the same: cut at the first NUL, trailing spaces dropped)
+                        if size <= _CATALOGUE_TEXT_BYTES and aid.get_storage_size() == size:
+                            buf = np.zeros((), dtype=f"S{size}")
+                            aid.read(buf, mtype=tid)
+                            texts[name.decode("utf-8", "replace")] = buf.tobytes()
                     continue
                 if cls in _PLAIN_CLASSES:
                     continue
@@ -381,43 +382,50 @@ def _walk_metadata(source, report, close: bool = True, catalogue: dict | None = 
                                      f"chunk of at most {bound} bytes)")
 
         def links(gid, where, key, texts):
-            # in creation order where the group tracks it (as the CGNS reader lists them), else by
-            # name (h5o.visit below reads the name index of every group)
+            """The links of a group, by name: ``[(name, link type, address of a hard link's object)]``."""
             report(f"the links of {where}")
-            found = {}
-
-            def seen(name, info):
-                found[name.decode("utf-8", "surrogateescape")] = info.type
-            listed = True
-            try:
-                gid.links.iterate(seen, idx_type=h5py.h5.INDEX_CRT_ORDER, info=True)
-            except Exception as exc:  # RuntimeError: no creation-order index
-                listed = isinstance(exc, RuntimeError)  # else the reader reports it
-                found.clear()
-                gid.links.iterate(seen, idx_type=h5py.h5.INDEX_NAME, info=True)
+            found = []
+            gid.links.iterate(lambda name, info: found.append((name, info.type, info.u)), info=True)
             if catalogue is not None:
-                catalogue[key] = (0, texts, found if listed else None)
+                # the CGNS reader lists them in creation order where the group tracks it
+                # (a second index where the links are stored densely)
+                ordered = {}
 
-        def visit(name, info):
-            where = "/" + name.decode("utf-8", "replace")
-            key = "/" + name.decode("utf-8", "surrogateescape")
-            parent, _, base = name.rpartition(b"/")
-            loc = groups.get(parent)
-            oid = h5py.h5o.open(loc, base) if loc is not None else h5py.h5o.open(f.id, name)
-            texts = attrs(oid, where)
-            if info.type == h5py.h5o.TYPE_GROUP:
-                groups[name] = oid
-                links(oid, f"group {where}", key, texts)
-            elif info.type == h5py.h5o.TYPE_DATASET:
-                dataset(oid, where, key, texts)
+                def seen(name, info):
+                    ordered[name.decode("utf-8", "surrogateescape")] = info.type
+                try:
+                    gid.links.iterate(seen, idx_type=h5py.h5.INDEX_CRT_ORDER, info=True)
+                except RuntimeError:  # no creation-order index: by name, as the reader lists them
+                    ordered = {n.decode("utf-8", "surrogateescape"): t for n, t, _ in found}
+                except Exception:  # the reader reports it
+                    ordered = None
+                catalogue[key] = (0, texts, ordered)
+            return found
 
+        # every object reached through hard links, each once (by the address of its header; the
+        # root's is not asked for, a link back to it walks it once more), depth first; no
+        # recursion: a crafted file may nest groups deeply
+        walked = set()
+        todo = [(f.id, b"", attrs(f.id, "the root group"))]
         try:
-            texts = attrs(f.id, "the root group")
-            links(f.id, "the root group", "", texts)
-            report("the object tree")
-            h5py.h5o.visit(f.id, visit, info=True)
+            while todo:
+                gid, path, texts = todo.pop()
+                where = f"group /{path.decode('utf-8', 'replace')}" if path else "the root group"
+                key = "/" + path.decode("utf-8", "surrogateescape") if path else ""
+                for name, ltype, addr in links(gid, where, key, texts):
+                    if ltype != h5py.h5l.TYPE_HARD or addr in walked:
+                        continue  # soft and external links are not followed
+                    walked.add(addr)
+                    sub = path + b"/" + name if path else name
+                    there = "/" + sub.decode("utf-8", "replace")
+                    oid = h5py.h5o.open(gid, name)
+                    got = attrs(oid, there)
+                    if isinstance(oid, h5py.h5g.GroupID):
+                        todo.append((oid, sub, got))
+                    elif isinstance(oid, h5py.h5d.DatasetID):
+                        dataset(oid, there, "/" + sub.decode("utf-8", "surrogateescape"), got)
         finally:
-            groups.clear()  # before the file closes: h5py's close walks the objects left open
+            todo.clear()  # before the file closes: h5py's close walks the objects left open
 
 
 def _limit_child() -> None:
