@@ -6,6 +6,8 @@ import argparse
 import sys
 import time
 
+import numpy as np
+
 from ..errors import CaseError
 from . import EXIT_CHECK
 from ._common import (add_base_arg, case_and_grid, check_output, file_format, finite, output_like,
@@ -195,6 +197,9 @@ def run(args) -> int:
     # numba's set-up runs while the grid is read (the read holds no lock numba needs)
     warm_up_in_background()
     grid = read_grid(args, path)
+    # the result's arrays, made and written now, while numba's set-up still runs (the set-up's
+    # first kernel waits for it): the step writes into them (out=) instead of into new memory
+    result_arrays = None if args.write_surface else _result_arrays(grid)
     from ..deform import Deformer
     from ..quality import volume_ratio_summary
     conn = None
@@ -224,9 +229,9 @@ def run(args) -> int:
         return 0
     progress = _Progress(not args.quiet and grid.npoints > 2_000_000)
     if args.modes:
-        result = deformer.modal(surface)(args.amplitudes, callback=progress)
+        result = deformer.modal(surface)(args.amplitudes, out=result_arrays, callback=progress)
     else:
-        result = deformer.deform(moved, callback=progress)
+        result = deformer.deform(moved, out=result_arrays, callback=progress)
     t2 = time.perf_counter()
     q = volume_ratio_summary(result, grid)
     print(f"{desc}; method {method}")
@@ -247,6 +252,18 @@ def run(args) -> int:
     io.write(out, result, like=like, overwrite=args.force, **boundaries)
     print(f"wrote {out}: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}")
     return 0
+
+
+def _result_arrays(grid) -> list:
+    """One Fortran ``(ni, nj, nk, 3)`` array per block for the step's result, every page
+    written once (zeros): the first write of new memory is the costly part of filling it
+    (page faults, system time), and here it overlaps numba's set-up instead of the step."""
+    arrays = []
+    for blk in grid:
+        a = np.empty(blk.xyz.shape, order="F")
+        a.fill(0.0)
+        arrays.append(a)
+    return arrays
 
 
 def _first_cells(result, grid) -> str:
