@@ -16,6 +16,9 @@ from ._common import (add_base_arg, case_and_grid, check_output, file_format, fi
 #: negative cells listed in the summary line
 _SHOW = 3
 
+#: values written at a time into the result's arrays while numba starts (8 MB)
+_TOUCH = 1 << 20
+
 #: tfi_quat.deform.METHODS, spelled out so the CLI starts without numba
 METHODS = ("two-level", "samareh", "tfi")
 
@@ -195,11 +198,11 @@ def run(args) -> int:
     sym = [parse_patch_spec(w) for w in args.symmetry]
     fixed = [parse_patch_spec(w) for w in args.fixed]
     # numba's set-up runs while the grid is read (the read holds no lock numba needs)
-    warm_up_in_background()
+    warming = warm_up_in_background()
     grid = read_grid(args, path)
-    # the result's arrays, made and written now, while numba's set-up still runs (the set-up's
-    # first kernel waits for it): the step writes into them (out=) instead of into new memory
-    result_arrays = None if args.write_surface else _result_arrays(grid)
+    # the result's arrays, made now and written while numba's set-up still runs (the set-up's
+    # first kernel would wait for it): the step writes into them (out=)
+    result_arrays = None if args.write_surface else _result_arrays(grid, warming)
     from ..deform import Deformer
     from ..quality import volume_ratio_summary
     conn = None
@@ -254,15 +257,23 @@ def run(args) -> int:
     return 0
 
 
-def _result_arrays(grid) -> list:
-    """One Fortran ``(ni, nj, nk, 3)`` array per block for the step's result, every page
-    written once (zeros): the first write of new memory is the costly part of filling it
-    (page faults, system time), and here it overlaps numba's set-up instead of the step."""
-    arrays = []
-    for blk in grid:
-        a = np.empty(blk.xyz.shape, order="F")
-        a.fill(0.0)
-        arrays.append(a)
+def _result_arrays(grid, warming) -> list:
+    """One Fortran ``(ni, nj, nk, 3)`` array per block for the step's result.
+
+    The first write of new memory is a large part of the cost of filling it (page faults,
+    system time: about 1.5 ms of CPU per MB on the test machine, against 0.2 ms for memory the
+    process has used before).  While numba's set-up runs (the thread ``warming``; None:
+    none), the arrays are written with zeros, 8 MB at a time, on this thread, which would
+    otherwise wait for that set-up at the first kernel; what is left is first written by
+    the step, as before.
+    """
+    arrays = [np.empty(blk.xyz.shape, order="F") for blk in grid]
+    for a in arrays:
+        flat = a.reshape(-1, order="F")
+        for lo in range(0, flat.size, _TOUCH):
+            if warming is None or not warming.is_alive():
+                return arrays
+            flat[lo:lo + _TOUCH] = 0.0
     return arrays
 
 
