@@ -179,29 +179,3 @@ def test_connectivity_and_nmf_files(capsys, cgrid):
     rc, so, se = run_cli(capsys, "deform", other, "--connectivity", folder / "map.json", "--rotate", "8",
                          "-o", folder / "c.x")
     assert rc == 2 and len(se.strip().splitlines()) == 1, se
-
-
-def test_the_step_writes_into_arrays_made_before_the_set_up(capsys, cgrid, monkeypatch):
-    """The CLI makes (and writes once) the result's arrays while numba starts, and the step
-    fills them (``out=``): one Fortran float64 array per block, with the library's bits."""
-    grid_path, case_path = cgrid
-    given = []
-    deform = Deformer.deform
-
-    def spy(self, moved, **kw):
-        given.append(kw.get("out"))
-        return deform(self, moved, **kw)
-
-    monkeypatch.setattr(Deformer, "deform", spy)
-    out = grid_path.parent / "w.x"
-    rc, so, se = run_cli(capsys, "deform", grid_path, "--case", case_path, "--rotate", "3", "-o", out)
-    assert rc == 0, se
-    (arrays,) = given
-    grid = tq.read(grid_path)
-    assert isinstance(arrays, list) and len(arrays) == len(grid)
-    for a, blk in zip(arrays, grid):
-        assert a.shape == blk.xyz.shape and a.dtype == np.float64 and a.flags.f_contiguous
-    monkeypatch.setattr(Deformer, "deform", deform)
-    ref = _api(grid_path, case_path, rigid_motion(3.0, (0, 0, 1), (0, 0, 0), (0, 0, 0)))
-    assert [b.xyz.tobytes() for b in tq.read(out)] == [b.xyz.tobytes() for b in ref]
-    assert [a.tobytes() for a in arrays] == [b.xyz.tobytes() for b in ref]

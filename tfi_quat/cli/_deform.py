@@ -6,8 +6,6 @@ import argparse
 import sys
 import time
 
-import numpy as np
-
 from ..errors import CaseError
 from . import EXIT_CHECK
 from ._common import (add_base_arg, case_and_grid, check_output, file_format, finite, output_like,
@@ -15,9 +13,6 @@ from ._common import (add_base_arg, case_and_grid, check_output, file_format, fi
 
 #: negative cells listed in the summary line
 _SHOW = 3
-
-#: values written at a time into the result's arrays while numba starts (8 MB)
-_TOUCH = 1 << 20
 
 #: tfi_quat.deform.METHODS, spelled out so the CLI starts without numba
 METHODS = ("two-level", "samareh", "tfi")
@@ -198,11 +193,8 @@ def run(args) -> int:
     sym = [parse_patch_spec(w) for w in args.symmetry]
     fixed = [parse_patch_spec(w) for w in args.fixed]
     # numba's set-up runs while the grid is read (the read holds no lock numba needs)
-    warming = warm_up_in_background()
+    warm_up_in_background()
     grid = read_grid(args, path)
-    # the result's arrays, made now and written while numba's set-up still runs (the set-up's
-    # first kernel would wait for it): the step writes into them (out=)
-    result_arrays = None if args.write_surface else _result_arrays(grid, warming)
     from ..deform import Deformer
     from ..quality import volume_ratio_summary
     conn = None
@@ -232,9 +224,9 @@ def run(args) -> int:
         return 0
     progress = _Progress(not args.quiet and grid.npoints > 2_000_000)
     if args.modes:
-        result = deformer.modal(surface)(args.amplitudes, out=result_arrays, callback=progress)
+        result = deformer.modal(surface)(args.amplitudes, callback=progress)
     else:
-        result = deformer.deform(moved, out=result_arrays, callback=progress)
+        result = deformer.deform(moved, callback=progress)
     t2 = time.perf_counter()
     q = volume_ratio_summary(result, grid)
     print(f"{desc}; method {method}")
@@ -255,26 +247,6 @@ def run(args) -> int:
     io.write(out, result, like=like, overwrite=args.force, **boundaries)
     print(f"wrote {out}: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}")
     return 0
-
-
-def _result_arrays(grid, warming) -> list:
-    """One Fortran ``(ni, nj, nk, 3)`` array per block for the step's result.
-
-    The first write of new memory is a large part of the cost of filling it (page faults,
-    system time: about 1.5 ms of CPU per MB on the test machine, against 0.2 ms for memory the
-    process has used before).  While numba's set-up runs (the thread ``warming``; None:
-    none), the arrays are written with zeros, 8 MB at a time, on this thread, which would
-    otherwise wait for that set-up at the first kernel; what is left is first written by
-    the step, as before.
-    """
-    arrays = [np.empty(blk.xyz.shape, order="F") for blk in grid]
-    for a in arrays:
-        flat = a.reshape(-1, order="F")
-        for lo in range(0, flat.size, _TOUCH):
-            if warming is None or not warming.is_alive():
-                return arrays
-            flat[lo:lo + _TOUCH] = 0.0
-    return arrays
 
 
 def _first_cells(result, grid) -> str:
