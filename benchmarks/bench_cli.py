@@ -70,14 +70,23 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+#: the last command's system seconds and minor page faults (first touches of new memory)
+LAST = {"sys": 0.0, "minflt": 0}
+
+
 def _run(cmd, env) -> tuple[float, float, str]:
-    """Wall and CPU seconds (user + system, all threads) of one command, and its stdout."""
+    """Wall and CPU seconds (user + system, all threads) of one command, and its stdout
+    (its system time and page faults in :data:`LAST`)."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     c0 = _cpu()
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=env["PYTHONPATH"], env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    LAST["sys"] = r1.ru_stime - r0.ru_stime
+    LAST["minflt"] = r1.ru_minflt - r0.ru_minflt
     return wall, _cpu() - c0, proc.stdout
 
 
@@ -146,21 +155,27 @@ def main(argv=None):
             t_ow, _, out_old = _run(deform, env_old)
             print(f"warm-up of {args.root}: deform {t_ow:.2f} s")
         td, tc, cd, cc, to, co = [], [], [], [], [], []
+        sd, sc, fd, fc = [], [], [], []
         for r in range(args.repeat):
             t, c, out = _run(deform, env)
             td.append(t)
             cd.append(c)
+            sd.append(LAST["sys"])
+            fd.append(LAST["minflt"])
             t, c, _ = _run(convert, env)
             tc.append(t)
             cc.append(c)
+            sc.append(LAST["sys"])
+            fc.append(LAST["minflt"])
             old = ""
             if env_old is not None:
                 t, c, _ = _run(deform, env_old)
                 to.append(t)
                 co.append(c)
                 old = f", deform of --root {to[-1]:.3f} s ({co[-1]:.2f} s CPU)"
-            print(f"run {r + 1}: deform {td[-1]:.3f} s ({cd[-1]:.2f} s CPU), "
-                  f"convert {tc[-1]:.3f} s ({cc[-1]:.2f} s CPU){old}; load average {os.getloadavg()[0]:.1f}")
+            print(f"run {r + 1}: deform {td[-1]:.3f} s ({cd[-1]:.2f} s CPU, {sd[-1]:.2f} s system, "
+                  f"{fd[-1]} page faults), convert {tc[-1]:.3f} s ({cc[-1]:.2f} s CPU, {sc[-1]:.2f} s "
+                  f"system, {fc[-1]} page faults){old}; load average {os.getloadavg()[0]:.1f}")
         setup = [line for line in out.splitlines() if line.startswith("set-up")]
         best_d, best_c = min(td), min(tc)
         print(f"best of {args.repeat}: deform {best_d:.3f} s, convert {best_c:.3f} s, "
@@ -176,7 +191,8 @@ def main(argv=None):
             "points": grid.npoints, "dims": [ni, nj, nk], "method": args.method, "rotate": args.rotate,
             "deform_s": td, "convert_s": tc, "best_deform_s": best_d, "best_convert_s": best_c,
             "ratio": best_d / best_c, "deform_cpu_s": cd, "convert_cpu_s": cc,
-            "cpu_ratio": min(cd) / min(cc), "root": args.root, "root_deform_s": to, "root_deform_cpu_s": co, "load_average": os.getloadavg()[0]}, indent=2) + "\n")
+            "cpu_ratio": min(cd) / min(cc), "deform_sys_s": sd, "convert_sys_s": sc,
+            "deform_minflt": fd, "convert_minflt": fc, "root": args.root, "root_deform_s": to, "root_deform_cpu_s": co, "load_average": os.getloadavg()[0]}, indent=2) + "\n")
 
 
 if __name__ == "__main__":

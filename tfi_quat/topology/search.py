@@ -132,7 +132,7 @@ class _Geometry:
         self.ndim = grid.ndim
         self.faces: list[_Face] = []
         self.index = {}
-        xyz, hs, bps = [], [], []
+        xyz, hs, bps, edges = [], [], [], []
         off = 0
         boff = 0
         for b, blk in enumerate(grid):
@@ -148,16 +148,18 @@ class _Geometry:
                     raise GridValueError(f"block {b + 1} face {f}: non-finite (NaN or infinite) "
                                          "coordinates; no connectivity can be found")
                 h = np.full((na, nb), np.inf)
-                if na >= 2:
-                    e = np.linalg.norm(np.diff(pts, axis=0), axis=-1)
-                    e = np.where(e > tiny, e, np.inf)
+                # the edge lengths along a and b, kept for the labels (:meth:`_label`)
+                ea = np.linalg.norm(np.diff(pts, axis=0), axis=-1) if na >= 2 else None
+                eb = np.linalg.norm(np.diff(pts, axis=1), axis=-1) if nb >= 2 else None
+                if ea is not None:
+                    e = np.where(ea > tiny, ea, np.inf)
                     h[:-1] = np.minimum(h[:-1], e)
                     h[1:] = np.minimum(h[1:], e)
-                if nb >= 2:
-                    e = np.linalg.norm(np.diff(pts, axis=1), axis=-1)
-                    e = np.where(e > tiny, e, np.inf)
+                if eb is not None:
+                    e = np.where(eb > tiny, eb, np.inf)
                     h[:, :-1] = np.minimum(h[:, :-1], e)
                     h[:, 1:] = np.minimum(h[:, 1:], e)
+                edges.append((ea, eb))
                 if dims[d] >= 2:
                     idx = [slice(None)] * 3
                     idx[d] = face_layer(dims, f, 1)
@@ -189,21 +191,23 @@ class _Geometry:
         self.a = np.concatenate([np.tile(np.arange(fc.na), fc.nb) for fc in self.faces])
         self.b = np.concatenate([np.repeat(np.arange(fc.nb), fc.na) for fc in self.faces])
         self.n = off
-        self._label()
+        self._label(edges)
 
     # ------------------------------------------------------------ labels
-    def _label(self) -> None:
+    def _label(self, edges) -> None:
+        """Labels of the points: ``cface`` (coincident within a face), ``degenerate``, ``g``
+        (coincident anywhere); ``edges``: per face its edge lengths along a ``(na - 1, nb)`` and
+        along b ``(na, nb - 1)`` (None where the face has one point that way)."""
         n = self.n
         ei, ej = [], []
-        for fc in self.faces:
+        for fc, (ea, eb) in zip(self.faces, edges):
             # views (nb, na) of the face's rows: point (a, b) is row off + a + na * b
             ids = np.arange(fc.off, fc.off + fc.size).reshape(fc.nb, fc.na)
-            x = self.xyz[fc.sl()].reshape(fc.nb, fc.na, 3)
             tol = self.tol[fc.sl()].reshape(fc.nb, fc.na)
-            for lo, hi in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
-                           ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+            for lo, hi, e in (((slice(None), slice(None, -1)), (slice(None), slice(1, None)), ea),
+                              ((slice(None, -1), slice(None)), (slice(1, None), slice(None)), eb)):
                 if ids[lo].size:
-                    d = np.linalg.norm((x[lo] - x[hi]).reshape(-1, 3), axis=1).reshape(ids[lo].shape)
+                    d = e.T             # (nb, na - 1) or (nb - 1, na), as ids[lo]
                     close = d <= np.minimum(tol[lo], tol[hi])
                     ei.append(ids[lo][close])
                     ej.append(ids[hi][close])
