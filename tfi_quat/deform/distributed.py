@@ -232,6 +232,11 @@ class DistributedDeformer(Deformer):
         agree(comm, exc)
         shell.drop_layers()
 
+    @property
+    def dims(self) -> list:
+        """Every block's dims, in global order (:attr:`grid` holds this rank's blocks only)."""
+        return [tuple(d) for d in self._all.dims]
+
     # ------------------------------------------------------------ the step's collectives
     def _sync(self, exc, payload) -> list:
         """One collective of a step: every rank's payload, or the first rank's error raised."""
