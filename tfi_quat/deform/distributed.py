@@ -52,7 +52,7 @@ from ..quality import CellCheck
 from .deformer import Deformer
 from .shell import ShellGrid, shell_of
 
-__all__ = ["DistributedDeformer", "open_shell"]
+__all__ = ["DistributedDeformer", "open_shell", "split_skeleton"]
 
 #: collectives of one step: the wall targets, the cell checks
 _STAGES = 2
@@ -205,6 +205,53 @@ def _plan_exchange(comm, shell):
     return exchange
 
 
+def split_skeleton(sk, two, own):
+    """The skeleton (and two-level parts) restricted to what the blocks ``own`` read: the
+    derived patches writing a point of their faces, the segments' gaps those patches or faces
+    need (their ends in turn), the symmetry and derived points among them.
+
+    A step on it computes every point of the own blocks' faces with the same operations, item
+    by item, as on the whole skeleton (so with the same bits), and skips the rest: the
+    replicated O(surface) work of a step shrinks to the rank's share of the boundary, plus
+    the walls (wall quaternions, rigid fits) and the free vertices, which every rank keeps.
+    """
+    from .skeleton import Patches, Segments, Symmetry
+    from .stages import level_pack
+    need = np.zeros(sk.n_global, dtype=bool)
+    for b in own:
+        for g in sk.blocks[b].face_gid:
+            need[g.ravel()] = True
+    # the patches are one level (each reads its sides only): keep those writing a needed point
+    kept = [p for p in sk.patches.items if need[p.gid[p.write]].any()]
+    for p in kept:
+        need[p.gid.ravel()] = True
+    patches = Patches(tuple(kept), level_pack([(p.gid, p.s, p.lead, p.write) for p in kept]),
+                      int(sum(p.gid.size for p in kept)))
+    segments = sk.segments
+    if segments is not None:
+        # a gap reads its ends, which an earlier gap may fill: walk them backwards
+        left, right, ptr, pts, s = segments.arrays()
+        keep = np.zeros(left.size, dtype=bool)
+        for g in range(left.size - 1, -1, -1):
+            if need[pts[ptr[g]:ptr[g + 1]]].any():
+                keep[g] = True
+                need[left[g]] = need[right[g]] = True
+        sizes = np.diff(ptr)[keep]
+        rows = np.repeat(keep, np.diff(ptr))
+        segments = Segments(left[keep], right[keep],
+                            np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+                            np.ascontiguousarray(pts[rows]), np.ascontiguousarray(s[rows]))
+    sym = sk.symmetry
+    on = need[sym.gids]
+    symmetry = Symmetry(sym.gids[on], sym.point[on], sym.normal[on])
+    der = need[sk.derived]
+    sk = dataclasses.replace(sk, patches=patches, segments=segments, symmetry=symmetry,
+                             derived=sk.derived[der])
+    if two is not None:
+        two = dataclasses.replace(two, phi=np.ascontiguousarray(two.phi[der]))
+    return sk, two
+
+
 class DistributedDeformer(Deformer):
     """A :class:`~tfi_quat.deform.Deformer` over the ranks of ``comm``: set up from the rank's own
     blocks and every block's boundary, it deforms the rank's blocks (see the module docstring).
@@ -231,11 +278,27 @@ class DistributedDeformer(Deformer):
             exc = e
         agree(comm, exc)
         shell.drop_layers()
+        #: the whole skeleton (every rank's copy is the same); :attr:`skeleton` is this rank's part
+        self.full_skeleton = self.skeleton
+        self.skeleton, self.two_level = split_skeleton(self.skeleton, self.two_level, self.blocks)
 
     @property
     def dims(self) -> list:
         """Every block's dims, in global order (:attr:`grid` holds this rank's blocks only)."""
         return [tuple(d) for d in self._all.dims]
+
+    def summary(self) -> str:
+        """:meth:`Deformer.summary` of the whole skeleton, and this rank's part of it."""
+        part = self.skeleton
+        self.skeleton = self.full_skeleton
+        try:
+            text = super().summary()
+        finally:
+            self.skeleton = part
+        nseg = 0 if part.segments is None else len(part.segments.left)
+        return (text + f"\nrank {self.comm.rank} of {self.comm.size}: blocks "
+                f"{', '.join(str(b + 1) for b in self.blocks)}; its part: {nseg} segments, "
+                f"{len(part.patches.items)} patches, {part.derived.size} derived points")
 
     # ------------------------------------------------------------ the step's collectives
     def _sync(self, exc, payload) -> list:
