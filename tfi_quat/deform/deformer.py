@@ -518,7 +518,7 @@ class Deformer:
         w = self._work
         gdelta, gq, pos = w.gd, w.qg, w.pos
         if self._use_q:
-            qw = stages.wall_quaternions(sk, rd, c)
+            qw = self._wall_quaternions(rd, c)
             gq[wall] = qw
             # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
             gdelta[wall] = rd[wall] - c - qa.rotate(qw, P[wall] - c)
@@ -558,7 +558,7 @@ class Deformer:
         tiny = 1e-14 * self._scale
         local = bool(np.max(np.abs(y[wall] - P[wall]), initial=0.0) > tiny)
         rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
-        qwall = stages.wall_quaternions(sk, y, self.centre) if local else None
+        qwall = self._wall_quaternions(y, self.centre) if local else None
         t1 = time.perf_counter()
         ts = 0.0
         pos = w.pos
@@ -648,6 +648,11 @@ class Deformer:
                           connectivity=grid.connectivity)
         result.quality = report
         return result
+
+    def _wall_quaternions(self, rd, centre):
+        """The merged wall quaternions of the walls moved to ``rd`` (under MPI: each wall patch
+        computed by one rank and exchanged, :mod:`.distributed`)."""
+        return stages.wall_quaternions(self.skeleton, rd, centre)
 
     def _report(self, reports, check):
         """The check of a step from ``(block, report)`` per own block (under MPI: of all

@@ -26,8 +26,11 @@ Step
     one (global block numbers in ``ids``); the wall input must be given on
     **every** rank, the same: each rank reduces it to the wall targets and
     the ranks compare a digest of them (one ``allgather`` of 16 bytes and any
-    error).  Each rank then computes the O(surface) fields and its own blocks
-    and returns them (a Grid in the order of :attr:`blocks`).  ``check``
+    error).  Each rank then computes the wall fields (replicated: the rigid
+    fits, the wall quaternions, the free vertices' blend), the rest of the
+    boundary fields only where its blocks' faces read them
+    (:func:`split_skeleton`), and its own blocks, and returns them (a Grid in
+    the order of :attr:`blocks`).  ``check``
     reports are gathered and merged over all blocks in global order, so
     ``quality`` is the serial run's on every rank and ``check="raise"``
     raises on every rank.
@@ -49,13 +52,14 @@ from ..errors import GridValueError, ParallelError
 from ..grid import Grid, partition
 from ..io.mpi import agree, check_comm, from_root, portable, raise_first
 from ..quality import CellCheck
+from . import stages
 from .deformer import Deformer
 from .shell import ShellGrid, shell_of
 
 __all__ = ["DistributedDeformer", "open_shell", "split_skeleton"]
 
-#: collectives of one step: the wall targets, the cell checks
-_STAGES = 2
+#: collectives of one step: the wall targets, the wall quaternions, the cell checks
+_STAGES = 3
 
 
 def _numbers(blocks, nblocks: int, where: str) -> list[int]:
@@ -278,6 +282,7 @@ class DistributedDeformer(Deformer):
             exc = e
         agree(comm, exc)
         shell.drop_layers()
+        self._own_set = frozenset(self.blocks)
         #: the whole skeleton (every rank's copy is the same); :attr:`skeleton` is this rank's part
         self.full_skeleton = self.skeleton
         self.skeleton, self.two_level = split_skeleton(self.skeleton, self.two_level, self.blocks)
@@ -337,11 +342,37 @@ class DistributedDeformer(Deformer):
 
     def _samareh_fields(self, rd):
         self._agree_targets(rd)
-        return super()._samareh_fields(rd)
+        return self._with_wall_stage(super()._samareh_fields, rd)
 
     def _two_level_fields(self, rd):
         self._agree_targets(rd)
-        return super()._two_level_fields(rd)
+        return self._with_wall_stage(super()._two_level_fields, rd)
+
+    def _with_wall_stage(self, fields, rd):
+        """``fields(rd)``, and the wall quaternions' collective when it did not need them (a
+        rigid two-level step, plain TFI): every rank passes the same stages."""
+        before = self._stage
+        out = fields(rd)
+        if self._stage == before:
+            self._sync(None, None)
+        return out
+
+    def _wall_quaternions(self, rd, centre):
+        """Each rank computes the quaternions of the wall patches on its blocks; all are
+        exchanged and merged in the global patch order (the serial merge: the same bits)."""
+        sk = self.skeleton
+        mine = [m for m, w in enumerate(sk.walls.patches) if w.spec.block in self._own_set]
+        exc = qs = None
+        try:
+            qs = stages.patch_quaternions(sk, rd, centre, mine)
+        except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
+            exc = e
+        parts = self._sync(exc, None if qs is None else list(zip(mine, qs)))
+        every = [None] * len(sk.walls.patches)
+        for part in parts:
+            for m, q in part:
+                every[m] = q
+        return stages.merge_wall_quaternions(sk, every)
 
     def _report(self, reports, check):
         parts = self._sync(None, reports if check else None)
