@@ -79,9 +79,12 @@ def worker(folder: Path, repeat: int) -> None:
     rd, y = P.copy(), P.copy()
     rd[wall] = move(P[wall])
     parts = {}
+    allp = range(len(full.walls.patches))
+    qs = stages.patch_quaternions(full, y, d.centre, allp)
     for name, fn in (("motion", lambda: move(P[wall])),
                      ("fit", lambda: twolevel.fit_bodies(full, d.two_level, rd, y)),
-                     ("wallq", lambda: stages.wall_quaternions(full, y, d.centre))):
+                     ("wallq", lambda: stages.patch_quaternions(full, y, d.centre, allp)),
+                     ("merge", lambda: stages.merge_wall_quaternions(full, qs))):
         fn()
         t0 = time.perf_counter()
         for _ in range(5):
@@ -138,11 +141,16 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
     f = figs1[0]
     v = f["volumes"] / f["own_points"]
     k_face = f["faces"] / max(f["part_derived"], 1)
-    k_wall = (f["fit"] + f["wallq"]) / max(f["wall"], 1)
-    const = max(f["step"] - f["volumes"] - f["faces"] - f["fit"] - f["wallq"] - f["motion"], 0.0)
+    nw = max(f["wall"], 1)
+    k_rep = (f["fit"] + f["merge"]) / nw
+    k_wq = f["wallq"] / nw
+    const = max(f["step"] - f["volumes"] - f["faces"] - f["fit"] - f["wallq"] - f["merge"]
+                - f["motion"], 0.0)
     print(f"\nmeasured per rank (1 rank, one thread, under load): volume stage {v * 1e9:.1f} ns per "
           f"own point; faces stage {k_face * 1e9:.0f} ns per derived boundary point of the rank's part; "
-          f"rigid fits + wall quaternions {k_wall * 1e9:.0f} ns per wall point (the motion callable "
+          f"rigid fits + merge of the wall quaternions {k_rep * 1e9:.0f} ns per wall point "
+          f"(replicated), the wall patches' quaternions {k_wq * 1e9:.0f} ns per wall point (split "
+          f"by the owners of the wall blocks; the motion callable "
           f"{f['motion'] / max(f['wall'], 1) * 1e9:.0f} ns more, the user's); free-vertex blend "
           f"{vtx * 1e9:.2f} ns per vertex x source pair; the rest of a step {const * 1e3:.1f} ms "
           f"(Python, small arrays); set-up {f['setup'] / f['n_global'] * 1e6:.1f} us per boundary point")
@@ -150,8 +158,10 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
           f"cubic blocks per rank; the walls scale as the wing's, points^(2/3) from {wall_1} wall "
           f"points at {points_1 / 1e6:.2f} M; a free vertex at every block corner not on a wall "
           f"(8 per block, shared by 8), 2000 IDW sources; the rank's part of the skeleton = its "
-          f"blocks' faces; the collectives of a step: two allgathers of 16 B and the cell reports, "
-          f"latency 5 us x log2(ranks); the measured per-point costs hold at scale)")
+          f"blocks' faces; a rank holds at most one n x n wall face per block; the collectives "
+          f"of a step: allgathers of 16 B, of the wall quaternions (32 B per wall point, 10 GB/s "
+          f"into each rank) and of the cell reports, latency 5 us x log2(ranks) each; the "
+          f"measured per-point costs hold at scale)")
     wall = wall_1 * (n_points / points_1) ** (2.0 / 3.0)
     for p in ranks:
         per = n_points / p
@@ -161,16 +171,16 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
         verts = nblocks                         # corners: 8 per block, each shared by 8
         t_vol = v * per
         t_part = k_face * part
-        t_wall = k_wall * wall
+        t_wall = k_rep * wall + k_wq * min(wall, blocks_per_rank * n * n)
         t_vtx = vtx * verts * 2000
-        t_coll = 2 * 5e-6 * np.log2(p)
+        t_coll = 3 * 5e-6 * np.log2(p) + 32 * wall / 1e10
         total = t_vol + t_part + t_wall + t_vtx + t_coll + const
-        rep = t_wall + t_vtx
+        rep = k_rep * wall + t_vtx
         print(f"  {p:5d} ranks: {per / 1e6:.2f} M points/rank, {nblocks} blocks of {n:.0f}^3: "
               f"volume {t_vol:.3f} s, own faces {t_part:.3f} s, walls {t_wall:.3f} s, vertices "
               f"{t_vtx:.3f} s, collectives {t_coll * 1e3:.2f} ms; step {total:.3f} s, replicated "
-              f"(walls + vertices) {100 * rep / total:.1f} % (with 200 IDW sources: "
-              f"{100 * (t_wall + t_vtx / 10) / (total - 0.9 * t_vtx):.1f} %)")
+              f"(fits, merge, vertices) {100 * rep / total:.1f} % (with 200 IDW sources: "
+              f"{100 * (rep - 0.9 * t_vtx) / (total - 0.9 * t_vtx):.1f} %)")
 
 
 def main(argv=None):
