@@ -201,3 +201,30 @@ def test_one_and_three_ranks(grids, tmp_path, monkeypatch):
     one = [case(spec, "ring", "bend", ["r1.h5"]), case(spec, "two", "rigid", ["t1.x"])]
     results = run_job(tmp_path, 1, one)
     check_outputs(root, tmp_path, one, results, monkeypatch)
+
+
+def test_deformer_comm_without_mpi4py_names_the_extra(monkeypatch):
+    """Without mpi4py the package deforms serially; comm= raises naming the extra, and a comm
+    that is no communicator is refused; blocks= needs comm=; a serial Deformer takes a path."""
+    from tfi_quat.errors import CaseError, ParallelError
+    from _deform_grids import two_block_o
+    grid, walls, _, fixed = two_block_o(17, 9)
+    with pytest.raises(ParallelError, match="not a comm|intracommunicator"):
+        Deformer(grid, walls=walls, fixed=fixed, comm="world")
+    with pytest.raises(CaseError, match="blocks= goes with comm="):
+        Deformer(grid, walls=walls, fixed=fixed, blocks=[0])
+    monkeypatch.setitem(sys.modules, "mpi4py", None)       # import mpi4py raises ImportError
+    monkeypatch.setitem(sys.modules, "mpi4py.MPI", None)
+    with pytest.raises(ParallelError, match=r'pip install "tfi_quat\[mpi\]"'):
+        Deformer(grid, walls=walls, fixed=fixed, comm=object())
+    d = Deformer(grid, walls=walls, fixed=fixed)
+    assert d.deform(motion("rigid")).dims == grid.dims
+
+
+def test_serial_deformer_reads_a_path(tmp_path):
+    """Deformer(path) reads the grid whole: the same bits as Deformer(read(path))."""
+    case = load_case(GRIDS / "two_block_65x33.toml", check_grid=False)
+    path = GRIDS / "two_block_65x33.x"
+    a = Deformer(str(path), walls=case.walls, fixed=case.fixed).deform(motion("rigid"))
+    b = Deformer(tq.read(path), walls=case.walls, fixed=case.fixed).deform(motion("rigid"))
+    assert a == b and a.blocks[0].xyz.tobytes() == b.blocks[0].xyz.tobytes()

@@ -148,9 +148,10 @@ class Deformer:
 
     Parameters
     ----------
-    grid : Grid
-        The reference (undeformed) grid.  It is kept by reference and never
-        modified; do not modify it while the Deformer is in use.
+    grid : Grid or path
+        The reference (undeformed) grid, or its file (read whole; with
+        ``comm``, each rank reads its blocks).  It is kept by reference and
+        never modified; do not modify it while the Deformer is in use.
     walls, symmetry, fixed : sequence of PatchSpec or "BLOCK:FACE[:A1-A2,B1-B2]"
         Boundary patches by kind (1-based text, 0-based PatchSpec).  A whole
         face given as a wall is reduced by the interfaces on it.  Faces not
