@@ -92,6 +92,9 @@ def grids(tmp_path_factory):
         "two": dict(grid=str(GRIDS / "two_block_65x33.x"), walls=[str(s) for s in two.walls],
                     fixed=[str(s) for s in two.fixed]),
         "ring": dict(grid=str(root / "ring.h5"), walls=rw, symmetry=rs, fixed=rf),
+        # the file's own boundary conditions (walls) and 1-to-1 interfaces, some faces fixed
+        "cgns": dict(grid=str(ROOT / "tests" / "data" / "cgns" / "multiblock.cgns"), walls=[],
+                     fixed=[f"{b}:{f}" for b in (1, 2, 3) for f in ("kmin", "kmax", "jmin", "jmax")]),
     }
     return root, spec
 
@@ -104,7 +107,8 @@ def serial_bytes(root, case: dict, name: str, monkeypatch) -> bytes:
         grid = tq.read(case["grid"])
         d = Deformer(grid, walls=case["walls"], symmetry=case.get("symmetry", ()),
                      fixed=case.get("fixed", ()), method=case.get("method", "two-level"))
-        tq.write(path, d.deform(motion(case["motion"])), like=grid)
+        same = Path(case["grid"]).suffix == Path(name).suffix
+        tq.write(path, d.deform(motion(case["motion"])), like=grid if same else None)
     return path.read_bytes()
 
 
@@ -187,15 +191,17 @@ def test_two_ranks_all_grids_errors_and_cli(grids, tmp_path, monkeypatch):
 
 def test_one_and_three_ranks(grids, tmp_path, monkeypatch):
     """1 rank (comm=COMM_WORLD of one) and 3 ranks (4 blocks: one rank holds two; a given
-    round-robin partition of the ring): the same files as the serial run."""
+    round-robin partition of the ring; a CGNS grid with its own boundary conditions and
+    interfaces, 3 blocks): the same files as the serial run."""
     root, spec = grids
     three = [
         case(spec, "wing", "bend", ["w.x"]),
         case(spec, "ring", "bend", ["r.h5", "r.x"], blocks=[[3, 0], [1], [2]]),
         case(spec, "two", "rigid", ["t.h5"], blocks=[[0], [1], []]),
+        case(spec, "cgns", "rigid", ["c.h5"]),
     ]
     results = run_job(tmp_path, 3, three)
-    check_outputs(root, tmp_path, three[:2], results[:2], monkeypatch)
+    check_outputs(root, tmp_path, three[:2] + three[3:], results[:2] + results[3:], monkeypatch)
     errors = {r.get("error") for r in results[2]}
     assert len(errors) == 1 and "owns no block" in errors.pop()
     one = [case(spec, "ring", "bend", ["r1.h5"]), case(spec, "two", "rigid", ["t1.x"])]

@@ -48,7 +48,7 @@ import os
 
 import numpy as np
 
-from ..errors import GridValueError, ParallelError
+from ..errors import GridFormatError, GridValueError, ParallelError
 from ..grid import Grid, partition
 from ..io.mpi import agree, check_comm, from_root, portable, raise_first
 from ..quality import CellCheck
@@ -383,7 +383,14 @@ class DistributedDeformer(Deformer):
 
     def write(self, path, grid, **kw) -> None:
         """Write a step's result (this rank's blocks) collectively: :func:`tfi_quat.io.write` with
-        ``comm`` and ``blocks`` (``like`` default: the reference's file variant)."""
+        ``comm`` and ``blocks`` (``like`` default: the reference's file variant when ``path``
+        names the reference's format)."""
         from .. import io
-        kw.setdefault("like", self.grid)
+        if "like" not in kw and "format" not in kw:
+            try:
+                same = io.format_for(path).name == io.format_for(like=self.grid).name
+            except GridFormatError:
+                same = False
+            if same:
+                kw["like"] = self.grid
         io.write(path, grid, comm=self.comm, blocks=list(self.blocks), **kw)
