@@ -146,7 +146,12 @@ def test_two_ranks_all_grids_errors_and_cli(grids, tmp_path, monkeypatch):
         case(spec, "wing", "fold", check="raise"),
         case(spec, "ring", "rigid", blocks=[[0, 1], [1, 2, 3]]),
         dict(cli=["deform", "--case", str(root / "wing.toml"), "-o", "cli.h5"], _key="cli"),
+        # --moved: the wall faces of a moved grid (the serial bend of the wing)
+        dict(cli=["deform", "--case", str(root / "wing.toml"), "--moved",
+                  str(root / "serial_wing_bend_two-level_out.x"), "-o", "moved.x",
+                  "--allow-negative"], _key="moved"),
     ]
+    serial_bytes(root, cases[2], "out.x", monkeypatch)      # the moved grid of the last case
     case_file = root / "wing.toml"
     text = (GRIDS / "wing_ch_501k.toml").read_text(encoding="utf-8")
     case_file.write_text(text.replace('"wing_ch_501k.x"', json.dumps(str(GRIDS / "wing_ch_501k.x"))),
@@ -174,6 +179,12 @@ def test_two_ranks_all_grids_errors_and_cli(grids, tmp_path, monkeypatch):
     monkeypatch.chdir(root)
     assert main(["deform", "--case", str(case_file), "-o", "serial_cli.h5"]) == 0
     assert (tmp_path / "cli.h5").read_bytes() == (root / "serial_cli.h5").read_bytes()
+    assert [r["rc"] for r in results[10]] == [0, 0]
+    assert "walls from" in results[10][0]["stdout"], results[10][0]["stdout"]
+    assert main(["deform", "--case", str(case_file), "--moved",
+                 str(root / "serial_wing_bend_two-level_out.x"), "-o", "serial_moved.x",
+                 "--allow-negative"]) == 0
+    assert (tmp_path / "moved.x").read_bytes() == (root / "serial_moved.x").read_bytes()
     # memory (measured after the other cases compiled every kernel): a rank holds its blocks
     # plus O(surface) arrays, not the whole grid.  Fitted over the two ranks' shares, the peak
     # is about 50 B per own point plus 500-600 B per boundary point copy (the replicated
