@@ -55,10 +55,12 @@ def main() -> None:
             blocks = blocks[comm.rank]
         if case.get("cli"):
             from tfi_quat.cli import main as cli
-            buf = io.StringIO()
-            with contextlib.redirect_stdout(buf):
+            buf, err = io.StringIO(), io.StringIO()
+            saved = sys.stdout, sys.stderr      # the CLI silences the ranks but 0 for good
+            with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(err):
                 res["rc"] = cli(case["cli"])
-            res["stdout"] = buf.getvalue() if comm.rank == 0 else ""
+            sys.stdout, sys.stderr = saved
+            res["stdout"], res["stderr"] = buf.getvalue(), err.getvalue()
             results.append(res)
             continue
         if case.get("trace"):

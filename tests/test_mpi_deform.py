@@ -150,6 +150,11 @@ def test_two_ranks_all_grids_errors_and_cli(grids, tmp_path, monkeypatch):
         dict(cli=["deform", "--case", str(root / "wing.toml"), "--moved",
                   str(root / "serial_wing_bend_two-level_out.x"), "-o", "moved.x",
                   "--allow-negative"], _key="moved"),
+        # errors in the CLI: reported once (rank 0), the same exit status everywhere
+        dict(cli=["deform", "--case", str(root / "wing.toml"), "--rotate", "40", "-o", "neg.h5"],
+             _key="negative"),
+        dict(cli=["deform", str(GRIDS / "wing_ch_501k.x"), "--wall", "9:jmin", "-o", "bad.h5",
+                  "--rotate", "1"], _key="bad"),
     ]
     serial_bytes(root, cases[2], "out.x", monkeypatch)      # the moved grid of the last case
     case_file = root / "wing.toml"
@@ -185,6 +190,11 @@ def test_two_ranks_all_grids_errors_and_cli(grids, tmp_path, monkeypatch):
                  str(root / "serial_wing_bend_two-level_out.x"), "-o", "serial_moved.x",
                  "--allow-negative"]) == 0
     assert (tmp_path / "moved.x").read_bytes() == (root / "serial_moved.x").read_bytes()
+    for per_rank, status, words in ((results[11], 1, "negative cells"), (results[12], 2, "9:jmin")):
+        assert [r["rc"] for r in per_rank] == [status, status], per_rank
+        assert per_rank[0]["stderr"].count("tfi-quat deform") == 1 and words in per_rank[0]["stderr"]
+        assert per_rank[1]["stderr"] == per_rank[1]["stdout"] == ""
+    assert not (tmp_path / "neg.h5").exists() and not (tmp_path / "bad.h5").exists()
     # memory (measured after the other cases compiled every kernel): a rank holds its blocks
     # plus O(surface) arrays, not the whole grid.  Fitted over the two ranks' shares, the peak
     # is about 50 B per own point plus 500-600 B per boundary point copy (the replicated
