@@ -224,7 +224,7 @@ def test_one_and_three_ranks(grids, tmp_path, monkeypatch):
     results = run_job(tmp_path, 3, three)
     check_outputs(root, tmp_path, three[:2] + three[3:], results[:2] + results[3:], monkeypatch)
     errors = {r.get("error") for r in results[2]}
-    assert len(errors) == 1 and "owns no block" in errors.pop()
+    assert len(errors) == 1 and "blocks= is empty" in errors.pop()
     one = [case(spec, "ring", "bend", ["r1.h5"]), case(spec, "two", "rigid", ["t1.x"])]
     results = run_job(tmp_path, 1, one)
     check_outputs(root, tmp_path, one, results, monkeypatch)

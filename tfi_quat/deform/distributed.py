@@ -51,6 +51,7 @@ import numpy as np
 from ..errors import GridFormatError, GridValueError, ParallelError
 from ..grid import Grid, partition
 from ..io.mpi import agree, check_comm, from_root, portable, raise_first
+from ..io.partial import block_numbers
 from ..quality import CellCheck
 from . import stages
 from .deformer import Deformer
@@ -62,21 +63,17 @@ __all__ = ["DistributedDeformer", "open_shell", "split_skeleton"]
 _STAGES = 3
 
 
-def _numbers(blocks, nblocks: int, where: str) -> list[int]:
+def _numbers(blocks, where: str) -> list[int]:
+    """The 0-based block numbers of a rank's Grid (a file's: :func:`tfi_quat.io.partial.block_numbers`)."""
     if isinstance(blocks, (int, np.integer, str, bytes)):
         raise GridValueError(f"{where}: blocks= must be a list of 0-based block numbers, got {blocks!r}")
     out = []
     for b in blocks:
-        if isinstance(b, (bool, np.bool_)) or not isinstance(b, (int, np.integer)):
-            raise GridValueError(f"{where}: block {b!r} in blocks= is not an integer (0-based)")
-        if nblocks is not None and not 0 <= int(b) < nblocks:
-            raise GridValueError(f"{where}: block {int(b)} out of range: the grid has {nblocks} "
-                                 f"block(s) (0-based 0..{nblocks - 1})")
+        if isinstance(b, (bool, np.bool_)) or not isinstance(b, (int, np.integer)) or b < 0:
+            raise GridValueError(f"{where}: block {b!r} in blocks= is not a 0-based block number")
         if int(b) in out:
             raise GridValueError(f"{where}: block {int(b)} is given twice in blocks=")
         out.append(int(b))
-    if not out:
-        raise GridValueError(f"{where}: this rank owns no block (blocks= is empty)")
     return out
 
 
@@ -113,7 +110,7 @@ def _local_from_path(path, comm, blocks):
         if blocks is None:
             own = partition(dims, comm.size)[comm.rank]
         else:
-            own = _numbers(blocks, len(dims), str(path))
+            own = block_numbers(path, blocks, len(dims))
     except Exception as e:          # noqa: BLE001
         exc = e
     gathered = comm.allgather((portable(exc), own))
@@ -137,7 +134,7 @@ def _local_from_grid(grid, comm, blocks):
                                  f"got {type(grid).__name__}")
         if blocks is None:
             blocks = getattr(grid, "block_ids", None)
-        own = None if blocks is None else _numbers(blocks, None, f"rank {comm.rank}")
+        own = None if blocks is None else _numbers(blocks, f"rank {comm.rank}")
         if own is not None and len(own) != len(grid):
             raise GridValueError(f"rank {comm.rank}: blocks= lists {len(own)} block number(s) for "
                                  f"a grid of {len(grid)} block(s)")
