@@ -3,7 +3,8 @@
 Run as ``mpiexec -n N python tests/_mpi_deform_job.py SPEC.json``.  For each
 entry of ``spec["cases"]`` every rank builds ``Deformer(grid, ..., comm=COMM_WORLD,
 blocks=...)``, deforms its blocks and writes them with the collective write
-(or runs ``tfi-quat deform`` in-process: ``"cli"``); rank r stores one result
+(or runs ``tfi-quat deform`` in-process: ``"cli"``; ``"out"``: into the rank's own C-order
+buffers); rank r stores one result
 per case in ``SPEC.json.rank<r>`` (a JSON list of dicts: ``"ok"`` or
 ``"error"`` with ``"Type: message"``, the blocks, the quality text, and with
 ``"trace"`` the peak of the memory tracemalloc saw during the set-up and the
@@ -80,7 +81,12 @@ def main() -> None:
                 moved = moved(d.surface_points())
                 perm = np.random.default_rng(5).permutation(ids.shape[0])
                 out = d.deform(moved[perm], ids=ids[perm], check=case.get("check", True))
-            if not case.get("array") or fail:
+            elif case.get("out"):       # the rank's own buffers, C order: through the scratch
+                buf = d.new_grid(order="C")
+                d.deform(moved, out=buf, check=case.get("check", True))
+                out = tq.Grid([tq.Block(b, name=r.name) for b, r in zip(buf, d.grid)], ndim=d.grid.ndim,
+                              source_format=d.grid.source_format)
+            if not (case.get("array") or case.get("out")) or fail:
                 out = d.deform(moved, check=case.get("check", True))
             res["blocks"] = list(d.blocks)
             res["quality"] = str(d.quality)
