@@ -142,6 +142,7 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
     v = f["volumes"] / f["own_points"]
     k_face = f["faces"] / max(f["part_derived"], 1)
     nw = max(f["wall"], 1)
+    setup_per = f["setup"] / f["n_global"]
     k_rep = (f["fit"] + f["merge"]) / nw
     k_wq = f["wallq"] / nw
     const = max(f["step"] - f["volumes"] - f["faces"] - f["fit"] - f["wallq"] - f["merge"]
@@ -181,6 +182,10 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
               f"{t_vtx:.3f} s, collectives {t_coll * 1e3:.2f} ms; step {total:.3f} s, replicated "
               f"(fits, merge, vertices) {100 * rep / total:.1f} % (with 200 IDW sources: "
               f"{100 * (rep - 0.9 * t_vtx) / (total - 0.9 * t_vtx):.1f} %)")
+        copies = nblocks * 6 * n * n
+        print(f"         set-up (replicated) {setup_per * copies / 2:.0f} s; memory per rank "
+              f"{(100 * per + 600 * copies) / 1e9:.1f} GB (100 B per own point, 600 B per boundary "
+              f"point copy of the whole grid: {copies / 1e6:.0f} M copies)")
 
 
 def main(argv=None):
@@ -243,8 +248,8 @@ def main(argv=None):
               f"{f1['free_vertices']} free vertices), face point copies {f1['face_copies']}")
         print(f"set-up collectives: boundary shells {2 * 24 * f1['face_copies'] / 1e6:.1f} MB "
               f"(faces and next layers of every block, one allgather), face parameters "
-              f"{24 * f1['face_copies'] / 1e6:.1f} MB (one allgather); a step: two allgathers "
-              f"(16 B digest, the cell reports)")
+              f"{24 * f1['face_copies'] / 1e6:.1f} MB (one allgather); a step: three allgathers "
+              f"(16 B digest, the wall quaternions, the cell reports)")
         model(results[ranks[0]], args.model_points, (256, 1024), args.blocks_per_rank,
               vertex_cost(), f1["wall"], npts)
     finally:
