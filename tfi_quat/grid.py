@@ -289,15 +289,16 @@ class Block:
     def z(self) -> np.ndarray:
         return self.xyz[..., 2]
 
-    def face(self, face: str | int) -> np.ndarray:
+    def face(self, face: str | int, depth: int = 0) -> np.ndarray:
         """View of one face's points, shape ``(na, nb, 3)``.
 
         The two running indices are the block's remaining indices in order:
         imin/imax -> (j, k), jmin/jmax -> (i, k), kmin/kmax -> (i, j).
+        ``depth``: the layer that many steps in from the face (:func:`face_layer`).
         """
-        d, side = face_axis(face)
+        d, _ = face_axis(face)
         idx = [slice(None)] * 3
-        idx[d] = -1 if side else 0
+        idx[d] = face_layer(self.dims, face, depth)
         return self.xyz[tuple(idx)]
 
     def copy(self) -> "Block":

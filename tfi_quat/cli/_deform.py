@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -173,6 +174,9 @@ def run(args) -> int:
     from .._jit import warm_up_in_background
     from ..spec import parse_patch_spec
 
+    comm = mpi_world()
+    if comm is not None:
+        return _run_mpi(args, comm)
     case, path = case_and_grid(args)
     inputs = [path, args.moved, args.case, args.nmf, args.connectivity, args.modes]
     surface = None
@@ -247,6 +251,121 @@ def run(args) -> int:
     io.write(out, result, like=like, overwrite=args.force, **boundaries)
     print(f"wrote {out}: {negative}, smallest volume ratio {q['min_ratio']:.4g}{where}")
     return 0
+
+
+def mpi_world():
+    """``MPI.COMM_WORLD`` when the command runs under ``mpiexec`` with more than one rank (the
+    launcher's rank count in the environment), else None; ParallelError naming the ``mpi``
+    extra when mpi4py is missing."""
+    size = next((os.environ[v] for v in _MPI_SIZE_VARS if v in os.environ), None)
+    try:
+        many = size is not None and int(size) > 1
+    except ValueError:
+        many = False
+    if not many:
+        return None
+    from ..io.mpi import require_mpi
+    return require_mpi().COMM_WORLD
+
+
+def _moved_walls(path, deformer):
+    """``--moved`` under MPI: the moved grid's wall patches, from its faces only (a mapping
+    patch -> points, the form :meth:`Deformer.deform` takes)."""
+    from .. import io
+    faces = io.read_faces(path)
+    if [tuple(d) for d in faces.dims] != deformer.dims:
+        raise CaseError(f"--moved {path}: dimensions {faces.dims} differ from the grid's")
+    out = {}
+    for p in deformer.connectivity.patches:
+        if p.kind == "wall":
+            (a0, a1), (b0, b1) = p.spec.range
+            out[p.spec] = faces.face(p.spec.block, p.spec.face)[a0:a1 + 1, b0:b1 + 1]
+    return out
+
+
+def _run_mpi(args, comm) -> int:
+    """``tfi-quat deform`` under ``mpiexec -n N`` (N > 1): every rank reads and deforms its blocks
+    (:class:`tfi_quat.deform.distributed.DistributedDeformer`), the output is written
+    collectively, and rank 0 prints the summary reduced over the ranks.  Every error is agreed
+    over the ranks (the same on each), so only rank 0 reports it."""
+    from ..deform import Deformer
+    from ..io.mpi import agree
+    from ..quality import negative_cells, volume_ratio_summary
+    from ..spec import parse_patch_spec
+    if comm.rank != 0:      # one report: rank 0's (every rank meets the same errors)
+        sys.stdout = sys.stderr = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115
+    exc = None
+    try:
+        case, path = case_and_grid(args)
+        if args.write_surface or args.base or args.nmf or args.connectivity:
+            raise CaseError("under mpiexec, deform takes no --write-surface, --base, --nmf or "
+                            "--connectivity yet: run them serially (docs/mpi.md)")
+        out = args.output or (case.output if case is not None else None)
+        if out is None:
+            raise CaseError("no output file: give -o OUT")
+        surface = _check_modes(args)
+        if comm.rank == 0:
+            check_output(out, args.force, inputs=[path, args.moved, args.case, args.modes])
+        walls = [parse_patch_spec(w) for w in args.wall]
+        sym = [parse_patch_spec(w) for w in args.symmetry]
+        fixed = [parse_patch_spec(w) for w in args.fixed]
+        if case is not None and not (walls or sym or fixed):
+            walls, sym, fixed = list(case.walls), list(case.symmetry), list(case.fixed)
+        method = _method(args)
+        kw = {}
+        if args.rotation_length is not None:
+            if method != "two-level":
+                raise CaseError("--rotation-length applies to --method two-level")
+            kw["rotation_length"] = args.rotation_length
+        moved, desc = (None, "") if args.moved else _motion(args, case)
+    except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
+        exc = e
+    agree(comm, exc)
+    t0 = time.perf_counter()
+    deformer = Deformer(path, walls=walls, symmetry=sym, fixed=fixed, method=method, comm=comm, **kw)
+    t1 = time.perf_counter()
+    exc = None
+    try:
+        if args.moved:
+            moved, desc = _moved_walls(args.moved, deformer), f"walls from {args.moved}"
+    except Exception as e:      # noqa: BLE001
+        exc = e
+    agree(comm, exc)
+    if args.modes:
+        result = deformer.modal(surface)(args.amplitudes)
+    else:
+        result = deformer.deform(moved)
+    t2 = time.perf_counter()
+    # the summary of each rank's blocks, reduced: as the serial run's over all blocks
+    q = volume_ratio_summary(result, deformer.grid)
+    own = deformer.blocks
+    where = None if q["where"] is None else (own[q["where"][0]],) + tuple(q["where"][1:])
+    cells = [(own[b], ijk) for b, found in negative_cells(result, deformer.grid)
+             for ijk in found[:_SHOW]] if q["negative"] else []
+    parts = comm.allgather((q["negative"], q["min_ratio"], where, cells))
+    negative = sum(p[0] for p in parts)
+    lo = min(parts, key=lambda p: (p[1], p[2] or (0,)))
+    shown = sorted((c for p in parts for c in p[3]), key=lambda c: c[0])[:_SHOW]
+    at = ""
+    if lo[2] is not None:
+        b, i, j, k = lo[2]
+        at = f" at block {b + 1} cell ({i + 1}, {j + 1}, {k + 1})"
+    first = ", ".join(f"block {b + 1} cell ({', '.join(str(int(v) + 1) for v in ijk)})"
+                      for b, ijk in shown)
+    text = f"{negative} negative cells" + (f" (first: {first})" if first else "")
+    print(f"{desc}; method {method}; {comm.size} MPI ranks")
+    print(f"set-up {t1 - t0:.3f} s, step {t2 - t1:.3f} s")
+    if negative and not args.allow_negative:
+        print(f"tfi-quat deform: {text}, smallest volume ratio {lo[1]:.4g}{at}; "
+              f"{out} not written (--allow-negative writes it)", file=sys.stderr)
+        return EXIT_CHECK
+    deformer.write(out, result, like=output_like(out, deformer.grid), overwrite=args.force)
+    print(f"wrote {out}: {text}, smallest volume ratio {lo[1]:.4g}{at}")
+    return 0
+
+
+#: environment variables in which MPI launchers give the number of ranks (MPICH/Hydra, Open MPI)
+_MPI_SIZE_VARS = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE")
 
 
 def _first_cells(result, grid) -> str:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import threading
 import time
 import warnings
@@ -147,9 +148,10 @@ class Deformer:
 
     Parameters
     ----------
-    grid : Grid
-        The reference (undeformed) grid.  It is kept by reference and never
-        modified; do not modify it while the Deformer is in use.
+    grid : Grid or path
+        The reference (undeformed) grid, or its file (read whole; with
+        ``comm``, each rank reads its blocks).  It is kept by reference and
+        never modified; do not modify it while the Deformer is in use.
     walls, symmetry, fixed : sequence of PatchSpec or "BLOCK:FACE[:A1-A2,B1-B2]"
         Boundary patches by kind (1-based text, 0-based PatchSpec).  A whole
         face given as a wall is reduced by the interfaces on it.  Faces not
@@ -209,15 +211,37 @@ class Deformer:
         The array form of :meth:`deform`: copies of one wall point (a point
         listed more than once) may differ by at most this distance (default
         0: they must be equal); the first copy given is used.
+    comm : mpi4py.MPI.Intracomm, optional
+        Deform distributed over the ranks of ``comm`` (``grid``: a file path or
+        a Grid of the rank's own blocks; ``blocks``: their global 0-based
+        numbers, None for a balanced partition): each rank deforms its own
+        blocks, bit for bit as a serial run (:mod:`tfi_quat.deform.distributed`,
+        ``docs/mpi.md``).  Needs the ``mpi`` extra.
+    blocks : sequence of int, optional
+        With ``comm``: the blocks this rank owns.
     """
+
+    def __new__(cls, *args, comm=None, **kw):
+        if comm is not None and cls is Deformer:
+            from .distributed import DistributedDeformer
+            return super().__new__(DistributedDeformer)
+        return super().__new__(cls)
 
     def __init__(self, grid: Grid, walls=(), symmetry=(), fixed=(), connectivity=None,
                  method: str = "two-level", formulation: str | None = None, centre=None,
                  tol: float | None = None, blending: str | None = None,
                  rotation_length: float | None = None, idw_power: float = 3.0,
-                 max_idw_sources: int = 2000, dup_tol: float = 0.0, threads: int | None = None):
-        if not isinstance(grid, Grid):
-            raise CaseError(f"grid must be a tfi_quat.Grid, got {type(grid).__name__}")
+                 max_idw_sources: int = 2000, dup_tol: float = 0.0, threads: int | None = None,
+                 comm=None, blocks=None):
+        from .shell import ShellGrid
+        if comm is None and blocks is not None:
+            raise CaseError("blocks= goes with comm= (a distributed deformation)")
+        if isinstance(grid, (str, os.PathLike)):
+            from .. import io
+            grid = io.read(grid)
+        shell = isinstance(grid, ShellGrid)     # the distributed set-up (.distributed)
+        if not (shell or isinstance(grid, Grid)):
+            raise CaseError(f"grid must be a tfi_quat.Grid or a file path, got {type(grid).__name__}")
         method = resolve_method(method, formulation)
         two = method == "two-level"
         if blending is not None and blending not in BLENDINGS:
@@ -247,7 +271,11 @@ class Deformer:
         self.threads = _check_threads(threads)
         cap = functools.partial(use_threads, self.threads)
         t0 = time.perf_counter()
-        self.grid = grid
+        #: the reference blocks this Deformer deforms (all, or under MPI the rank's own)
+        self.grid = grid.local if shell else grid
+        #: their global 0-based block numbers
+        self.blocks = grid.own if shell else tuple(range(len(grid)))
+        self._all = grid
         self.ndim = grid.ndim
         self.method = method
         self._use_q = method != "tfi"
@@ -277,7 +305,7 @@ class Deformer:
         if not (math.isfinite(self.tol) and self.tol >= 0.0):
             raise CaseError(f"tol must be a finite number >= 0, got {tol!r}")
         with cap():
-            pts = boundary_points(grid, connectivity, self.tol)
+            pts = boundary_points(grid, connectivity, self.tol, marker=not shell)
         if not pts.wall.size:
             src = ""
             if own:
@@ -295,14 +323,16 @@ class Deformer:
         #: the frozen skeleton (:class:`tfi_quat.deform.skeleton.Skeleton`)
         with cap():
             self.skeleton = build_skeleton(grid, connectivity, pts, params, tol=self.tol,
-                                           idw_power=idw_power, max_idw_sources=max_idw_sources)
+                                           idw_power=idw_power, max_idw_sources=max_idw_sources,
+                                           own=self.blocks if shell else None,
+                                           exchange=grid.exchange_plans if shell else None)
             #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
             self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
         self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
         self._lock = threading.Lock()
         #: the wall copies and the checks of the array form (:class:`.walls.WallInput`)
         self.walls = WallInput(grid, self.skeleton, dup_tol)
-        self._scratch = buffers.Scratch(grid)
+        self._scratch = buffers.Scratch(self.grid)
         self._check_seconds = 0.0
         #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
         #: of one that raised for invalid cells), or None when it was not checked
@@ -339,14 +369,8 @@ class Deformer:
     def surface_points(self) -> np.ndarray:
         """Undeformed coordinates ``(n, 3)`` of the wall point copies, in
         :meth:`surface_ids` order."""
-        ids = self.walls.surface()[0]
-        out = np.empty((ids.shape[0], 3))
-        for b, blk in enumerate(self.grid):
-            sel = ids[:, 0] == b
-            if sel.any():
-                i, j, k = ids[sel, 1], ids[sel, 2], ids[sel, 3]
-                out[sel] = blk.xyz[i, j, k]
-        return out
+        from .shell import boundary_values
+        return boundary_values(self._all, self.walls.surface()[0])
 
     def new_grid(self, order: str = "F", separate: bool = False):
         """Buffers for :meth:`deform`'s ``out`` (and :meth:`velocity`'s), holding a copy of
@@ -470,7 +494,7 @@ class Deformer:
                 if ids is not None or displacement:
                     raise DeformationError("ids= and displacement= go with an array of wall points "
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
-                rd = other_targets(self.skeleton, self.grid, moved, self._work.rd)
+                rd = other_targets(self.skeleton, self._all, moved, self._work.rd)
             if self.two_level is not None:
                 passes, ts, t1, t3 = self._two_level_fields(rd)
             else:
@@ -495,7 +519,7 @@ class Deformer:
         w = self._work
         gdelta, gq, pos = w.gd, w.qg, w.pos
         if self._use_q:
-            qw = stages.wall_quaternions(sk, rd, c)
+            qw = self._wall_quaternions(rd, c)
             gq[wall] = qw
             # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
             gdelta[wall] = rd[wall] - c - qa.rotate(qw, P[wall] - c)
@@ -535,7 +559,7 @@ class Deformer:
         tiny = 1e-14 * self._scale
         local = bool(np.max(np.abs(y[wall] - P[wall]), initial=0.0) > tiny)
         rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
-        qwall = stages.wall_quaternions(sk, y, self.centre) if local else None
+        qwall = self._wall_quaternions(y, self.centre) if local else None
         t1 = time.perf_counter()
         ts = 0.0
         pos = w.pos
@@ -572,23 +596,23 @@ class Deformer:
         # folded grid leaves the buffers as they were
         hold = check == "raise" and dests is not None
         reports = []
-        for b, blk in enumerate(grid):
-            dest = None if dests is None else dests[b]
+        for n, (b, blk) in enumerate(zip(self.blocks, grid)):
+            dest = None if dests is None else dests[n]
             if dest is None:
                 dst = np.empty_like(blk.xyz, order="F")
             elif hold:
-                dst = self._scratch.grid()[b]
+                dst = self._scratch.grid()[n]
             elif buffers.is_kernel_array(dest):
                 dst = dest
             else:
-                dst = self._scratch.block(b)
+                dst = self._scratch.block(n)
             base = blk.xyz
             for p in passes:
                 if p is None:
                     np.copyto(dst, base)
                 else:
                     gd, gq, c, tables = p
-                    stages.volume(sk, grid, b, base, gd, gq, c, dst,
+                    stages.volume(sk, self._all, b, base, gd, gq, c, dst,
                                   None if tables is None else tables[b])
                     done += 1
                     if callback is not None:
@@ -606,14 +630,14 @@ class Deformer:
             if dst is not dest and dest is not None and not hold:
                 buffers.copy_out(dst, dest)
             arrays.append(dst if dest is None else dest)
-        report = CellCheck.merge(reports) if check else None
+        report = self._report(list(zip(self.blocks, reports)), check)
         self.quality = report
         if check == "raise" and not report.ok:
             raise DeformationError(f"the deformed grid has invalid cells: {report}" +
                                    ("; the out buffers are unchanged" if hold else ""))
         if hold:
-            for b, dest in enumerate(dests):
-                buffers.copy_out(self._scratch.grid()[b], dest)
+            for n, dest in enumerate(dests):
+                buffers.copy_out(self._scratch.grid()[n], dest)
         if isinstance(out, Grid):
             result = out
         elif not all(buffers.is_kernel_array(a) for a in arrays):
@@ -625,6 +649,16 @@ class Deformer:
                           connectivity=grid.connectivity)
         result.quality = report
         return result
+
+    def _wall_quaternions(self, rd, centre):
+        """The merged wall quaternions of the walls moved to ``rd`` (under MPI: each wall patch
+        computed by one rank and exchanged, :mod:`.distributed`)."""
+        return stages.wall_quaternions(self.skeleton, rd, centre)
+
+    def _report(self, reports, check):
+        """The check of a step from ``(block, report)`` per own block (under MPI: of all
+        ranks' blocks, :mod:`.distributed`)."""
+        return CellCheck.merge(r for _, r in reports) if check else None
 
     def velocity(self, prev, cur, dt: float, out=None):
         """Grid-point velocities of a step, ``(cur - prev) / dt``, for ALE flow solvers.
@@ -750,7 +784,7 @@ class Deformer:
         """
         from .modal import ModalMotion, surface_modes
         ids, gid = self.walls.surface()
-        shapes, names, where = surface_modes(modes, ids, self.surface_points(), self.grid)
+        shapes, names, where = surface_modes(modes, ids, self.surface_points(), self._all)
         wall_pos = np.full(self.n_global, -1, dtype=np.int64)
         wall = self.skeleton.points.wall
         wall_pos[wall] = np.arange(wall.size)

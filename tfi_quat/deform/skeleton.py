@@ -125,8 +125,11 @@ class BoundaryPoints:
         return self.face_gid[(spec.block, spec.face)][a0:a1 + 1, b0:b1 + 1]
 
 
-def _number(grid: Grid, connectivity, tol: float):
-    """Global ids of every boundary point: ``(offsets, P, rep_key, face_gid, copies_key, copies_gid)``."""
+def _number(grid: Grid, connectivity, tol: float, marker: bool = True):
+    """Global ids of every boundary point: ``(offsets, P, rep_key, face_gid, copies_key, copies_gid)``.
+
+    Reads the blocks' faces only (``grid`` may be a :class:`.shell.ShellGrid`); ``marker``:
+    allow a marker array over all grid points where it beats sorting the keys."""
     keys, offsets = [], [0]
     for blk in grid:
         offsets.append(offsets[-1] + blk.npoints)
@@ -141,7 +144,7 @@ def _number(grid: Grid, connectivity, tol: float):
             keys.append(key.ravel())
     allkeys = np.concatenate(keys)
     total = int(offsets[-1])
-    if total <= 32 * allkeys.size:
+    if marker and total <= 32 * allkeys.size:
         # a marker per grid point beats sorting the keys (the copies of edge points)
         mark = np.zeros(total, dtype=bool)
         mark[allkeys] = True
@@ -150,13 +153,12 @@ def _number(grid: Grid, connectivity, tol: float):
     else:
         ukeys = np.unique(allkeys)
     nb = ukeys.size
-    # coordinates of each boundary point
+    # coordinates of each boundary point, from the faces (a point on several faces of its
+    # block is written once per face, with the same value)
     P = np.empty((nb, 3))
-    blk_of = np.searchsorted(offsets, ukeys, side="right") - 1
     for b, blk in enumerate(grid):
-        sel = blk_of == b
-        local = ukeys[sel] - offsets[b]
-        P[sel] = blk.xyz.reshape(-1, 3, order="F")[local]
+        for f in faces_of(grid.ndim):
+            P[np.searchsorted(ukeys, full[(b, f)])] = blk.face(f)
     # merge coincident points (interfaces, cuts, collapsed faces) ...
     from .._points import close_pairs
     pairs = close_pairs(P, tol)
@@ -222,10 +224,11 @@ def _classify(P, face_gid, connectivity, ndim: int):
     return kind, sym_of, planes
 
 
-def boundary_points(grid: Grid, connectivity, tol: float) -> BoundaryPoints:
+def boundary_points(grid: Grid, connectivity, tol: float, *, marker: bool = True) -> BoundaryPoints:
     """Number, merge (within ``tol`` and across the connectivity's interfaces) and classify the
-    boundary points of ``grid``."""
-    offsets, P, rep_key, face_gid, copies_key, copies_gid = _number(grid, connectivity, tol)
+    boundary points of ``grid`` (its faces only; ``marker`` False: nothing the size of the
+    whole grid is allocated, for a distributed set-up)."""
+    offsets, P, rep_key, face_gid, copies_key, copies_gid = _number(grid, connectivity, tol, marker)
     kind, sym_of, planes = _classify(P, face_gid, connectivity, grid.ndim)
     npl = len(planes)
     return BoundaryPoints(P=P, rep_key=rep_key, offsets=offsets, face_gid=face_gid,
@@ -624,18 +627,33 @@ def _symmetry(pts: BoundaryPoints) -> Symmetry:
     return Symmetry(sym, point, normal)
 
 
-def _blocks(grid: Grid, pts: BoundaryPoints, params) -> tuple[BlockPlan, ...]:
+def _blocks(grid: Grid, pts: BoundaryPoints, params, own, exchange) -> tuple[BlockPlan, ...]:
+    """The plans of the blocks ``own`` (all: None); the others' face parameters from
+    ``exchange(plans, error)`` (a collective: the plans with every block's ``face_s``, or the
+    first rank's error raised), their plans without ``s`` and ``gather``."""
     plans = []
     prescribed = pts.kind >= FIXED
     faces = faces_of(grid.ndim)
+    mine = None if own is None else set(own)
+    error = None
     for b, blk in enumerate(grid):
         fg = [pts.face_gid[(b, f)] for f in faces]
-        with serial_below(blk.npoints):
-            s = params.block(blk.xyz, fg)
         counts = [int(prescribed[g].sum()) for g in fg]
         order = tuple(int(x) for x in tfi.lead_order(counts))
-        face_s = tfi.face_params(s)
-        plans.append(BlockPlan(s, order, fg, face_s, tfi.gather_plan(fg, s, order, face_s=face_s)))
+        plan = BlockPlan(None, order, fg, None, None)
+        if (mine is None or b in mine) and error is None:
+            try:
+                with serial_below(blk.npoints):
+                    s = params.block(blk.xyz, fg)
+                face_s = tfi.face_params(s)
+                plan = BlockPlan(s, order, fg, face_s, tfi.gather_plan(fg, s, order, face_s=face_s))
+            except Exception as exc:    # noqa: BLE001  (every rank raises it in the exchange)
+                if exchange is None:
+                    raise
+                error = exc
+        plans.append(plan)
+    if exchange is not None:
+        plans = exchange(plans, error)
     return tuple(plans)
 
 
@@ -650,9 +668,12 @@ def _scatter(grid: Grid, pts: BoundaryPoints) -> tuple:
 
 
 def build_skeleton(grid: Grid, connectivity, pts: BoundaryPoints, params, *, tol: float,
-                   idw_power: float, max_idw_sources: int) -> Skeleton:
+                   idw_power: float, max_idw_sources: int, own=None, exchange=None) -> Skeleton:
     """The skeleton of ``grid`` on its boundary points ``pts`` with the blending parameters of
-    ``params`` (see the module docstring)."""
+    ``params`` (see the module docstring).
+
+    ``own``: the blocks whose volume plans are made here (None: all); the others get their
+    face parameters from ``exchange`` (a distributed set-up, :mod:`.distributed`)."""
     walls = _walls(pts, connectivity, grid.ndim)
     rects = _rects(pts, connectivity)
     vertices = _vertices(pts, rects, tol, idw_power, max_idw_sources)
@@ -660,4 +681,4 @@ def build_skeleton(grid: Grid, connectivity, pts: BoundaryPoints, params, *, tol
     return Skeleton(ndim=grid.ndim, tol=tol, points=pts, walls=walls, rects=rects,
                     vertices=vertices, segments=segments, patches=patches,
                     derived=np.flatnonzero(pts.kind < FIXED), symmetry=_symmetry(pts),
-                    blocks=_blocks(grid, pts, params), scatter=_scatter(grid, pts))
+                    blocks=_blocks(grid, pts, params, own, exchange), scatter=_scatter(grid, pts))

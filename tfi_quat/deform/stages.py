@@ -546,20 +546,36 @@ def wall_quaternions(sk, rd: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 def _wall_quaternions(sk, rd, centre):
+    return merge_wall_quaternions(sk, patch_quaternions(sk, rd, centre, range(len(sk.walls.patches))))
+
+
+def patch_quaternions(sk, rd: np.ndarray, centre: np.ndarray, which) -> list:
+    """The boundary quaternions ``(n, 4)`` of the wall patches ``which`` (indices into
+    ``sk.walls.patches``) moved to ``rd`` (G, 3), each patch's own (not merged)."""
     from ..boundary import motion_padded
-    nw = sk.points.wall.size
-    acc = np.zeros((nw, 4))
-    count = np.zeros(nw, dtype=np.int64)
     curve = sk.ndim == 2
     e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
-    for w, lid in zip(sk.walls.patches, sk.walls.local):
+    out = []
+    for m in which:
+        w = sk.walls.patches[m]
         pd = np.empty_like(w.pu)
         halo_points(rd, w.halo.ravel(), w.mirror.ravel(), sk.points.plane_o, sk.points.plane_n,
                     pd.reshape(-1, 3))
         na = pd.shape[0] - 2
         nb = 1 if curve else pd.shape[1] - 2
         q, _ = motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, centre, na, nb)
-        merge_quaternions(lid, q.reshape(-1, 4), acc, count)
+        out.append(q.reshape(-1, 4))
+    return out
+
+
+def merge_wall_quaternions(sk, qs) -> np.ndarray:
+    """The merged wall quaternions ``(n_wall, 4)`` from every wall patch's own (``qs``, in the
+    order of ``sk.walls.patches``)."""
+    nw = sk.points.wall.size
+    acc = np.zeros((nw, 4))
+    count = np.zeros(nw, dtype=np.int64)
+    for q, lid in zip(qs, sk.walls.local):
+        merge_quaternions(lid, q, acc, count)
     acc /= np.linalg.norm(acc, axis=1, keepdims=True)
     return acc
 

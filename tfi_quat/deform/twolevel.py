@@ -26,7 +26,7 @@ import numpy as np
 from .. import quaternion as qa
 from ..blending import wall_layer_arclength, wall_layer_line
 from ..fit import constrain_to_planes, fit_rigid
-from ..grid import face_axes, face_layer
+from ..grid import face_axes
 from ..topology.graph import connected_components
 from . import stages
 from .skeleton import FIXED, WALL, BoundaryPoints, Skeleton
@@ -204,7 +204,6 @@ def _centres(sk: Skeleton, layer: WallLayer):
     # fixed points of side faces: the leading-direction interpolant of the face's end edges
     for plan in sk.blocks:
         L = plan.order[0]
-        dims = plan.s.shape[:3]
         for d in plan.order[1:]:
             others = face_axes(2 * d)[1:]
             if L not in others:
@@ -215,9 +214,7 @@ def _centres(sk: Skeleton, layer: WallLayer):
                 fx = kind[g] == FIXED
                 if not fx.any():
                     continue
-                sl = [slice(None)] * 3
-                sl[d] = face_layer(dims, 2 * d + side)
-                sL = plan.s[tuple(sl)][..., L]
+                sL = plan.face_s[2 * d + side][..., L]
                 e0 = np.take(P[g], [0], axis=ax)
                 e1 = np.take(P[g], [-1], axis=ax)
                 u = (1.0 - sL)[..., None] * e0 + sL[..., None] * e1
@@ -263,7 +260,7 @@ def build_two_level(sk: Skeleton, layer: WallLayer) -> TwoLevel:
     damp[der] = np.exp(-(layer.dwall[der] / (DAMP_FRACTION * layer.ell)) ** 2)
     np.negative(c, out=c)                    # -c for the tables (negation is exact)
     # A = R_u - TFI(c), evaluated inside the volume kernel from these O(surface) tables
-    base = tuple(plan.gather.base_tables(c) for plan in sk.blocks)
+    base = tuple(None if plan.gather is None else plan.gather.base_tables(c) for plan in sk.blocks)
     np.negative(c, out=c)
     return TwoLevel(layer, bodies, phi, c, shift, P - c, damp, base)
 

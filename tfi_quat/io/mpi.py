@@ -46,7 +46,8 @@ from ..errors import GridFormatError, GridValueError, ParallelError
 from ..grid import Block, Grid
 from ._atomic import check_target, install, new_temp
 
-__all__ = ["write", "require_mpi", "INSTALL_HINT"]
+__all__ = ["write", "require_mpi", "check_comm", "INSTALL_HINT", "portable", "raise_first", "agree",
+           "from_root"]
 
 #: how to install what ``comm=`` needs
 INSTALL_HINT = 'pip install "tfi_quat[mpi]"'
@@ -65,7 +66,8 @@ def require_mpi():
     return MPI
 
 
-def _check_comm(comm):
+def check_comm(comm):
+    """The ``mpi4py.MPI`` module; ParallelError unless ``comm`` is an intracommunicator."""
     MPI = require_mpi()
     if not isinstance(comm, MPI.Intracomm):
         raise ParallelError(f"comm= must be an mpi4py intracommunicator (e.g. MPI.COMM_WORLD), "
@@ -73,7 +75,7 @@ def _check_comm(comm):
     return MPI
 
 
-def _portable(exc: BaseException | None):
+def portable(exc: BaseException | None):
     """``exc`` if it survives pickling (to be raised on another rank), else a ParallelError."""
     if exc is None:
         return None
@@ -86,7 +88,7 @@ def _portable(exc: BaseException | None):
     return ParallelError(f"{type(exc).__name__}: {exc}")
 
 
-def _raise_first(comm, errors, exc) -> None:
+def raise_first(comm, errors, exc) -> None:
     """Raise the error of the lowest failing rank, on every rank (the original where it arose)."""
     for rank, err in enumerate(errors):
         if err is not None:
@@ -95,14 +97,14 @@ def _raise_first(comm, errors, exc) -> None:
             raise err
 
 
-def _agree(comm, exc: BaseException | None) -> None:
+def agree(comm, exc: BaseException | None) -> None:
     """Collective: every rank raises the first rank's error, or all go on."""
-    _raise_first(comm, comm.allgather(_portable(exc)), exc)
+    raise_first(comm, comm.allgather(portable(exc)), exc)
 
 
-def _from_root(comm, exc: BaseException | None, value=None):
+def from_root(comm, exc: BaseException | None, value=None):
     """Collective: rank 0's error raised on every rank, else rank 0's ``value`` on every rank."""
-    err, value = comm.bcast((_portable(exc), value) if comm.rank == 0 else None, root=0)
+    err, value = comm.bcast((portable(exc), value) if comm.rank == 0 else None, root=0)
     if err is not None:
         raise (exc if comm.rank == 0 and exc is not None else err)
     return value
@@ -196,7 +198,7 @@ def write(path, grid, comm, *, blocks=None, format: str | None = None, like=None
         As a serial write, from whichever rank met it first (the lowest),
         raised on every rank.
     """
-    MPI = _check_comm(comm)
+    MPI = check_comm(comm)
     from . import format_for, hdf5, plot3d
 
     # 1. local checks, then every rank learns every block's owner and dims
@@ -213,8 +215,8 @@ def write(path, grid, comm, *, blocks=None, format: str | None = None, like=None
         numbers, [b.dims for b in local], None if grid is None else grid.ndim,
         grid is not None and grid.has_iblank,
         None if grid is None else grid.source_path)
-    gathered = comm.allgather((_portable(exc), info))
-    _raise_first(comm, [e for e, _ in gathered], exc)
+    gathered = comm.allgather((portable(exc), info))
+    raise_first(comm, [e for e, _ in gathered], exc)
     infos = [i for _, i in gathered]
     owner, dims = _global_layout(path, [(i[0], i[1]) for i in infos])
     if numbers is None:
@@ -242,8 +244,8 @@ def _variant(path, comm, grid, make):
         variant = None if grid is None else make(grid)
     except Exception as e:      # noqa: BLE001
         exc = e
-    gathered = comm.allgather((_portable(exc), variant))
-    _raise_first(comm, [e for e, _ in gathered], exc)
+    gathered = comm.allgather((portable(exc), variant))
+    raise_first(comm, [e for e, _ in gathered], exc)
     variants = [(r, v) for r, (_, v) in enumerate(gathered) if v is not None]
     r0, v0 = variants[0]
     for r, v in variants[1:]:
@@ -263,7 +265,7 @@ def _create_temp(target: Path) -> str:
 
 def _finish(comm, target: Path, tmp: str | None, exc) -> None:
     """Collective end: gather errors; rank 0 renames the temporary file or removes it."""
-    errors = comm.allgather(_portable(exc))
+    errors = comm.allgather(portable(exc))
     failed = any(e is not None for e in errors)
     rename_exc = None
     if comm.rank == 0 and tmp is not None:
@@ -277,8 +279,8 @@ def _finish(comm, target: Path, tmp: str | None, exc) -> None:
                 rename_exc = e
                 with contextlib.suppress(OSError):
                     os.unlink(tmp)
-    _raise_first(comm, errors, exc)
-    _from_root(comm, rename_exc)
+    raise_first(comm, errors, exc)
+    from_root(comm, rename_exc)
 
 
 def _write_plot3d(path, grid, local, numbers, owner, dims, ndim, has_iblank, protect,
@@ -297,7 +299,7 @@ def _write_plot3d(path, grid, local, numbers, owner, dims, ndim, has_iblank, pro
         offsets, size = plot3d.block_offsets(fmt, dims)
     except Exception as e:      # noqa: BLE001
         exc = e
-    _agree(comm, exc)
+    agree(comm, exc)
     if comm.rank == 0:
         try:
             target = check_target(path, overwrite=overwrite, protect=protect)
@@ -310,7 +312,7 @@ def _write_plot3d(path, grid, local, numbers, owner, dims, ndim, has_iblank, pro
             if tmp is not None:
                 with contextlib.suppress(OSError):
                     os.unlink(tmp)
-    target, tmp = _from_root(comm, exc, (target, tmp))
+    target, tmp = from_root(comm, exc, (target, tmp))
     # 3. every rank writes its blocks at their offsets and syncs them
     try:
         if local:
@@ -335,7 +337,7 @@ def _write_hdf5(path, grid, local, numbers, owner, dims, ndim, protect,
         options = hdf5.write_options(like, **kw)
     except Exception as e:      # noqa: BLE001
         exc = e
-    _agree(comm, exc)
+    agree(comm, exc)
     mine = dict(zip(numbers, local))
     if comm.rank != 0:
         _serve_blocks(comm, MPI, mine)
@@ -403,7 +405,7 @@ def _serve_blocks(comm, MPI, mine) -> None:
             iblank = None if b.iblank is None else np.asfortranarray(b.iblank, dtype=np.int32)
             meta = (b.name, tuple(b.dims), iblank is not None)
         except Exception as e:      # noqa: BLE001
-            comm.send(_portable(e), dest=0, tag=_TAG_META)
+            comm.send(portable(e), dest=0, tag=_TAG_META)
             continue
         comm.send(meta, dest=0, tag=_TAG_META)
         comm.Send([xyz, MPI.DOUBLE], dest=0, tag=_TAG_DATA)

@@ -27,7 +27,7 @@ import numpy as np
 from .._jit import jit
 from .._points import close_pairs
 from ..errors import CaseError, ConnectivityError, GridValueError
-from ..grid import face_axes, face_axis, face_ijk, face_index, face_layer, faces_of
+from ..grid import face_axes, face_axis, face_ijk, face_index, faces_of
 from ..spec import PatchSpec, parse_patch_spec
 from .graph import connected_components
 from .model import KINDS, Connectivity, Interface, Patch
@@ -161,9 +161,7 @@ class _Geometry:
                     h[:, 1:] = np.minimum(h[:, 1:], e)
                 edges.append((ea, eb))
                 if dims[d] >= 2:
-                    idx = [slice(None)] * 3
-                    idx[d] = face_layer(dims, f, 1)
-                    e = np.linalg.norm(blk.xyz[tuple(idx)] - pts, axis=-1)
+                    e = np.linalg.norm(blk.face(f, 1) - pts, axis=-1)
                     h = np.minimum(h, np.where(e > tiny, e, np.inf))
                 h[~np.isfinite(h)] = fallback
                 fc = _Face(b, f, na, nb, off, dims)

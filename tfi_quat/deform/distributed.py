@@ -1,0 +1,393 @@
+"""Distributed deformation under MPI: each rank deforms its own blocks, bit for bit as a serial run.
+
+``Deformer(source, ..., comm=comm, blocks=None)`` makes a
+:class:`DistributedDeformer` (``docs/mpi.md``):
+
+Partition
+    ``blocks``: the global 0-based block numbers this rank owns (the flow
+    solver's partition), or None on every rank for
+    :func:`tfi_quat.grid.partition` of the dims (the same on every rank).
+    ``source``: a grid file (rank 0 reads the header and the faces of block
+    0 for every block's dims, each rank then reads only its blocks,
+    :func:`tfi_quat.io.read` with ``blocks=``) or a Grid of the rank's own
+    blocks (``blocks`` default: its ``block_ids``, else the blocks in rank
+    order).
+Set-up
+    Every rank sends the boundary shell of its blocks (faces, the layer next
+    to each face, bounding box: :func:`.shell.shell_of`) to every rank (one
+    ``allgather``) and builds the whole skeleton from the shells as the serial
+    set-up builds it from the grid: same values, same operations, so every
+    rank holds bit-identical skeleton values.  Only the blending parameters of
+    a block need its volume: its owner computes them, and every rank receives
+    their face values (a second ``allgather``), which the two-level set-up
+    reads.  Nothing the size of another rank's blocks is held.
+Step
+    :meth:`DistributedDeformer.deform` takes every input form of the serial
+    one (global block numbers in ``ids``); the wall input must be given on
+    **every** rank, the same: each rank reduces it to the wall targets and
+    the ranks compare a digest of them (one ``allgather`` of 16 bytes and any
+    error).  Each rank then computes the wall fields (replicated: the rigid
+    fits, the wall quaternions, the free vertices' blend), the rest of the
+    boundary fields only where its blocks' faces read them
+    (:func:`split_skeleton`), and its own blocks, and returns them (a Grid in
+    the order of :attr:`blocks`).  ``check``
+    reports are gathered and merged over all blocks in global order, so
+    ``quality`` is the serial run's on every rank and ``check="raise"``
+    raises on every rank.
+Errors
+    Every collective carries the ranks' errors: an error on any rank (bad
+    input, a folded grid with ``check="raise"``, a file that cannot be read)
+    is raised on every rank, the lowest failing rank's, and no rank waits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+
+import numpy as np
+
+from ..errors import GridFormatError, GridValueError, ParallelError
+from ..grid import Grid, partition
+from ..io.mpi import agree, check_comm, from_root, portable, raise_first
+from ..io.partial import block_numbers
+from ..quality import CellCheck
+from . import stages
+from .deformer import Deformer
+from .shell import ShellGrid, shell_of
+
+__all__ = ["DistributedDeformer", "open_shell", "split_skeleton"]
+
+#: collectives of one step: the wall targets, the wall quaternions, the cell checks
+_STAGES = 3
+
+
+def _numbers(blocks, where: str) -> list[int]:
+    """The 0-based block numbers of a rank's Grid (a file's: :func:`tfi_quat.io.partial.block_numbers`)."""
+    if isinstance(blocks, (int, np.integer, str, bytes)):
+        raise GridValueError(f"{where}: blocks= must be a list of 0-based block numbers, got {blocks!r}")
+    out = []
+    for b in blocks:
+        if isinstance(b, (bool, np.bool_)) or not isinstance(b, (int, np.integer)) or b < 0:
+            raise GridValueError(f"{where}: block {b!r} in blocks= is not a 0-based block number")
+        if int(b) in out:
+            raise GridValueError(f"{where}: block {int(b)} is given twice in blocks=")
+        out.append(int(b))
+    return out
+
+
+def _check_cover(where: str, owned: list, nblocks: int) -> None:
+    """Every block 0 .. nblocks-1 owned by exactly one rank (``owned``: each rank's list)."""
+    owner = {}
+    for rank, nums in enumerate(owned):
+        for b in nums:
+            if b in owner:
+                raise GridValueError(f"{where}: block {b} (0-based) is owned by rank {owner[b]} and "
+                                     f"rank {rank}")
+            owner[b] = rank
+    missing = [b for b in range(nblocks) if b not in owner]
+    if missing or len(owner) != nblocks:
+        first = missing[0] if missing else max(owner)
+        raise GridValueError(f"{where}: the ranks' blocks= must cover blocks 0..{nblocks - 1} once "
+                             f"each; block {first} (0-based) is owned by no rank")
+
+
+def _local_from_path(path, comm, blocks):
+    """``(local Grid, own, nblocks, connectivity)`` of a file: rank 0 reads the dims, each rank
+    its blocks.  Collective; errors agreed."""
+    from .. import io
+    exc = info = None
+    if comm.rank == 0:
+        try:
+            faces = io.read_faces(path, blocks=[0])
+            info = (faces.dims, faces.connectivity)
+        except Exception as e:      # noqa: BLE001  (raised on every rank)
+            exc = e
+    dims, conn = from_root(comm, exc, info)
+    exc = own = None
+    try:
+        if blocks is None:
+            own = partition(dims, comm.size)[comm.rank]
+        else:
+            own = block_numbers(path, blocks, len(dims))
+    except Exception as e:          # noqa: BLE001
+        exc = e
+    gathered = comm.allgather((portable(exc), own))
+    raise_first(comm, [e for e, _ in gathered], exc)
+    _check_cover(str(path), [o for _, o in gathered], len(dims))
+    exc = local = None
+    try:
+        local = io.read(path, blocks=own)
+    except Exception as e:          # noqa: BLE001
+        exc = e
+    agree(comm, exc)
+    return local, own, len(dims), conn
+
+
+def _local_from_grid(grid, comm, blocks):
+    """``(grid, own, nblocks, None)`` for a Grid of the rank's own blocks.  Collective."""
+    exc = own = None
+    try:
+        if not isinstance(grid, Grid):
+            raise GridValueError(f"the source must be a grid file or a Grid of this rank's blocks, "
+                                 f"got {type(grid).__name__}")
+        if blocks is None:
+            blocks = getattr(grid, "block_ids", None)
+        own = None if blocks is None else _numbers(blocks, f"rank {comm.rank}")
+        if own is not None and len(own) != len(grid):
+            raise GridValueError(f"rank {comm.rank}: blocks= lists {len(own)} block number(s) for "
+                                 f"a grid of {len(grid)} block(s)")
+    except Exception as e:          # noqa: BLE001
+        exc = e
+    gathered = comm.allgather((portable(exc), own, None if exc else len(grid)))
+    raise_first(comm, [g[0] for g in gathered], exc)
+    given = [g[1] is not None for g in gathered]
+    if any(given) and not all(given):
+        raise GridValueError("blocks= given on some ranks but not on others; give it on every "
+                             "rank or on none")
+    if not all(given):              # rank order: rank 0's blocks first
+        starts = np.cumsum([0] + [g[2] for g in gathered])
+        own = list(range(int(starts[comm.rank]), int(starts[comm.rank + 1])))
+        owned = [list(range(int(starts[r]), int(starts[r + 1]))) for r in range(comm.size)]
+    else:
+        owned = [g[1] for g in gathered]
+    nblocks = sum(g[2] for g in gathered)
+    _check_cover("distributed Deformer", owned, nblocks)
+    return grid, own, nblocks, None
+
+
+def open_shell(source, comm, blocks=None) -> ShellGrid:
+    """The :class:`~.shell.ShellGrid` of this rank: its own blocks (read from ``source``, a path,
+    or ``source`` itself, a Grid of them) and every other block's shell.  Collective."""
+    if isinstance(source, (str, os.PathLike)):
+        local, own, nblocks, conn = _local_from_path(source, comm, blocks)
+    else:
+        local, own, nblocks, conn = _local_from_grid(source, comm, blocks)
+    ndim = local.ndim
+    exc = mine = None
+    try:
+        mine = [(b, shell_of(blk, ndim)) for b, blk in zip(own, local)]
+    except Exception as e:          # noqa: BLE001
+        exc = e
+    gathered = comm.allgather((portable(exc), ndim, mine))
+    raise_first(comm, [g[0] for g in gathered], exc)
+    ndims = {g[1] for g in gathered}
+    if len(ndims) > 1:
+        raise ParallelError(f"the ranks' grids disagree on ndim ({sorted(ndims)})")
+    every = [None] * nblocks
+    for _, _, part in gathered:
+        for b, sh in part:
+            every[b] = sh
+    for b, blk in zip(own, local):
+        every[b] = blk
+    shell = ShellGrid(every, ndim, local, own, connectivity=conn,
+                      source_format=local.source_format, source_path=local.source_path)
+    shell.exchange_plans = _plan_exchange(comm, shell)
+    return shell
+
+
+def _plan_exchange(comm, shell):
+    """The collective giving every rank the face parameters of every block (the set-up's
+    :func:`tfi_quat.deform.skeleton.build_skeleton` calls it with its plans and error)."""
+    nf = 2 * shell.ndim
+
+    def exchange(plans, error):
+        mine = None if error is not None else [(b, plans[b].face_s[:nf]) for b in shell.own]
+        gathered = comm.allgather((portable(error), mine))
+        raise_first(comm, [e for e, _ in gathered], error)
+        plans = list(plans)
+        for _, part in gathered:
+            for b, face_s in part:
+                if plans[b].face_s is None:
+                    plans[b] = dataclasses.replace(plans[b], face_s=tuple(face_s))
+        return plans
+
+    return exchange
+
+
+def split_skeleton(sk, two, own):
+    """The skeleton (and two-level parts) restricted to what the blocks ``own`` read: the
+    derived patches writing a point of their faces, the segments' gaps those patches or faces
+    need (their ends in turn), the symmetry and derived points among them.
+
+    A step on it computes every point of the own blocks' faces with the same operations, item
+    by item, as on the whole skeleton (so with the same bits), and skips the rest: the
+    replicated O(surface) work of a step shrinks to the rank's share of the boundary, plus
+    the walls (wall quaternions, rigid fits) and the free vertices, which every rank keeps.
+    """
+    from .skeleton import Patches, Segments, Symmetry
+    from .stages import level_pack
+    need = np.zeros(sk.n_global, dtype=bool)
+    for b in own:
+        for g in sk.blocks[b].face_gid:
+            need[g.ravel()] = True
+    # the patches are one level (each reads its sides only): keep those writing a needed point
+    kept = [p for p in sk.patches.items if need[p.gid[p.write]].any()]
+    for p in kept:
+        need[p.gid.ravel()] = True
+    patches = Patches(tuple(kept), level_pack([(p.gid, p.s, p.lead, p.write) for p in kept]),
+                      int(sum(p.gid.size for p in kept)))
+    segments = sk.segments
+    if segments is not None:
+        # a gap reads its ends, which an earlier gap may fill: walk them backwards
+        left, right, ptr, pts, s = segments.arrays()
+        keep = np.zeros(left.size, dtype=bool)
+        for g in range(left.size - 1, -1, -1):
+            if need[pts[ptr[g]:ptr[g + 1]]].any():
+                keep[g] = True
+                need[left[g]] = need[right[g]] = True
+        sizes = np.diff(ptr)[keep]
+        rows = np.repeat(keep, np.diff(ptr))
+        segments = Segments(left[keep], right[keep],
+                            np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+                            np.ascontiguousarray(pts[rows]), np.ascontiguousarray(s[rows]))
+    sym = sk.symmetry
+    on = need[sym.gids]
+    symmetry = Symmetry(sym.gids[on], sym.point[on], sym.normal[on])
+    der = need[sk.derived]
+    sk = dataclasses.replace(sk, patches=patches, segments=segments, symmetry=symmetry,
+                             derived=sk.derived[der])
+    if two is not None:
+        two = dataclasses.replace(two, phi=np.ascontiguousarray(two.phi[der]))
+    return sk, two
+
+
+class DistributedDeformer(Deformer):
+    """A :class:`~tfi_quat.deform.Deformer` over the ranks of ``comm``: set up from the rank's own
+    blocks and every block's boundary, it deforms the rank's blocks (see the module docstring).
+
+    Made by ``Deformer(source, ..., comm=comm, blocks=...)``; the options are the
+    Deformer's (``threads`` default 1: one thread per rank).  :attr:`grid` holds the rank's
+    reference blocks, :attr:`blocks` their global numbers; :meth:`write` writes a step's
+    result collectively.
+    """
+
+    def __init__(self, source, walls=(), symmetry=(), fixed=(), connectivity=None, *,
+                 comm=None, blocks=None, threads: int | None = None, **kw):
+        check_comm(comm)
+        #: the communicator
+        self.comm = comm
+        self._stage = _STAGES
+        shell = open_shell(source, comm, blocks)
+        exc = None
+        try:
+            super().__init__(shell, walls=walls, symmetry=symmetry, fixed=fixed,
+                             connectivity=connectivity, threads=1 if threads is None else threads,
+                             **kw)
+        except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
+            exc = e
+        agree(comm, exc)
+        shell.drop_layers()
+        self._own_set = frozenset(self.blocks)
+        #: the whole skeleton (every rank's copy is the same); :attr:`skeleton` is this rank's part
+        self.full_skeleton = self.skeleton
+        self.skeleton, self.two_level = split_skeleton(self.skeleton, self.two_level, self.blocks)
+
+    @property
+    def dims(self) -> list:
+        """Every block's dims, in global order (:attr:`grid` holds this rank's blocks only)."""
+        return [tuple(d) for d in self._all.dims]
+
+    def summary(self) -> str:
+        """:meth:`Deformer.summary` of the whole skeleton, and this rank's part of it."""
+        part = self.skeleton
+        self.skeleton = self.full_skeleton
+        try:
+            text = super().summary()
+        finally:
+            self.skeleton = part
+        nseg = 0 if part.segments is None else len(part.segments.left)
+        return (text + f"\nrank {self.comm.rank} of {self.comm.size}: blocks "
+                f"{', '.join(str(b + 1) for b in self.blocks)}; its part: {nseg} segments, "
+                f"{len(part.patches.items)} patches, {part.derived.size} derived points")
+
+    # ------------------------------------------------------------ the step's collectives
+    def _sync(self, exc, payload) -> list:
+        """One collective of a step: every rank's payload, or the first rank's error raised."""
+        self._stage += 1
+        gathered = self.comm.allgather((portable(exc), payload))
+        raise_first(self.comm, [e for e, _ in gathered], exc)
+        return [p for _, p in gathered]
+
+    def deform(self, moved, **kw):
+        """:meth:`Deformer.deform` on the rank's blocks: a Grid of them (in :attr:`blocks` order),
+        or what ``out`` gives.  Collective: call it on every rank with the same wall input
+        (``out`` and ``callback`` are the rank's own)."""
+        self._stage = 0
+        try:
+            return super().deform(moved, **kw)
+        except Exception as exc:
+            agreed = exc
+            while self._stage < _STAGES:    # the collectives the other ranks are in
+                try:
+                    self._sync(exc, None)
+                except Exception as e:  # noqa: BLE001
+                    agreed = e
+            if agreed is exc:
+                raise
+            raise agreed from None
+
+    def _agree_targets(self, rd) -> None:
+        wall = self.skeleton.points.wall
+        digest = hashlib.blake2b(np.ascontiguousarray(rd[wall]).tobytes(), digest_size=16).digest()
+        digests = self._sync(None, digest)
+        differ = [r for r, d in enumerate(digests) if d != digests[0]]
+        if differ:
+            raise ParallelError(f"the wall motion given to deform() differs between rank 0 and "
+                                f"rank {differ[0]}: give the same wall input on every rank")
+
+    def _samareh_fields(self, rd):
+        self._agree_targets(rd)
+        return self._with_wall_stage(super()._samareh_fields, rd)
+
+    def _two_level_fields(self, rd):
+        self._agree_targets(rd)
+        return self._with_wall_stage(super()._two_level_fields, rd)
+
+    def _with_wall_stage(self, fields, rd):
+        """``fields(rd)``, and the wall quaternions' collective when it did not need them (a
+        rigid two-level step, plain TFI): every rank passes the same stages."""
+        before = self._stage
+        out = fields(rd)
+        if self._stage == before:
+            self._sync(None, None)
+        return out
+
+    def _wall_quaternions(self, rd, centre):
+        """Each rank computes the quaternions of the wall patches on its blocks; all are
+        exchanged and merged in the global patch order (the serial merge: the same bits)."""
+        sk = self.skeleton
+        mine = [m for m, w in enumerate(sk.walls.patches) if w.spec.block in self._own_set]
+        exc = qs = None
+        try:
+            qs = stages.patch_quaternions(sk, rd, centre, mine)
+        except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
+            exc = e
+        parts = self._sync(exc, None if qs is None else list(zip(mine, qs)))
+        every = [None] * len(sk.walls.patches)
+        for part in parts:
+            for m, q in part:
+                every[m] = q
+        return stages.merge_wall_quaternions(sk, every)
+
+    def _report(self, reports, check):
+        parts = self._sync(None, reports if check else None)
+        if not check:
+            return None
+        every = sorted((item for part in parts for item in part), key=lambda item: item[0])
+        return CellCheck.merge(r for _, r in every)
+
+    def write(self, path, grid, **kw) -> None:
+        """Write a step's result (this rank's blocks) collectively: :func:`tfi_quat.io.write` with
+        ``comm`` and ``blocks`` (``like`` default: the reference's file variant when ``path``
+        names the reference's format)."""
+        from .. import io
+        if "like" not in kw and "format" not in kw:
+            try:
+                same = io.format_for(path).name == io.format_for(like=self.grid).name
+            except GridFormatError:
+                same = False
+            if same:
+                kw["like"] = self.grid
+        io.write(path, grid, comm=self.comm, blocks=list(self.blocks), **kw)
