@@ -356,7 +356,7 @@ def _check_reference(x, xr, block=0, max_locations=5):
 def test_check_block_matches_the_per_corner_determinants_bit_for_bit(seed, amp, nan, collapse, flip):
     """check_block's shared cross products give the bits of one determinant per corner: the
     smallest ratio (NaN first, first cell in row order), its cell, the counts, the first bad
-    cells; with and without the reference's volume sign (volume_sign)."""
+    cells; with and without the reference's volume sign (CheckReference)."""
     rng = np.random.default_rng(seed)
     ni, nj, nk = (int(n) for n in rng.integers(2, 9, 3))
     xr = np.stack(np.meshgrid(np.arange(ni) * 1.0, np.arange(nj) * 0.7, np.arange(nk) * 1.3, indexing="ij"), -1)
@@ -372,12 +372,12 @@ def test_check_block_matches_the_per_corner_determinants_bit_for_bit(seed, amp, 
         x[tuple(int(rng.integers(n)) for n in x.shape[:3]) + (int(rng.integers(3)),)] = np.nan
     x, xr = np.asfortranarray(x), np.asfortranarray(xr)
     want = _check_reference(x, xr, 2)
-    sign = Q.volume_sign(xr)
+    cref = Q.check_reference(xr)
     vr = cell_volumes(xr, 3)
-    assert sign == (1 if (vr > 0).all() else -1 if (vr < 0).all() else 0)
-    for rs in {0, sign}:
-        got = Q.check_block(x, xr, 3, 2, ref_sign=rs)
-        assert (got.min_at, got.negative, got.negative_jacobian, got.first) == want[1:], rs
+    assert cref.sign == (1 if (vr > 0).all() else -1 if (vr < 0).all() else 0) and cref.xyz is xr
+    for ref in (xr, cref):
+        got = Q.check_block(x, ref, 3, 2)
+        assert (got.min_at, got.negative, got.negative_jacobian, got.first) == want[1:], type(ref)
         assert np.float64(got.min_ratio).tobytes() == np.float64(want[0]).tobytes() or \
             (np.isnan(got.min_ratio) and np.isnan(want[0])) or got.min_ratio == want[0] == 0.0
     if amp == 0.0 and not nan:
@@ -404,14 +404,20 @@ def test_check_block_rows_split_among_threads_give_one_answer():
     assert Q.check_block(x, xr, 3).min_at == want[1]
 
 
-def test_check_block_and_volume_sign_refuse_bad_input():
+def test_check_block_and_check_reference_refuse_bad_input():
     x = np.asfortranarray(sheared_box(3, 3, 3))
-    with pytest.raises(GridValueError, match="ref_sign"):
-        Q.check_block(x, x, 3, ref_sign=2)
     with pytest.raises(GridValueError, match="xyz"):
         Q.check_block(np.ascontiguousarray(x), x, 3)
-    assert Q.volume_sign(x) == 1 and Q.volume_sign(np.asfortranarray(x[::-1])) == -1
-    assert Q.volume_sign(np.zeros((1, 3, 3, 3))) == 0
+    with pytest.raises(GridValueError, match="ref"):
+        Q.check_reference(np.ascontiguousarray(x))
+    with pytest.raises(GridValueError, match="ref.*ndim 3"):
+        Q.check_block(np.asfortranarray(x[:, :, :1]), Q.check_reference(x), 2)
+    with pytest.raises(GridValueError, match="shape"):
+        Q.check_block(np.asfortranarray(x[:2]), Q.check_reference(x), 3)
+    assert Q.check_reference(x).sign == 1 and Q.check_reference(np.asfortranarray(x[::-1])).sign == -1
+    assert Q.check_reference(np.zeros((1, 3, 3, 3), order="F")).sign == 0
+    flat = np.asfortranarray(x[:, :, :1])
+    assert Q.check_reference(flat).sign == 1 and Q.check_reference(flat).ndim == 2
 
 
 def test_compiled_and_uncompiled_kernels_agree():

@@ -57,7 +57,7 @@ from .spec import resolve_patch_specs
 __all__ = ["METRICS", "cell_volumes", "cell_metrics", "cell_orthogonality", "quality_report",
            "QualityReport", "BlockQuality", "MetricStats", "WallOrthogonality",
            "volume_ratio_summary", "negative_cells", "invalid_cells", "wall_orthogonality", "orthogonality_change",
-           "CellCheck", "check_block", "volume_sign"]
+           "CellCheck", "CheckReference", "check_block", "check_reference"]
 
 #: per-cell metrics, in the order of the kernels' output
 METRICS = ("volume", "jacobian", "scaled_jacobian", "skewness", "aspect_ratio", "volume_ratio")
@@ -633,7 +633,7 @@ def _cell_checks(x, xr, j, k, Xd, Xr, ref_sign, below, rat, bad):
     counts ``(negative, negative-Jacobian, NaN ratios, ratios not >= below)``.
 
     ``ref_sign``: +1 (-1) when every reference cell's volume is known to be positive (negative,
-    :func:`volume_sign`), which spares computing them; 0: computed cell by cell.  Unsigned
+    :class:`CheckReference`), which spares computing them; 0: computed cell by cell.  Unsigned
     indices, no branches in the loops, compiled with no aliasing: loops that vectorise."""
     nneg = 0
     nnj = 0
@@ -1439,33 +1439,75 @@ class CellCheck:
                          first)
 
 
-def check_block(xyz: np.ndarray, ref: np.ndarray, ndim: int, block: int = 0,
-                max_locations: int = 5, ref_sign: int = 0) -> CellCheck:
-    """:class:`CellCheck` of one block ``xyz`` against its reference coordinates ``ref`` (both
-    float64 Fortran-ordered ``(ni, nj, nk, 3)``; ``block``: its number in the locations).
+@dataclass(frozen=True)
+class CheckReference:
+    """A reference block for :func:`check_block`, with what a check can know of it once
+    (:func:`check_reference`): its coordinates ``xyz`` (float64, Fortran-ordered
+    ``(ni, nj, nk, 3)``, kept by reference: do not modify them), ``ndim``, and ``sign``, +1
+    when every cell volume (area) is positive as :func:`cell_volumes` computes it, -1 when
+    every one is negative, else 0.  With a sign of +-1 a check does not recompute the
+    reference volumes; :class:`tfi_quat.deform.Deformer` makes one per block on its first
+    check and keeps it."""
+
+    xyz: np.ndarray
+    ndim: int
+    sign: int
+
+
+def check_reference(ref: np.ndarray, ndim: int | None = None) -> CheckReference:
+    """:class:`CheckReference` of the block coordinates ``ref`` (float64 Fortran-ordered
+    ``(ni, nj, nk, 3)``; ``ndim`` default: 2 when ``nk == 1``): one pass over its cells,
+    nothing the size of the block allocated (in 3-D)."""
+    _check_step_array(ref, "ref")
+    ndim = _ndim(ref, ndim)
+    nci, ncj, nck = _cell_shape(ref.shape[:3], ndim)
+    ncell = nci * ncj * nck
+    if ncell == 0:
+        return CheckReference(ref, ndim, 0)
+    if ndim == 2:
+        v = cell_volumes(ref, 2)
+        npos, nneg = int((v > 0.0).sum()), int((v < 0.0).sum())
+    else:
+        cnt = np.empty((nck, 2), dtype=np.int64)
+        parallel_for(_volume_sign_counts, nck, ref, cnt)
+        npos, nneg = (int(c) for c in cnt.sum(axis=0))
+    return CheckReference(ref, ndim, 1 if npos == ncell else (-1 if nneg == ncell else 0))
+
+
+def _check_step_array(a, name: str) -> None:
+    if not isinstance(a, np.ndarray) or a.ndim != 4 or a.shape[-1] != 3 or \
+            a.dtype != np.float64 or not a.flags.f_contiguous:
+        raise GridValueError(f"{name}: expected a float64 Fortran-ordered (ni, nj, nk, 3) array")
+
+
+def check_block(xyz: np.ndarray, ref, ndim: int, block: int = 0,
+                max_locations: int = 5) -> CellCheck:
+    """:class:`CellCheck` of one block ``xyz`` against its reference ``ref``: coordinates (both
+    float64 Fortran-ordered ``(ni, nj, nk, 3)``) or a :class:`CheckReference` of them, which
+    spares the reference volumes when its sign is known (``block``: the block's number in the
+    locations).
 
     One pass over the cells, rows in parallel, nothing the size of the block allocated:
     the check :meth:`tfi_quat.deform.Deformer.deform` makes with ``check=True``.  At each
     node line of a row of cells the corner Jacobians share their j- and k-edges: 4 cross
     products per node and a dot product per corner (the same numbers, bit for bit, as the
-    determinant of each corner's three edges).  ``ref_sign``: :func:`volume_sign` of ``ref``
-    when known (+1 or -1: the reference volumes are not recomputed; the caller keeps it for
-    the reference it checks against), 0 (default): each reference cell's volume is computed.
+    determinant of each corner's three edges).
     """
-    for name, a in (("xyz", xyz), ("ref", ref)):
-        if not isinstance(a, np.ndarray) or a.ndim != 4 or a.shape[-1] != 3 or \
-                a.dtype != np.float64 or not a.flags.f_contiguous:
-            raise GridValueError(f"{name}: expected a float64 Fortran-ordered (ni, nj, nk, 3) array")
+    _check_step_array(xyz, "xyz")
+    ndim = _ndim(xyz, ndim)
+    sign = 0
+    if isinstance(ref, CheckReference):
+        if ref.ndim != ndim:
+            raise GridValueError(f"ref: a CheckReference for ndim {ref.ndim}, the check is for ndim {ndim}")
+        ref, sign = ref.xyz, ref.sign
+    _check_step_array(ref, "ref")
     if xyz.shape != ref.shape:
         raise GridValueError(f"xyz has shape {xyz.shape}, its reference {ref.shape}")
-    if ref_sign not in (-1, 0, 1):
-        raise GridValueError(f"ref_sign must be -1, 0 or 1, got {ref_sign!r}")
-    ndim = _ndim(xyz, ndim)
     nci, ncj, nck = _cell_shape(xyz.shape[:3], ndim)
     if nci * ncj * nck == 0:
         return CellCheck(math.inf, None, 0, 0)
     res = np.empty((ncj * nck, 6))
-    parallel_for(_step_check, res.shape[0], xyz, ref, ndim, int(ref_sign), res)
+    parallel_for(_step_check, res.shape[0], xyz, ref, ndim, int(sign), res)
     nan = np.flatnonzero(res[:, 5] > 0)
     r = int(nan[0]) if nan.size else int(np.argmin(res[:, 0]))
     lo = float(res[r, 0])
@@ -1473,27 +1515,6 @@ def check_block(xyz: np.ndarray, ref: np.ndarray, ndim: int, block: int = 0,
     bad = np.flatnonzero(res[:, 4] >= 0)[:max_locations]
     first = tuple((block, int(res[q, 4]), int(q % ncj), int(q // ncj)) for q in bad)
     return CellCheck(lo, at, int(res[:, 2].sum()), int(res[:, 3].sum()), first)
-
-
-def volume_sign(xyz: np.ndarray, ndim: int | None = None) -> int:
-    """+1 when every cell volume (area in 2-D) of one block is positive, as
-    :func:`cell_volumes` computes it, -1 when every one is negative, else 0 (also for a
-    block without cells): the ``ref_sign`` of :func:`check_block`.  One pass, nothing the
-    size of the block allocated."""
-    xyz = _xyz(xyz)
-    ndim = _ndim(xyz, ndim)
-    nci, ncj, nck = _cell_shape(xyz.shape[:3], ndim)
-    ncell = nci * ncj * nck
-    if ncell == 0:
-        return 0
-    if ndim == 2:
-        v = cell_volumes(xyz, 2)
-        npos, nneg = int((v > 0.0).sum()), int((v < 0.0).sum())
-    else:
-        cnt = np.empty((nck, 2), dtype=np.int64)
-        parallel_for(_volume_sign_counts, nck, xyz, cnt)
-        npos, nneg = (int(c) for c in cnt.sum(axis=0))
-    return 1 if npos == ncell else (-1 if nneg == ncell else 0)
 
 
 def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
