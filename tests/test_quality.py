@@ -311,6 +311,115 @@ def test_volume_ratio_summary_matches_its_definition(seed, two_d, nan):
     assert got["min_ratio"] == want["min_ratio"] or (np.isnan(got["min_ratio"]) and np.isnan(want["min_ratio"]))
 
 
+def _det3(u, v, w):
+    """The corner determinant as the per-corner check expanded it (numpy, no fused multiply-add)."""
+    return (u[..., 0] * (v[..., 1] * w[..., 2] - v[..., 2] * w[..., 1])
+            - u[..., 1] * (v[..., 0] * w[..., 2] - v[..., 2] * w[..., 0])
+            + u[..., 2] * (v[..., 0] * w[..., 1] - v[..., 1] * w[..., 0]))
+
+
+def _check_reference(x, xr, block=0, max_locations=5):
+    """check_block written plainly in numpy: every corner's determinant of its own three edges
+    (no shared cross products), ratios per cell, rows in order k then j, NaN first."""
+    def dets(y):
+        di, dj, dk = y[1:] - y[:-1], y[:, 1:] - y[:, :-1], y[:, :, 1:] - y[:, :, :-1]
+        ni, nj, nk = y.shape[:3]
+        return {(a, b, c): _det3(di[:, b:b + nj - 1, c:c + nk - 1], dj[a:a + ni - 1, :, c:c + nk - 1],
+                                 dk[a:a + ni - 1, b:b + nj - 1])
+                for a, b, c in CORNERS}
+    jd, jr = dets(x), dets(xr)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.stack([np.where(jr[c] != 0.0, jd[c] / jr[c], np.inf) for c in CORNERS], -1)
+    q = q.min(axis=-1)                                       # NaN if any corner is NaN
+    v, vr = cell_volumes(x, 3), cell_volumes(xr, 3)
+    neg = ((vr > 0.0) & ~(v > 0.0)) | ((vr < 0.0) & ~(v < 0.0))
+    negj = ~(q > 0.0)
+    order = lambda a: np.transpose(a, (2, 1, 0)).reshape(-1)   # rows k, then j, then i
+    flat_q = order(q)
+    nan = np.flatnonzero(np.isnan(flat_q))
+    at = int(nan[0]) if nan.size else int(np.argmin(flat_q))
+    nci, ncj = q.shape[:2]
+    cell = lambda f: (block, f % nci, (f // nci) % ncj, f // (nci * ncj))
+    lo = float(flat_q[at])
+    bad = np.flatnonzero(order(neg | negj))
+    first, rows = [], set()
+    for f in bad:
+        if f // nci not in rows:
+            rows.add(f // nci)
+            first.append(cell(int(f)))
+    return lo, (None if lo == np.inf else cell(at)), int(neg.sum()), int(negj.sum()), tuple(first[:max_locations])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), amp=st.sampled_from([0.0, 0.05, 0.4, 1.5]), nan=st.booleans(),
+       collapse=st.booleans(), flip=st.booleans())
+def test_check_block_matches_the_per_corner_determinants_bit_for_bit(seed, amp, nan, collapse, flip):
+    """check_block's shared cross products give the bits of one determinant per corner: the
+    smallest ratio (NaN first, first cell in row order), its cell, the counts, the first bad
+    cells; with and without the reference's volume sign (CheckReference)."""
+    rng = np.random.default_rng(seed)
+    ni, nj, nk = (int(n) for n in rng.integers(2, 9, 3))
+    xr = np.stack(np.meshgrid(np.arange(ni) * 1.0, np.arange(nj) * 0.7, np.arange(nk) * 1.3, indexing="ij"), -1)
+    xr = xr + 0.1 * rng.standard_normal(xr.shape)
+    if flip:
+        xr = xr[::-1].copy()                                 # a left-handed reference
+    if collapse:
+        xr[:, 0, 0] = xr[:, 0, 0].mean(axis=0)               # a collapsed line: zero Jacobians, volumes
+    x = xr + amp * rng.standard_normal(xr.shape)
+    if amp == 0.0:
+        x = xr.copy()                                        # no motion: every counted ratio 1
+    if nan:
+        x[tuple(int(rng.integers(n)) for n in x.shape[:3]) + (int(rng.integers(3)),)] = np.nan
+    x, xr = np.asfortranarray(x), np.asfortranarray(xr)
+    want = _check_reference(x, xr, 2)
+    cref = Q.check_reference(xr)
+    vr = cell_volumes(xr, 3)
+    assert cref.sign == (1 if (vr > 0).all() else -1 if (vr < 0).all() else 0) and cref.xyz is xr
+    for ref in (xr, cref):
+        got = Q.check_block(x, ref, 3, 2)
+        assert (got.min_at, got.negative, got.negative_jacobian, got.first) == want[1:], type(ref)
+        assert np.float64(got.min_ratio).tobytes() == np.float64(want[0]).tobytes() or \
+            (np.isnan(got.min_ratio) and np.isnan(want[0])) or got.min_ratio == want[0] == 0.0
+    if amp == 0.0 and not nan:
+        assert got.ok and got.min_ratio == 1.0 and got.negative == 0
+
+
+def test_check_block_rows_split_among_threads_give_one_answer():
+    """The smallest ratio is the block's first whatever the split of the rows into tasks (each
+    task skips rows that cannot beat its earlier ones): equal minima in many rows."""
+    rng = np.random.default_rng(7)
+    xr = np.stack(np.meshgrid(np.arange(9.0), np.arange(7.0), np.arange(6.0), indexing="ij"), -1)
+    x = xr.copy()
+    x[..., 2] *= 0.5                                          # every ratio 0.5: ties everywhere
+    x[4, 3:, 2:, 0] += 0.3 * rng.random((4, 4))
+    x, xr = np.asfortranarray(x), np.asfortranarray(xr)
+    want = _check_reference(x, xr)
+    res = np.empty((6 * 5, 6))
+    for split in ([0, 30], [0, 1, 30], [0, 7, 13, 29, 30], list(range(31))):
+        for lo, hi in zip(split[:-1], split[1:]):
+            Q._step_check(lo, hi, x, xr, 3, 1, res)
+        nan = np.flatnonzero(res[:, 5] > 0)
+        r = int(nan[0]) if nan.size else int(np.argmin(res[:, 0]))
+        assert (res[r, 0], (0, int(res[r, 1]), r % 6, r // 6)) == (want[0], want[1]), split
+    assert Q.check_block(x, xr, 3).min_at == want[1]
+
+
+def test_check_block_and_check_reference_refuse_bad_input():
+    x = np.asfortranarray(sheared_box(3, 3, 3))
+    with pytest.raises(GridValueError, match="xyz"):
+        Q.check_block(np.ascontiguousarray(x), x, 3)
+    with pytest.raises(GridValueError, match="ref"):
+        Q.check_reference(np.ascontiguousarray(x))
+    with pytest.raises(GridValueError, match="ref.*ndim 3"):
+        Q.check_block(np.asfortranarray(x[:, :, :1]), Q.check_reference(x), 2)
+    with pytest.raises(GridValueError, match="shape"):
+        Q.check_block(np.asfortranarray(x[:2]), Q.check_reference(x), 3)
+    assert Q.check_reference(x).sign == 1 and Q.check_reference(np.asfortranarray(x[::-1])).sign == -1
+    assert Q.check_reference(np.zeros((1, 3, 3, 3), order="F")).sign == 0
+    flat = np.asfortranarray(x[:, :, :1])
+    assert Q.check_reference(flat).sign == 1 and Q.check_reference(flat).ndim == 2
+
+
 def test_compiled_and_uncompiled_kernels_agree():
     x = np.asfortranarray(sheared_box(4, 3, 3) + 0.05 * np.random.default_rng(3).standard_normal((4, 3, 3, 3)))
     rows = np.arange(4, dtype=np.int64)

@@ -57,7 +57,7 @@ from .spec import resolve_patch_specs
 __all__ = ["METRICS", "cell_volumes", "cell_metrics", "cell_orthogonality", "quality_report",
            "QualityReport", "BlockQuality", "MetricStats", "WallOrthogonality",
            "volume_ratio_summary", "negative_cells", "invalid_cells", "wall_orthogonality", "orthogonality_change",
-           "CellCheck", "check_block"]
+           "CellCheck", "CheckReference", "check_block", "check_reference"]
 
 #: per-cell metrics, in the order of the kernels' output
 METRICS = ("volume", "jacobian", "scaled_jacobian", "skewness", "aspect_ratio", "volume_ratio")
@@ -106,14 +106,21 @@ def _hex_volume_inline(x, i, j, k):
     ``S = (c100 - c010) x (c110 - c000) + (c010 - c001) x (c011 - c000) + (c001 - c100) x (c101 - c000)``.
 
     Straight-line code, inlined where a loop over cells must vectorise
-    (:func:`_volume_signs`)."""
+    (:func:`_ratio_rows`)."""
+    return _hex_volume6_inline(x, i, j, k) / 6.0
+
+
+@jit(inline="always")
+def _hex_volume6_inline(x, i, j, k):
+    """Six times :func:`_hex_volume_inline` (``a . S``), the same operations: its sign is
+    the volume's except where the volume underflows to 0 (:func:`_sign6`)."""
     s = _tet_sum(x, i, j, k, (0.0, 0.0, 0.0), 1, 0, 0, 1, 1, 0, 0, 1, 0)
     s = _tet_sum(x, i, j, k, s, 0, 1, 0, 0, 1, 1, 0, 0, 1)
     s = _tet_sum(x, i, j, k, s, 0, 0, 1, 1, 0, 1, 1, 0, 0)
     ax = x[i + 1, j + 1, k + 1, 0] - x[i, j, k, 0]
     ay = x[i + 1, j + 1, k + 1, 1] - x[i, j, k, 1]
     az = x[i + 1, j + 1, k + 1, 2] - x[i, j, k, 2]
-    return (ax * s[0] + ay * s[1] + az * s[2]) / 6.0
+    return ax * s[0] + ay * s[1] + az * s[2]
 
 
 @jit(inline="always")
@@ -488,38 +495,15 @@ def _invalid_cells(x, ndim: int, corner_tol: float) -> tuple:
 
 
 @jit(inline="always")
-def _edge3(x, i, j, k, di, dj, dk):
-    """``x[i + di, j + dj, k + dk] - x[i, j, k]`` as three numbers."""
-    return (x[i + di, j + dj, k + dk, 0] - x[i, j, k, 0], x[i + di, j + dj, k + dk, 1] - x[i, j, k, 1],
-            x[i + di, j + dj, k + dk, 2] - x[i, j, k, 2])
-
-
-@jit(inline="always")
-def _det3(u, v, w):
-    return (u[0] * (v[1] * w[2] - v[2] * w[1]) - u[1] * (v[0] * w[2] - v[2] * w[0])
-            + u[2] * (v[0] * w[1] - v[1] * w[0]))
-
-
-@jit(inline="always")
 def _nan_min(a, b):
     """The smaller of a and b; NaN if a is NaN (a select, so loops stay vectorisable)."""
     return a if (a < b or a != a) else b
 
 
 @jit(inline="always")
-def _corner_ratio(x, xr, i, j, k, a, b, c):
-    """Corner Jacobian of corner ``c(a, b, c)`` of hexahedron (i, j, k) over the reference's
-    (the edges leaving the corner along +i, +j, +k); inf where the reference's is 0."""
-    jr = _det3(_edge3(xr, i, j + b, k + c, 1, 0, 0), _edge3(xr, i + a, j, k + c, 0, 1, 0),
-               _edge3(xr, i + a, j + b, k, 0, 0, 1))
-    jd = _det3(_edge3(x, i, j + b, k + c, 1, 0, 0), _edge3(x, i + a, j, k + c, 0, 1, 0),
-               _edge3(x, i + a, j + b, k, 0, 0, 1))
-    return jd / jr if jr != 0.0 else np.inf
-
-
-@jit(inline="always")
 def _corner_ratio2(x, xr, i, j, a, b):
-    """2-D :func:`_corner_ratio`: corner (a, b) of quadrilateral (i, j)."""
+    """Corner Jacobian of corner (a, b) of quadrilateral (i, j) (the edges leaving it along +i,
+    +j) over the reference's; inf where the reference's is 0."""
     ux = xr[i + 1, j + b, 0, 0] - xr[i, j + b, 0, 0]
     uy = xr[i + 1, j + b, 0, 1] - xr[i, j + b, 0, 1]
     vx = xr[i + a, j + 1, 0, 0] - xr[i + a, j, 0, 0]
@@ -532,92 +516,208 @@ def _corner_ratio2(x, xr, i, j, a, b):
     return (ux * vy - uy * vx) / jr if jr != 0.0 else np.inf
 
 
-@jit
-def _corner_pass(x, xr, j, k, b, c, rat, first):
-    """``rat[i]`` = (``first``) or min= the smaller ratio of corners ``c(0, b, c)`` and
-    ``c(1, b, c)`` of the cells (i, j, k) of a row (unsigned indices; a loop that
-    vectorises, compiled once for the four pairs)."""
-    for ii in range(rat.shape[0]):
-        i = np.uint64(ii)
-        q = _nan_min(_corner_ratio(x, xr, i, j, k, 1, b, c), _corner_ratio(x, xr, i, j, k, 0, b, c))
-        rat[ii] = q if first else _nan_min(q, rat[ii])
+#: ``v / 6.0 > 0`` exactly when ``v > _TINY6`` (and ``< 0`` when ``v < -_TINY6``): below three
+#: times the smallest subnormal, ``v / 6`` rounds to zero.  The check compares the volumes of
+#: :func:`_hex_volume6_inline` with it, the signs :func:`cell_volumes` gives without a division.
+_TINY6 = 3.0 * 2.0 ** -1074
+
+
+@jit(inline="always")
+def _node_cross(x, i, j, k, X, ii):
+    """The four crosses of node line ``i`` into ``X[:, ii]`` (:func:`_node_crosses`)."""
+    j1 = j + np.uint64(1)
+    k1 = k + np.uint64(1)
+    # j-edges at k (c = 0) and k + 1 (c = 1), k-edges at j (b = 0) and j + 1 (b = 1)
+    p0 = x[i, j1, k, 0] - x[i, j, k, 0]
+    p1 = x[i, j1, k, 1] - x[i, j, k, 1]
+    p2 = x[i, j1, k, 2] - x[i, j, k, 2]
+    q0 = x[i, j1, k1, 0] - x[i, j, k1, 0]
+    q1 = x[i, j1, k1, 1] - x[i, j, k1, 1]
+    q2 = x[i, j1, k1, 2] - x[i, j, k1, 2]
+    u0 = x[i, j, k1, 0] - x[i, j, k, 0]
+    u1 = x[i, j, k1, 1] - x[i, j, k, 1]
+    u2 = x[i, j, k1, 2] - x[i, j, k, 2]
+    w0 = x[i, j1, k1, 0] - x[i, j1, k, 0]
+    w1 = x[i, j1, k1, 1] - x[i, j1, k, 1]
+    w2 = x[i, j1, k1, 2] - x[i, j1, k, 2]
+    X[0, ii] = p1 * u2 - p2 * u1             # (b, c) = (0, 0)
+    X[1, ii] = p0 * u2 - p2 * u0
+    X[2, ii] = p0 * u1 - p1 * u0
+    X[3, ii] = p1 * w2 - p2 * w1             # (1, 0)
+    X[4, ii] = p0 * w2 - p2 * w0
+    X[5, ii] = p0 * w1 - p1 * w0
+    X[6, ii] = q1 * u2 - q2 * u1             # (0, 1)
+    X[7, ii] = q0 * u2 - q2 * u0
+    X[8, ii] = q0 * u1 - q1 * u0
+    X[9, ii] = q1 * w2 - q2 * w1             # (1, 1)
+    X[10, ii] = q0 * w2 - q2 * w0
+    X[11, ii] = q0 * w1 - q1 * w0
+
+
+@task_jit
+def _node_crosses(x, j, k, X):
+    """Pass 1 of a row of cells (j, k) in :func:`_step_check` (3-D): at each node line ``i`` of
+    the row's four lines of nodes (``j..j+1``, ``k..k+1``), the cross products ``J_c x K_b`` of
+    the j-edges ``J_c = x[i, j+1, k+c] - x[i, j, k+c]`` and the k-edges
+    ``K_b = x[i, j+b, k+1] - x[i, j+b, k]`` into ``X[3 (b + 2 c) + m, i]`` (component m, the
+    middle one negated as a determinant expands it).  The corner
+    ``c(a, b, c)`` of cell i has its j- and k-edges on node line ``i + a``, so the corner
+    Jacobian is the cell's i-edge at ``(b, c)`` dotted with this cross on line ``i + a``: the
+    8 corners of a cell need 4 new crosses, not 8 determinants (unsigned indices, compiled with
+    no aliasing: a loop that vectorises; one array per call, which vectorises better than
+    both in one loop)."""
+    for ii in range(X.shape[1]):
+        _node_cross(x, np.uint64(ii), j, k, X, ii)
+
+
+@jit(inline="always")
+def _dot_cross(u0, u1, u2, X, q, i):
+    """``u . (J x K)`` with the cross of :func:`_node_crosses` at ``X[q:q+3, i]``: the
+    determinant ``u0 (J1 K2 - J2 K1) - u1 (J0 K2 - J2 K0) + u2 (J0 K1 - J1 K0)``."""
+    return u0 * X[q, i] - u1 * X[q + 1, i] + u2 * X[q + 2, i]
+
+
+@jit(inline="always")
+def _ratio_of(jd, jr):
+    return jd / jr if jr != 0.0 else np.inf
+
+
+@jit(inline="always")
+def _cell_ratio(x, xr, i, j, k, Xd, Xr):
+    """The smallest corner-Jacobian ratio of hexahedron (i, j, k) to the reference's, NaN first
+    (corners whose reference Jacobian is 0 count as inf), from the crosses of
+    :func:`_node_crosses` of ``x`` (``Xd``) and ``xr`` (``Xr``); corners in the order
+    ``(b, c)`` = (0, 0), (1, 0), (0, 1), (1, 1), ``a`` = 1 then 0 (which zero of +-0 is
+    the minimum depends on it)."""
+    i1 = i + np.uint64(1)
+    m = 0.0
+    for bc in range(4):
+        jb = j + np.uint64(bc & 1)
+        kc = k + np.uint64(bc >> 1)
+        q = 3 * bc
+        d0 = x[i1, jb, kc, 0] - x[i, jb, kc, 0]
+        d1 = x[i1, jb, kc, 1] - x[i, jb, kc, 1]
+        d2 = x[i1, jb, kc, 2] - x[i, jb, kc, 2]
+        r0 = xr[i1, jb, kc, 0] - xr[i, jb, kc, 0]
+        r1 = xr[i1, jb, kc, 1] - xr[i, jb, kc, 1]
+        r2 = xr[i1, jb, kc, 2] - xr[i, jb, kc, 2]
+        p = _nan_min(_ratio_of(_dot_cross(d0, d1, d2, Xd, q, i1), _dot_cross(r0, r1, r2, Xr, q, i1)),
+                     _ratio_of(_dot_cross(d0, d1, d2, Xd, q, i), _dot_cross(r0, r1, r2, Xr, q, i)))
+        m = p if bc == 0 else _nan_min(p, m)
+    return m
+
+
+@jit(inline="always")
+def _wrong_sign6(vd, vr):
+    """True when the volume ``vd / 6`` has not the sign of ``vr / 6`` (False when that is 0)."""
+    return (vr > _TINY6 and not vd > _TINY6) or (vr < -_TINY6 and not vd < -_TINY6)
+
+
+@jit(inline="always")
+def _cell_check(x, xr, i, j, k, Xd, Xr, vr, below, rat, bad):
+    """Cell i of :func:`_cell_checks` with the reference volume (times 6) ``vr``: ``rat[i]``,
+    ``bad[i]`` and the cell's share of the counts."""
+    m = _cell_ratio(x, xr, i, j, k, Xd, Xr)
+    w = _wrong_sign6(_hex_volume6_inline(x, i, j, k), vr)
+    nj = not m > 0.0
+    rat[i] = m
+    bad[i] = (1 if w else 0) + (2 if nj else 0)
+    return 1 if w else 0, 1 if nj else 0, 1 if m != m else 0, 0 if m >= below else 1
+
+
+@task_jit
+def _cell_checks(x, xr, j, k, Xd, Xr, ref_sign, below, rat, bad):
+    """Pass 2 of a row of cells (j, k) in :func:`_step_check` (3-D): per cell i, ``rat[i]``
+    (:func:`_cell_ratio`) and ``bad[i]``: 1 if the cell is negative (its volume has not the sign
+    of the reference cell's), 2 if negative-Jacobian (``rat[i]`` not > 0), or both.  Returns the
+    counts ``(negative, negative-Jacobian, NaN ratios, ratios not >= below)``.
+
+    ``ref_sign``: +1 (-1) when every reference cell's volume is known to be positive (negative,
+    :class:`CheckReference`), which spares computing them; 0: computed cell by cell.  Unsigned
+    indices, no branches in the loops, compiled with no aliasing: loops that vectorise."""
+    nneg = 0
+    nnj = 0
+    nnan = 0
+    nlow = 0
+    if ref_sign == 0:
+        for ii in range(rat.shape[0]):
+            i = np.uint64(ii)
+            c = _cell_check(x, xr, i, j, k, Xd, Xr, _hex_volume6_inline(xr, i, j, k), below, rat, bad)
+            nneg += c[0]
+            nnj += c[1]
+            nnan += c[2]
+            nlow += c[3]
+    else:
+        vr = _TINY6 * 2.0 * ref_sign
+        for ii in range(rat.shape[0]):
+            c = _cell_check(x, xr, np.uint64(ii), j, k, Xd, Xr, vr, below, rat, bad)
+            nneg += c[0]
+            nnj += c[1]
+            nnan += c[2]
+            nlow += c[3]
+    return nneg, nnj, nnan, nlow
 
 
 @jit
-def _volume_signs(x, xr, j, k, neg):
-    """``neg[i]``: 1.0 where the volume of hexahedron (i, j, k) has not the sign of the
-    reference's (unsigned indices, a loop that vectorises)."""
-    for ii in range(neg.shape[0]):
-        i = np.uint64(ii)
-        neg[ii] = _wrong_sign(_hex_volume_inline(x, i, j, k), _hex_volume_inline(xr, i, j, k))
-
-
-@jit
-def _quad_ratios(x, xr, j, rat, neg):
-    """2-D: per quadrilateral (i, j) of a row its smallest corner ratio and volume sign
-    change (unsigned indices, a loop that vectorises)."""
+def _quad_ratios(x, xr, j, rat, bad):
+    """2-D: per quadrilateral (i, j) of a row its smallest corner ratio and the ``bad`` flags of
+    :func:`_cell_checks` (unsigned indices, a loop that vectorises)."""
     for ii in range(rat.shape[0]):
         i = np.uint64(ii)
         r = _corner_ratio2(x, xr, i, j, 0, 0)
         r = _nan_min(_corner_ratio2(x, xr, i, j, 1, 0), r)
         r = _nan_min(_corner_ratio2(x, xr, i, j, 0, 1), r)
-        rat[ii] = _nan_min(_corner_ratio2(x, xr, i, j, 1, 1), r)
-        neg[ii] = _wrong_sign(_quad_area(x, i, j), _quad_area(xr, i, j))
-
-
-@jit(inline="always")
-def _wrong_sign(vd, vr):
-    """1.0 when the volume ``vd`` has not the sign of the reference's ``vr`` (0 when vr is 0)."""
-    return 1.0 if (vr > 0.0 and not vd > 0.0) or (vr < 0.0 and not vd < 0.0) else 0.0
+        r = _nan_min(_corner_ratio2(x, xr, i, j, 1, 1), r)
+        rat[ii] = r
+        vd = _quad_area(x, i, j)
+        vr = _quad_area(xr, i, j)
+        w = (vr > 0.0 and not vd > 0.0) or (vr < 0.0 and not vd < 0.0)
+        bad[ii] = (1 if w else 0) + (0 if r > 0.0 else 2)
 
 
 @jit
-def _ratio_row(x, xr, ndim, j, k, rat, neg, res):
-    """Row (j, k) of :func:`_step_check`: per cell the smallest corner-Jacobian ratio to the
-    reference ``xr`` into ``rat`` and whether its volume changed sign into ``neg`` (a loop
-    with no branches and no carried values, which the compiler vectorises), then their
-    reduction into ``res``: ``(min ratio (NaN first), its i, negative cells,
-    negative-Jacobian cells, first bad i or -1, NaN cells)``."""
+def _ratio_row(x, xr, ndim, j, k, ref_sign, below, rat, bad, Xd, Xr, res):
+    """Row (j, k) of :func:`_step_check` into ``res`` (6,): ``(smallest ratio (NaN first), its i,
+    negative cells, negative-Jacobian cells, first bad i or -1, NaN cells)``; a row whose
+    ratios are all ``>= below`` (the smallest of the task's earlier rows: this row cannot hold
+    the block's first smallest) gets ``(inf, -1)`` for the first two, unless it has a NaN."""
     nci = x.shape[0] - 1
     # unsigned indices: numba then emits no negative-index wrap-around, and the loops vectorise
     j = np.uint64(j)
     k = np.uint64(k)
     if ndim == 3:
-        # one loop per pair of corners that share their i-edge: each vectorises (the eight
-        # corners in one loop do not; pairs were the fastest)
-        one = np.uint64(1)
-        zero = np.uint64(0)
-        _corner_pass(x, xr, j, k, zero, zero, rat, True)
-        _corner_pass(x, xr, j, k, one, zero, rat, False)
-        _corner_pass(x, xr, j, k, zero, one, rat, False)
-        _corner_pass(x, xr, j, k, one, one, rat, False)
-        _volume_signs(x, xr, j, k, neg)
+        _node_crosses(x, j, k, Xd)
+        _node_crosses(xr, j, k, Xr)
+        nneg, nnj, nnan, nlow = _cell_checks(x, xr, j, k, Xd, Xr, ref_sign, below, rat, bad)
     else:
-        _quad_ratios(x, xr, j, rat, neg)
+        _quad_ratios(x, xr, j, rat, bad)
+        nneg = 0
+        nnj = 0
+        nnan = 0
+        for i in range(nci):
+            nneg += bad[i] & 1
+            nnj += bad[i] >> 1
+            nnan += 1 if rat[i] != rat[i] else 0
+        nlow = nci
+    first = -1
+    if nneg + nnj > 0:
+        for i in range(nci):
+            if bad[i] != 0:
+                first = i
+                break
     best = np.inf
     at = -1
-    nneg = 0
-    nnj = 0
-    first = -1
-    nnan = 0
-    for i in range(nci):
-        r = rat[i]
-        bad = neg[i] > 0.0
-        if bad:
-            nneg += 1
-        if not r > 0.0:
-            nnj += 1
-            bad = True
-        if bad and first < 0:
-            first = i
-        if r != r:
-            if nnan == 0:
-                best = r
+    if nnan > 0:
+        for i in range(nci):
+            if rat[i] != rat[i]:
+                best = rat[i]
                 at = i
-            nnan += 1
-        elif nnan == 0 and r < best:
-            best = r
-            at = i
+                break
+    elif nlow > 0:
+        for i in range(nci):
+            if rat[i] < best:
+                best = rat[i]
+                at = i
     res[0] = best
     res[1] = at
     res[2] = nneg
@@ -627,17 +727,42 @@ def _ratio_row(x, xr, ndim, j, k, rat, neg, res):
 
 
 @task_jit
-def _step_check(lo, hi, x, xr, ndim, res):
+def _step_check(lo, hi, x, xr, ndim, ref_sign, res):
     """Per row of cells ``r = j + (nj - 1) k``, ``res[r]`` (6,): the smallest corner-Jacobian
     ratio to ``xr`` and its i, the negative and negative-Jacobian cells, the first bad i
-    (-1: none), the cells whose ratio is NaN (:func:`_ratio_row`).  Rows in parallel, no
-    temporaries the size of the block.  Task: the rows ``lo <= r < hi``."""
+    (-1: none), the cells whose ratio is NaN (:func:`_ratio_row`; a row that cannot hold the
+    smallest ratio, because an earlier row of the task has one at most as small, reports
+    ``(inf, -1)`` as its smallest, so that the first smallest over the rows is the block's
+    whatever the split into tasks).  Rows in parallel, scratch of a few rows per task.
+    Task: the rows ``lo <= r < hi``."""
     ncj = x.shape[1] - 1
     nci = x.shape[0] - 1
+    Xd = np.empty((12, x.shape[0]))
+    Xr = np.empty((12, x.shape[0]))
+    rat = np.empty(nci)
+    bad = np.empty(nci, dtype=np.int64)
+    below = np.inf
     for r in range(lo, hi):
-        rat = np.empty(nci)
-        neg = np.empty(nci)
-        _ratio_row(x, xr, ndim, r % ncj, r // ncj, rat, neg, res[r])
+        _ratio_row(x, xr, ndim, r % ncj, r // ncj, ref_sign, below, rat, bad, Xd, Xr, res[r])
+        if res[r, 0] < below:
+            below = res[r, 0]
+
+
+@task_jit
+def _volume_sign_counts(lo, hi, x, out):
+    """Cells of the planes ``lo <= k < hi`` whose volume is positive (``out[k, 0]``) and
+    negative (``out[k, 1]``) as :func:`cell_volumes` computes it (3-D)."""
+    for k in range(lo, hi):
+        npos = 0
+        nneg = 0
+        for j in range(x.shape[1] - 1):
+            for i in range(x.shape[0] - 1):
+                v = _hex_volume6_inline(x, i, j, k)
+                npos += 1 if v > _TINY6 else 0
+                nneg += 1 if v < -_TINY6 else 0
+        out[k, 0] = npos
+        out[k, 1] = nneg
+
 
 # ------------------------------------------------------------------ per-cell drivers
 def _xyz(block, what: str = "block") -> np.ndarray:
@@ -1314,26 +1439,75 @@ class CellCheck:
                          first)
 
 
-def check_block(xyz: np.ndarray, ref: np.ndarray, ndim: int, block: int = 0,
+@dataclass(frozen=True)
+class CheckReference:
+    """A reference block for :func:`check_block`, with what a check can know of it once
+    (:func:`check_reference`): its coordinates ``xyz`` (float64, Fortran-ordered
+    ``(ni, nj, nk, 3)``, kept by reference: do not modify them), ``ndim``, and ``sign``, +1
+    when every cell volume (area) is positive as :func:`cell_volumes` computes it, -1 when
+    every one is negative, else 0.  With a sign of +-1 a check does not recompute the
+    reference volumes; :class:`tfi_quat.deform.Deformer` makes one per block on its first
+    check and keeps it."""
+
+    xyz: np.ndarray
+    ndim: int
+    sign: int
+
+
+def check_reference(ref: np.ndarray, ndim: int | None = None) -> CheckReference:
+    """:class:`CheckReference` of the block coordinates ``ref`` (float64 Fortran-ordered
+    ``(ni, nj, nk, 3)``; ``ndim`` default: 2 when ``nk == 1``): one pass over its cells,
+    nothing the size of the block allocated (in 3-D)."""
+    _check_step_array(ref, "ref")
+    ndim = _ndim(ref, ndim)
+    nci, ncj, nck = _cell_shape(ref.shape[:3], ndim)
+    ncell = nci * ncj * nck
+    if ncell == 0:
+        return CheckReference(ref, ndim, 0)
+    if ndim == 2:
+        v = cell_volumes(ref, 2)
+        npos, nneg = int((v > 0.0).sum()), int((v < 0.0).sum())
+    else:
+        cnt = np.empty((nck, 2), dtype=np.int64)
+        parallel_for(_volume_sign_counts, nck, ref, cnt)
+        npos, nneg = (int(c) for c in cnt.sum(axis=0))
+    return CheckReference(ref, ndim, 1 if npos == ncell else (-1 if nneg == ncell else 0))
+
+
+def _check_step_array(a, name: str) -> None:
+    if not isinstance(a, np.ndarray) or a.ndim != 4 or a.shape[-1] != 3 or \
+            a.dtype != np.float64 or not a.flags.f_contiguous:
+        raise GridValueError(f"{name}: expected a float64 Fortran-ordered (ni, nj, nk, 3) array")
+
+
+def check_block(xyz: np.ndarray, ref, ndim: int, block: int = 0,
                 max_locations: int = 5) -> CellCheck:
-    """:class:`CellCheck` of one block ``xyz`` against its reference coordinates ``ref`` (both
-    float64 Fortran-ordered ``(ni, nj, nk, 3)``; ``block``: its number in the locations).
+    """:class:`CellCheck` of one block ``xyz`` against its reference ``ref``: coordinates (both
+    float64 Fortran-ordered ``(ni, nj, nk, 3)``) or a :class:`CheckReference` of them, which
+    spares the reference volumes when its sign is known (``block``: the block's number in the
+    locations).
 
     One pass over the cells, rows in parallel, nothing the size of the block allocated:
-    the check :meth:`tfi_quat.deform.Deformer.deform` makes with ``check=True``.
+    the check :meth:`tfi_quat.deform.Deformer.deform` makes with ``check=True``.  At each
+    node line of a row of cells the corner Jacobians share their j- and k-edges: 4 cross
+    products per node and a dot product per corner (the same numbers, bit for bit, as the
+    determinant of each corner's three edges).
     """
-    for name, a in (("xyz", xyz), ("ref", ref)):
-        if not isinstance(a, np.ndarray) or a.ndim != 4 or a.shape[-1] != 3 or \
-                a.dtype != np.float64 or not a.flags.f_contiguous:
-            raise GridValueError(f"{name}: expected a float64 Fortran-ordered (ni, nj, nk, 3) array")
+    _check_step_array(xyz, "xyz")
+    ndim = _ndim(xyz, ndim)
+    sign = 0
+    if isinstance(ref, CheckReference):
+        if ref.ndim != ndim:
+            raise GridValueError(f"ref: a CheckReference for ndim {ref.ndim}, the check is for ndim {ndim}")
+        ref, sign = ref.xyz, ref.sign
+    _check_step_array(ref, "ref")
     if xyz.shape != ref.shape:
         raise GridValueError(f"xyz has shape {xyz.shape}, its reference {ref.shape}")
-    ndim = _ndim(xyz, ndim)
     nci, ncj, nck = _cell_shape(xyz.shape[:3], ndim)
     if nci * ncj * nck == 0:
         return CellCheck(math.inf, None, 0, 0)
     res = np.empty((ncj * nck, 6))
-    parallel_for(_step_check, res.shape[0], xyz, ref, ndim, res)
+    parallel_for(_step_check, res.shape[0], xyz, ref, ndim, int(sign), res)
     nan = np.flatnonzero(res[:, 5] > 0)
     r = int(nan[0]) if nan.size else int(np.argmin(res[:, 0]))
     lo = float(res[r, 0])

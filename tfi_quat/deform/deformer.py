@@ -42,7 +42,7 @@ from .. import quaternion as qa
 from .._jit import serial_below, use_threads
 from ..errors import CaseError, DeformationError
 from ..grid import Block, Grid
-from ..quality import CellCheck, check_block
+from ..quality import CellCheck, check_block, check_reference
 from ..spec import as_patch_specs
 from . import buffers, stages, twolevel
 from .skeleton import BLENDINGS, FIXED, WALL, ArclengthParams, boundary_points, build_skeleton
@@ -334,6 +334,10 @@ class Deformer:
         self.walls = WallInput(grid, self.skeleton, dup_tol)
         self._scratch = buffers.Scratch(self.grid)
         self._check_seconds = 0.0
+        #: per block, the reference of the checks (:func:`tfi_quat.quality.check_reference`: the
+        #: sign of its volumes), made by the first check (a pass over the block) and kept:
+        #: later checks skip the reference volumes
+        self._check_refs = [None] * len(grid)
         #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
         #: of one that raised for invalid cells), or None when it was not checked
         self.quality = None
@@ -625,7 +629,9 @@ class Deformer:
             if check:
                 tc = time.perf_counter()
                 with serial_below(blk.npoints):
-                    reports.append(check_block(dst, blk.xyz, sk.ndim, b))
+                    if self._check_refs[b] is None:
+                        self._check_refs[b] = check_reference(blk.xyz, sk.ndim)
+                    reports.append(check_block(dst, self._check_refs[b], sk.ndim, b))
                 self._check_seconds += time.perf_counter() - tc
             if dst is not dest and dest is not None and not hold:
                 buffers.copy_out(dst, dest)
