@@ -309,6 +309,10 @@ class Deformer:
         self.quality = None
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
+        #: the global wall targets (G, 3) of the last :meth:`deform` (the reference before
+        #: any): the point its derivatives are linearised at (O(surface))
+        self.last_targets = pts.P.copy()
+        self._linear = None
 
     @property
     def n_global(self) -> int:
@@ -471,6 +475,8 @@ class Deformer:
                     raise DeformationError("ids= and displacement= go with an array of wall points "
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
                 rd = other_targets(self.skeleton, self.grid, moved, self._work.rd)
+            self.last_targets = rd.copy()
+            self._linear = None
             if self.two_level is not None:
                 passes, ts, t1, t3 = self._two_level_fields(rd)
             else:
@@ -484,6 +490,21 @@ class Deformer:
                 self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=t3 - t1 - ts,
                                            volumes=t4 - t3 - tc, check=tc)
             return grid
+
+    def linearisation(self):
+        """The boundary level's linearisation at :attr:`last_targets`
+        (:class:`tfi_quat.deform.dskeleton.Linearisation`), built on first use after a step."""
+        from .dskeleton import linearise
+        with use_threads(self.threads):
+            if self._linear is None:
+                self._linear = linearise(self, self.last_targets)
+            return self._linear
+
+    def linear_passes(self):
+        """The volume passes ``(Δ or K, Q, centre, tables)`` at the linearisation point (the
+        last step's targets): always both passes for ``"two-level"`` (residual, then rigid),
+        one for the others (``Q`` None for ``"tfi"``).  New arrays, O(surface)."""
+        return self.linearisation().values
 
     def _samareh_fields(self, rd):
         """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q) on the

@@ -1,0 +1,182 @@
+"""Derivatives of the boundary level (tfi_quat.deform.dskeleton): tangents against central
+finite differences of the forward stages, adjoints by the dot-product test."""
+
+import numpy as np
+import pytest
+
+from tfi_quat import io
+from tfi_quat.case import load_case
+from tfi_quat.deform import dskeleton as ds
+from tfi_quat.deform.deformer import Deformer, rigid_motion
+from tfi_quat.fit import fit_rigid
+from tfi_quat._jit import use_threads
+
+from _deform_grids import box_pair, o_grid, o_grid_3d, two_block_o
+
+METHODS = ("tfi", "samareh", "two-level")
+
+
+def _case(name):
+    from pathlib import Path
+    root = Path(__file__).resolve().parent.parent / "grids"
+    case = load_case(root / f"{name}.toml")
+    return io.read(root / Path(case.grid).name), case
+
+
+def _deformer(kind, method):
+    if kind == "ogrid":
+        g, w, s, f = o_grid(25, 13)
+    elif kind == "two_block":
+        g, w, s, f = two_block_o(25, 13)
+    elif kind == "ogrid3d":
+        g, w, s, f = o_grid_3d(17, 9, 3)
+    elif kind == "box":
+        g, w, s, f = box_pair(6)
+    else:
+        raise AssertionError(kind)
+    return Deformer(g, walls=w, symmetry=s, fixed=f, method=method)
+
+
+def _motion(d, amp=0.02, rot=7.0):
+    """A rotation of every wall plus a smooth deformation (in the grid's plane for 2-D)."""
+    move = rigid_motion(rot, axis=(0.0, 0.0, 1.0), about=(0.1, 0.2, 0.0), translate=(0.03, -0.02, 0.0))
+    flat = np.array([1.0, 1.0, 0.0 if d.ndim == 2 else 1.0])
+
+    def f(x):
+        return move(x) + amp * np.sin(2.0 * x + 0.3) * flat
+    return f
+
+
+def _direction(d, rng):
+    P = d.skeleton.points.P
+    wall = d.skeleton.points.wall
+    drd = np.zeros_like(P)
+    drd[wall] = rng.standard_normal((wall.size, 3))
+    if d.ndim == 2:
+        drd[:, 2] = 0.0
+    return drd
+
+
+def _fd(d, drd, h=1e-6):
+    r0 = d.last_targets
+    a = ds.forward_record(d, r0 + h * drd)
+    b = ds.forward_record(d, r0 - h * drd)
+    passes = []
+    for pa, pb in zip(a["passes"], b["passes"]):
+        passes.append(((pa[0] - pb[0]) / (2 * h),
+                       None if pa[1] is None else (pa[1] - pb[1]) / (2 * h)))
+    return passes, (a["pos"] - b["pos"]) / (2 * h)
+
+
+def _rel(a, b):
+    return np.abs(a - b).max() / max(np.abs(b).max(), 1e-12)
+
+
+def _check(d, rng, tol=1e-6, fd=True):
+    drd = _direction(d, rng)
+    pt, dpos = ds.fields_jvp(d, drd)
+    fp, fpos = _fd(d, drd) if fd else (pt, dpos)
+    assert len(pt) == len(d.linear_passes())
+    for (dD, dQ), (fD, fQ) in zip(pt, fp):
+        assert _rel(dD, fD) < tol
+        if fQ is None:
+            assert dQ is None
+        else:
+            assert _rel(dQ, fQ) < tol
+    assert _rel(dpos, fpos) < tol
+    # adjoint: the dot-product test
+    bars = [(rng.standard_normal(a.shape), None if b is None else rng.standard_normal(b.shape))
+            for a, b in pt]
+    pb = rng.standard_normal(dpos.shape)
+    rb = ds.fields_vjp(d, bars, pb)
+    lhs = (dpos * pb).sum()
+    for (a, b), (x, y) in zip(pt, bars):
+        lhs += (a * x).sum() + (0.0 if b is None else (b * y).sum())
+    rhs = (rb * drd).sum()
+    assert abs(lhs - rhs) <= 1e-12 * max(abs(lhs), 1.0)
+    off = np.ones(d.n_global, bool)
+    off[d.skeleton.points.wall] = False
+    assert not rb[off].any()
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("kind", ["ogrid", "two_block", "ogrid3d", "box"])
+def test_jvp_vjp_small_grids(kind, method):
+    rng = np.random.default_rng(hash((kind, method)) % 2 ** 32)
+    d = _deformer(kind, method)
+    # the box pair has wall points with undefined normals (filled from their neighbours by
+    # the step; their Q tangent is zero by convention, which FD does not see): adjoint only
+    fd = kind != "box" or method == "tfi"
+    _check(d, rng, fd=fd)               # at the reference (before any step)
+    d.deform(_motion(d))
+    _check(d, rng, fd=fd)               # at the last step
+
+
+@pytest.mark.parametrize("name", ["naca0012_c_257x65", "naca4412_o_257x65"])
+def test_jvp_vjp_shipped_2d(name):
+    g, case = _case(name)
+    for method in METHODS:
+        d = Deformer(g, walls=case.walls, symmetry=case.symmetry, fixed=case.fixed, method=method)
+        d.deform(_motion(d, amp=0.002, rot=3.0))
+        _check(d, np.random.default_rng(5))
+
+
+def test_rigid_rotation_two_level():
+    """Rigid motion of every wall: the rigid pass's tangent carries it, the residual's is 0."""
+    d = _deformer("ogrid3d", "two-level")
+    d.deform(rigid_motion(20.0, axis=(0.0, 0.0, 1.0), about=(0.3, 0.0, 0.0)))
+    P = d.skeleton.points.P
+    wall = d.skeleton.points.wall
+    r = d.last_targets
+    omega = np.array([0.0, 0.0, 1.0])
+    drd = np.zeros_like(P)
+    drd[wall] = np.cross(omega, r[wall] - np.array([0.5, 0.1, 0.0])) + np.array([0.1, -0.2, 0.0])
+    (dK, dQl), (dD, dQ) = ds.fields_jvp(d, drd)[0]
+    assert np.abs(dK).max() < 1e-9 and np.abs(dQl).max() < 1e-9
+    assert np.abs(dD).max() > 1e-2 and np.abs(dQ).max() > 1e-2
+
+
+def test_fit_jacobian():
+    rng = np.random.default_rng(3)
+    pu = rng.standard_normal((12, 3))
+    pd = pu @ np.array([[0.9, -0.3, 0.1], [0.3, 0.95, 0.0], [0.0, 0.1, 1.0]]) + 0.1
+    for axis in (None, np.array([0.0, 0.0, 1.0]), np.zeros(3)):
+        q, t = fit_rigid(pu, pd, axis, None)
+        J = ds.fit_jacobian(pu, pd, q, axis, None)
+        dp = rng.standard_normal(pd.shape)
+        h = 1e-6
+        qa_, ta = fit_rigid(pu, pd + h * dp, axis, None)
+        qb, tb = fit_rigid(pu, pd - h * dp, axis, None)
+        fd = np.concatenate([qa_ - qb, ta - tb]) / (2 * h)
+        assert _rel(J @ dp.ravel(), fd) < 1e-7
+
+
+def test_threads_same_bits():
+    d = _deformer("ogrid3d", "two-level")
+    d.deform(_motion(d))
+    drd = _direction(d, np.random.default_rng(1))
+    out = []
+    for n in (1, 2):
+        d._linear = None
+        with use_threads(n):
+            pt, dpos = ds.fields_jvp(d, drd)
+            rb = ds.fields_vjp(d, [(a, b) for a, b in pt], dpos)
+        out.append((pt, dpos, rb))
+    (p1, x1, r1), (p2, x2, r2) = out
+    assert np.array_equal(x1, x2) and np.array_equal(r1, r2)
+    for (a, b), (c, e) in zip(p1, p2):
+        assert np.array_equal(a, c) and np.array_equal(b, e)
+
+
+def test_linear_passes_match_deform():
+    """linear_passes gives the step's own passes (both, for two-level, also when rigid)."""
+    d = _deformer("ogrid", "two-level")
+    assert len(d.linear_passes()) == 2
+    d.deform(_motion(d))
+    lp = d.linear_passes()
+    assert len(lp) == 2
+    ds_ = _deformer("ogrid", "samareh")
+    ds_.deform(_motion(ds_))
+    (gd, gq, c, _), = ds_.linear_passes()
+    g2 = ds_.deform(_motion(ds_))
+    assert np.isfinite(gd).all() and np.isfinite(gq).all() and g2 is not None

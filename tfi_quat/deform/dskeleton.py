@@ -1,0 +1,993 @@
+"""Derivatives of the boundary level of a step: wall targets -> volume passes and positions.
+
+:meth:`Deformer.deform` maps the global wall targets ``rd`` (G, 3) to the fields
+of its volume passes (``(Δ or K, Q)`` on every boundary point) and to the final
+boundary positions ``pos`` (:meth:`Deformer._samareh_fields`,
+:meth:`Deformer._two_level_fields`).  This module gives the forward (tangent) and
+reverse (adjoint) products of that map's Jacobian, linearised at the targets of
+the last step (the reference before any step):
+
+* :func:`fields_jvp` ``(deformer, drd) -> (pass_tangents, dpos)``
+* :func:`fields_vjp` ``(deformer, pass_bars, pos_bar) -> rd_bar``
+
+How (docs/derivatives-boundary.md): the map is a chain of stages, each writing
+some columns of some rows of one state array ``Z`` (a row per boundary point
+and one per wall body) from a few rows of it.  Linearising a step builds, per
+stage, the local Jacobian of every item it writes (O(surface) numbers):
+
+* linear stages (the Δ / K hierarchy, projections onto symmetry planes, the
+  copies of walls): their weights, read off the skeleton;
+* the rigid fits: their closed-form derivative (:func:`fit_tangent`);
+* the point-wise nonlinear stages (wall quaternions, slerps, normalised
+  blends, the symmetry twist, rotations, log / exp): the complex-step
+  derivative of a numpy transcription of the compiled kernel
+  (:func:`cs_jacobian`), exact to round-off (no difference is taken).  The
+  branches (hemisphere signs, one-sided differences, fallbacks) are those of
+  the real values, i.e. of the forward step.
+
+:func:`fields_jvp` then runs the chain forward on tangents and
+:func:`fields_vjp` runs the transposed chain backward (:func:`chain_forward`,
+:func:`chain_backward`, compiled, serial, so the bits do not depend on the
+thread count); the adjoint is exact by construction.
+
+Where the forward map is not differentiable the derivative is that of the
+branch the step took, with these conventions: a wall point whose normal is
+undefined (filled from its neighbours by the forward step) and a patch point
+where the quaternion blend falls back to the rotation-vector blend
+(``|V| < QNORM_MIN``, near a half turn) get a zero tangent of Q; a rigid fit
+whose normal matrix is singular (degenerate body) gets the least-squares
+(minimum-norm) rotation tangent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import tfi
+from .._jit import jit
+
+__all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
+           "fit_jacobian", "forward_record", "chain_forward", "chain_backward", "Op"]
+
+# columns of the state Z (rows: boundary points, then one per wall body)
+K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
+NCOL = 27
+# body rows: q (0:4), t (4:7), Δ_b (7:10), q_b (10:14), v_b = log q_b (14:17)
+_H = 1e-30          # complex step
+
+
+# ----------------------------------------------------------------------------- chain
+class Op:
+    """One stage of the chain: rows ``out`` get columns ``[o0, o0 + no)`` from columns
+    ``[i0, i0 + ni)`` of rows ``idx`` (n, k) (-1: none).  ``J``: (n, k) weights applied to
+    every column (``diag``, ``ni == no``) or (n, no, k * ni) blocks (full)."""
+
+    __slots__ = ("out", "o0", "no", "idx", "i0", "ni", "J", "diag")
+
+    def __init__(self, out, o0, no, idx, i0, ni, J, diag=False):
+        self.out = np.ascontiguousarray(out, dtype=np.int64)
+        self.idx = np.ascontiguousarray(np.reshape(idx, (self.out.size, -1)), dtype=np.int64)
+        self.o0, self.no, self.i0, self.ni = int(o0), int(no), int(i0), int(ni)
+        self.J = np.ascontiguousarray(J, dtype=np.float64)
+        self.diag = bool(diag)
+        if diag:
+            assert self.J.shape == self.idx.shape and ni == no
+        else:
+            assert self.J.shape == (self.out.size, no, self.idx.shape[1] * ni)
+
+
+@jit
+def op_forward_diag(Z, out, o0, no, idx, i0, J):
+    """Apply a weight op (``Z[out, o0:] = Σ_k J[m, k] Z[idx[m, k], i0:]``) in place, in order."""
+    tmp = np.empty(no)
+    for m in range(out.shape[0]):
+        for a in range(no):
+            tmp[a] = 0.0
+        for k in range(idx.shape[1]):
+            r = idx[m, k]
+            if r >= 0:
+                w = J[m, k]
+                for a in range(no):
+                    tmp[a] += w * Z[r, i0 + a]
+        for a in range(no):
+            Z[out[m], o0 + a] = tmp[a]
+
+
+@jit
+def op_forward_full(Z, out, o0, no, idx, i0, ni, J):
+    """Apply a block op (``Z[out, o0:o0+no] = Σ_k J[m, :, k] Z[idx[m, k], i0:i0+ni]``)."""
+    tmp = np.empty(no)
+    for m in range(out.shape[0]):
+        for a in range(no):
+            tmp[a] = 0.0
+        for k in range(idx.shape[1]):
+            r = idx[m, k]
+            if r >= 0:
+                for a in range(no):
+                    s = 0.0
+                    for b in range(ni):
+                        s += J[m, a, k * ni + b] * Z[r, i0 + b]
+                    tmp[a] += s
+        for a in range(no):
+            Z[out[m], o0 + a] = tmp[a]
+
+
+@jit
+def op_backward_diag(Zb, out, o0, no, idx, i0, J):
+    """The transpose of :func:`op_forward_diag` in place (items reversed)."""
+    tmp = np.empty(no)
+    for m in range(out.shape[0] - 1, -1, -1):
+        o = out[m]
+        for a in range(no):
+            tmp[a] = Zb[o, o0 + a]
+            Zb[o, o0 + a] = 0.0
+        for k in range(idx.shape[1]):
+            r = idx[m, k]
+            if r >= 0:
+                w = J[m, k]
+                for a in range(no):
+                    Zb[r, i0 + a] += w * tmp[a]
+
+
+@jit
+def op_backward_full(Zb, out, o0, no, idx, i0, ni, J):
+    """The transpose of :func:`op_forward_full` in place (items reversed)."""
+    tmp = np.empty(no)
+    for m in range(out.shape[0] - 1, -1, -1):
+        o = out[m]
+        for a in range(no):
+            tmp[a] = Zb[o, o0 + a]
+            Zb[o, o0 + a] = 0.0
+        for k in range(idx.shape[1]):
+            r = idx[m, k]
+            if r >= 0:
+                for b in range(ni):
+                    s = 0.0
+                    for a in range(no):
+                        s += J[m, a, k * ni + b] * tmp[a]
+                    Zb[r, i0 + b] += s
+
+
+def chain_forward(ops, Z):
+    """Run the ops on the tangent state ``Z`` in place."""
+    for op in ops:
+        if op.diag:
+            op_forward_diag(Z, op.out, op.o0, op.no, op.idx, op.i0, op.J)
+        else:
+            op_forward_full(Z, op.out, op.o0, op.no, op.idx, op.i0, op.ni, op.J)
+
+
+def chain_backward(ops, Zb):
+    """Run the transposed ops backward on the adjoint state ``Zb`` in place."""
+    for op in reversed(ops):
+        if op.diag:
+            op_backward_diag(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.J)
+        else:
+            op_backward_full(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.ni, op.J)
+
+
+def _self(rows):
+    return np.asarray(rows, dtype=np.int64)[:, None]
+
+
+def _copy_op(rows, o0, i0, n):
+    rows = np.asarray(rows, dtype=np.int64)
+    return Op(rows, o0, n, _self(rows), i0, n, np.ones((rows.size, 1)), diag=True)
+
+
+# ----------------------------------------------------------------------------- complex step
+def cs_jacobian(f, X, *args):
+    """Jacobian ``(n, m, k)`` of a row-wise function ``f(X (n, k) complex, *args) -> (n, m)``
+    by the complex step (exact to round-off: no difference is taken)."""
+    X = np.asarray(X, dtype=np.float64)
+    n, k = X.shape
+    cols = []
+    for j in range(k):
+        Xc = X.astype(np.complex128)
+        Xc[:, j] += 1j * _H
+        cols.append(np.asarray(f(Xc, *args)).imag / _H)
+    if n == 0:
+        m = np.asarray(f(X.astype(np.complex128), *args)).shape[1] if n else 0
+        return np.zeros((0, m, k))
+    return np.stack(cols, axis=2)
+
+
+def _dot(a, b):
+    return np.sum(a * b, axis=-1)
+
+
+def _cross(a, b):
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def _qmul(a, b):
+    a0, a1, a2, a3 = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    b0, b1, b2, b3 = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
+                     a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+                     a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1,
+                     a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0], axis=-1)
+
+
+def _rot(q, v):
+    """rot(q, v) = v + 2w (u x v) + 2 u x (u x v) (any q; unit for a rotation)."""
+    u = q[..., 1:]
+    t = 2.0 * _cross(u, v)
+    return v + q[..., :1] * t + _cross(u, t)
+
+
+def _normalize(x):
+    return x / np.sqrt(_dot(x, x))[..., None]
+
+
+def _sign(x):
+    return np.where(np.real(x) < 0.0, -1.0, 1.0)
+
+
+def _atan_over(r2):
+    """atan(sqrt(r2)) / sqrt(r2), smooth in r2 >= 0 (complex-step safe at 0)."""
+    small = np.abs(np.real(r2)) < 1e-6
+    safe = np.where(small, 1.0, r2)
+    r = np.sqrt(safe)
+    big = np.arctan(r) / r
+    ser = 1.0 - r2 / 3.0 + r2 * r2 / 5.0 - r2 ** 3 / 7.0
+    return np.where(small, ser, big)
+
+
+def _sinc_sq(x2):
+    """sin(x) / x as a function of x2 = x^2 (complex-step safe)."""
+    small = np.abs(np.real(x2)) < 1e-6
+    safe = np.where(small, 1.0, x2)
+    x = np.sqrt(safe)
+    return np.where(small, 1.0 - x2 / 6.0 + x2 * x2 / 120.0, np.sin(x) / x)
+
+
+def _atan2(y, x):
+    """atan2 on complex-step numbers (first order in the imaginary parts)."""
+    yr, xr = np.real(y), np.real(x)
+    d = xr * xr + yr * yr
+    d = np.where(d == 0.0, 1.0, d)
+    return np.arctan2(yr, xr) + 1j * (xr * np.imag(y) - yr * np.imag(x)) / d
+
+
+def _omega2(a, b):
+    """The slerp angle squared between unit quaternions a and (aligned) b: 4 atan(|a-b|/|a+b|)^2."""
+    dn2 = _dot(a - b, a - b)
+    pn2 = _dot(a + b, a + b)
+    r2 = dn2 / pn2
+    return 4.0 * r2 * _atan_over(r2) ** 2
+
+
+def _slerp_w(t, w2):
+    """Slerp weights (sin((1-t)w)/sin w, sin(tw)/sin w) from w2 = w^2."""
+    u = 1.0 - t
+    sw = _sinc_sq(w2)
+    return u * _sinc_sq(u * u * w2) / sw, t * _sinc_sq(t * t * w2) / sw
+
+
+def cs_slerp(a, b, t, normalise=True):
+    """kslerp (normalised) or the volume kernels' slerp (not normalised), b aligned to a."""
+    b = _sign(_dot(a, b))[..., None] * b
+    wa, wb = _slerp_w(t, _omega2(a, b))
+    q = wa[..., None] * a + wb[..., None] * b
+    return _normalize(q) if normalise else q
+
+
+def cs_fade(q, f):
+    """fade_and_rebase's ``q <- slerp(1, q, f)`` (exact 1 at f <= 0, q at f >= 1)."""
+    one = np.zeros_like(q)
+    one[..., 0] = 1.0
+    s = _sign(q[..., 0])[..., None]
+    out = cs_slerp(one, s * q, f, normalise=False) * 1.0
+    out = np.where((np.asarray(f) >= 1.0)[..., None], q, out)
+    out = np.where((np.asarray(f) <= 0.0)[..., None], one, out)
+    return out
+
+
+def cs_log(q):
+    """quaternion.log_s: the rotation vector of q (w >= 0 taken)."""
+    q = _sign(q[..., 0])[..., None] * q
+    v = q[..., 1:]
+    n2 = _dot(v, v)
+    w = q[..., 0]
+    # 2 atan2(n, w) / n = 2 atan(n / w) / n / w ... written smooth in n2 for w > 0
+    small = np.abs(np.real(n2)) < 1e-24
+    ww = np.where(np.real(w) > 0.0, w, 1.0)
+    f_pos = 2.0 * _atan_over(n2 / (ww * ww)) / ww
+    nn = np.sqrt(np.where(small, 1.0, n2))
+    f_gen = 2.0 * _atan2(nn, w) / nn
+    f = np.where(np.real(w) > 0.5, f_pos, np.where(small, 2.0 / ww, f_gen))
+    return v * f[..., None]
+
+
+def cs_exp_half(v):
+    """rigid_blend's quaternion of the rotation vector v: [cos(|v|/2), sin(|v|/2) v / |v|]."""
+    th2 = _dot(v, v)
+    h2 = th2 / 4.0
+    small = np.abs(np.real(th2)) < 1e-12
+    hs = np.sqrt(np.where(small, 1.0, h2))
+    c = np.where(small, 1.0 - h2 / 2.0 + h2 * h2 / 24.0, np.cos(hs))
+    f = 0.5 * _sinc_sq(h2)
+    return np.concatenate([c[..., None], f[..., None] * v], axis=-1)
+
+
+# ----------------------------------------------------------------------------- the fits
+def _free_fit(a, R, q, S, cu, tproj):
+    from .. import quaternion as qa
+    n = a.shape[0]
+    M = np.trace(S) * np.eye(3) - S
+    Minv = np.linalg.pinv(M, rcond=1e-12)
+    J = np.zeros((7, n, 3))
+    Q = qa.to_matrix(q)
+    for c in range(3):
+        rc = R[c]                                  # column c of R^T
+        omega = (np.cross(a, rc)) @ Minv.T         # (n, 3)
+        dq = 0.5 * _qmul(np.broadcast_to(q, (n, 4)),
+                         np.concatenate([np.zeros((n, 1)), omega], axis=1))
+        J[:4, :, c] = dq.T
+        e = np.zeros(3)
+        e[c] = 1.0
+        dt = e[None, :] / n - (np.cross(omega, cu) @ Q.T)
+        J[4:, :, c] = (dt @ np.asarray(tproj).T).T
+    return J.reshape(7, 3 * n)
+
+
+def fit_jacobian(pu, pd, q, axis, tproj):
+    """Jacobian (7, 3n) of ``fit_rigid(pu, pd, axis, tproj) = (q, t)`` in ``pd`` at its result
+    ``q``.
+
+    Free rotation (Kabsch): ``S = R^T K`` (``K = Σ b a^T``, centred points) is symmetric at
+    the optimum, so the body-frame rotation tangent ``ω`` (``dR = R [ω]x``) solves
+    ``(tr S I - S) ω = vee(R^T dK - dK^T R)`` (least squares where singular);
+    ``dq = q ⊗ [0, ω] / 2``.  One allowed axis ``n``: ``θ = atan2(Σ n·(a x b), Σ a·(I - n n^T) b)``
+    and ``dq = [-sin, cos n] dθ / 2``.  ``t = tproj (cd - rot(q, cu))``.
+    """
+    from .. import quaternion as qa
+    pu = np.asarray(pu, dtype=np.float64)
+    pd = np.asarray(pd, dtype=np.float64)
+    n = pu.shape[0]
+    tproj = np.eye(3) if tproj is None else np.asarray(tproj, dtype=np.float64)
+    cu = pu.mean(axis=0)
+    a = pu - cu
+    b = pd - pd.mean(axis=0)
+    R = qa.to_matrix(q)
+    if axis is None:
+        S = R.T @ (b.T @ a)
+        S = 0.5 * (S + S.T)
+        return _free_fit(a, R, q, S, cu, tproj)
+    J = np.zeros((7, n, 3))
+    dtheta = np.zeros((n, 3))
+    if np.any(axis):
+        nrm = np.asarray(axis, dtype=np.float64)
+        sin_ = float(np.sum(_cross(a, b) @ nrm))
+        P = np.eye(3) - np.outer(nrm, nrm)
+        cos_ = float(np.sum(a @ P * b))
+        den = sin_ * sin_ + cos_ * cos_
+        if den > 0.0:
+            dtheta = (cos_ * _cross(np.broadcast_to(nrm, a.shape), a) - sin_ * (a @ P)) / den
+        half = 0.5 * np.arctan2(sin_, cos_)
+        J[0] = -np.sin(half) * 0.5 * dtheta
+        for k in range(3):
+            J[1 + k] = np.cos(half) * nrm[k] * 0.5 * dtheta
+        rcu = np.cross(nrm, R @ cu)
+    else:
+        rcu = np.zeros(3)
+    for c in range(3):
+        e = np.zeros(3)
+        e[c] = 1.0
+        dt = e[None, :] / n - dtheta[:, c:c + 1] * rcu[None, :]
+        J[4:, :, c] = (dt @ tproj.T).T
+    return J.reshape(7, 3 * n)
+
+
+# ----------------------------------------------------------------------------- linearisation
+class Linearisation:
+    """The chain of ops of a Deformer at one linearisation point (:func:`linearise`)."""
+
+    def __init__(self, ops, G, nb, passes, two, values):
+        #: the passes at the linearisation point (:meth:`Deformer.linear_passes`)
+        self.values = values
+        self.ops = ops
+        self.G = G
+        self.nb = nb
+        self.passes = passes
+        self.two = two
+
+
+def fields_jvp(deformer, drd):
+    """Tangent of the boundary level: ``drd`` (G, 3) -> ``(pass_tangents, dpos)``.
+
+    ``pass_tangents`` is parallel to :meth:`Deformer.linear_passes`: per pass ``(dD, dQ)``,
+    ``dD`` (G, 3) and ``dQ`` (G, 4) or None (method "tfi"); ``dpos`` (G, 3) the tangent of
+    the boundary points' final positions.  Rows of ``drd`` off the walls are ignored.
+    """
+    lin = deformer.linearisation()
+    G = lin.G
+    drd = np.asarray(drd, dtype=np.float64)
+    if drd.shape != (G, 3):
+        raise ValueError(f"drd must have shape ({G}, 3), got {drd.shape}")
+    Z = np.zeros((G + lin.nb, NCOL))
+    Z[:G, RD:RD + 3] = drd
+    chain_forward(lin.ops, Z)
+    return _pass_parts(lin, Z), Z[:G, POS:POS + 3].copy()
+
+
+def _pass_parts(lin, Z):
+    G = lin.G
+    out = []
+    for d0, q0 in lin.passes:
+        out.append((Z[:G, d0:d0 + 3].copy(), None if q0 is None else Z[:G, q0:q0 + 4].copy()))
+    return out
+
+
+def fields_vjp(deformer, pass_bars, pos_bar):
+    """The adjoint of :func:`fields_jvp`: ``(pass_bars, pos_bar) -> rd_bar`` (G, 3) (zero off
+    the walls).  ``pass_bars``: per pass ``(D_bar, Q_bar)`` (Q_bar None for "tfi"; either may be
+    None for zero)."""
+    lin = deformer.linearisation()
+    G = lin.G
+    Zb = np.zeros((G + lin.nb, NCOL))
+    if len(pass_bars) != len(lin.passes):
+        raise ValueError(f"pass_bars must have {len(lin.passes)} entries, got {len(pass_bars)}")
+    for (d0, q0), bars in zip(lin.passes, pass_bars):
+        db, qb = bars
+        if db is not None:
+            Zb[:G, d0:d0 + 3] += np.asarray(db, dtype=np.float64).reshape(G, 3)
+        if qb is not None and q0 is not None:
+            Zb[:G, q0:q0 + 4] += np.asarray(qb, dtype=np.float64).reshape(G, 4)
+    if pos_bar is not None:
+        Zb[:G, POS:POS + 3] += np.asarray(pos_bar, dtype=np.float64).reshape(G, 3)
+    chain_backward(lin.ops, Zb)
+    return Zb[:G, RD:RD + 3].copy()
+
+
+# ----------------------------------------------------------------------------- stages
+def _wall_q_copy(X, pu, ok, e, curve):
+    """The quaternion of one wall point copy (boundary._point_quaternion) from its deformed
+    stencil ``X`` (n, 15) complex: centre, +a, -a, +b, -b; ``pu`` (n, 5, 3), ``ok`` (n, 5)."""
+    n = X.shape[0]
+    pd = X.reshape(n, 5, 3)
+    E = pu[:, 1:] - pu[:, :1]
+    F = pd[:, 1:] - pd[:, :1]
+    E = np.where(ok[:, 1:, None], E, 0.0)
+    F = np.where(ok[:, 1:, None], F, 0.0)
+
+    def diff(p, pok, m, mok):
+        both = (pok & mok)[:, None]
+        return np.where(both, p - m, np.where(pok[:, None], p, np.where(mok[:, None], -m, 0.0)))
+
+    au = diff(E[:, 0], ok[:, 1], E[:, 1], ok[:, 2])
+    ad = diff(F[:, 0], ok[:, 1], F[:, 1], ok[:, 2])
+    if curve:
+        bu = np.broadcast_to(e, au.shape).astype(au.dtype)
+        bd = bu
+    else:
+        bu = diff(E[:, 2], ok[:, 3], E[:, 3], ok[:, 4])
+        bd = diff(F[:, 2], ok[:, 3], F[:, 3], ok[:, 4])
+    u = _normalize(_cross(au, bu))
+    d = _normalize(_cross(ad, bd))
+    if curve:
+        h = 0.5 * _atan2(_dot(np.broadcast_to(e, u.shape), _cross(u, d)), _dot(u, d))
+        Q1 = np.concatenate([np.cos(h)[:, None], np.sin(h)[:, None] * e[None, :]], axis=1)
+    else:
+        c = _dot(u, d)
+        Q1 = _normalize(np.concatenate([(1.0 + c)[:, None], _cross(u, d)], axis=1))
+    t1 = _normalize(au)
+    t2 = _cross(u, t1)
+    T1 = _rot(Q1, t1)
+    T2 = _cross(d, T1)
+    ss = 0.0
+    cc = 0.0
+    for k in range(4):
+        ek, fk = E[:, k], F[:, k]
+        a1, a2 = _dot(ek, t1), _dot(ek, t2)
+        b1, b2 = _dot(fk, T1), _dot(fk, T2)
+        la2, lb2 = a1 * a1 + a2 * a2, b1 * b1 + b2 * b2
+        d2 = 1e-20
+        good = ok[:, 1 + k] & (np.real(la2) > d2 * np.real(_dot(ek, ek))) & \
+            (np.real(lb2) > d2 * np.real(_dot(fk, fk)))
+        inv = 1.0 / np.sqrt(np.where(good, la2 * lb2, 1.0))
+        ss = ss + np.where(good, (a1 * b2 - a2 * b1) * inv, 0.0)
+        cc = cc + np.where(good, (a1 * b1 + a2 * b2) * inv, 0.0)
+    r = np.sqrt(ss * ss + cc * cc)
+    pos = np.real(cc) >= 0.0
+    hw = np.where(pos, r + cc, ss)
+    hs = np.where(pos, ss, r - cc)
+    flip = (~pos) & (np.real(hw) < 0.0)
+    hw = np.where(flip, -hw, hw)
+    hs = np.where(flip, -hs, hs)
+    hn = np.sqrt(hw * hw + hs * hs)
+    Q2 = np.concatenate([(hw / hn)[:, None], d * (hs / hn)[:, None]], axis=1)
+    return _qmul(Q2, Q1)
+
+
+def _wall_op(sk, rd_in, centre, col):
+    """The merged wall quaternions of the targets ``rd_in`` (G, 3) read from column ``col``:
+    an op writing Q (columns Q0 or P0 chosen by the caller) of the wall points."""
+    from ..boundary import motion_padded
+    from .stages import halo_points
+    pts = sk.points
+    wall = pts.wall
+    nw = wall.size
+    curve = sk.ndim == 2
+    e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
+    copies = [[] for _ in range(nw)]          # per wall point: (q_copy, J_copy (4, 15), gids, mats)
+    ident = np.eye(3)
+    for w, lid in zip(sk.walls.patches, sk.walls.local):
+        pd = np.empty_like(w.pu)
+        halo_points(rd_in, w.halo.ravel(), w.mirror.ravel(), pts.plane_o, pts.plane_n,
+                    pd.reshape(-1, 3))
+        na = pd.shape[0] - 2
+        nb = 1 if curve else pd.shape[1] - 2
+        qf, _ = motion_padded(w.pu, pd, 1, 0 if curve else 1, curve, e, centre, na, nb)
+        qf = qf.reshape(-1, 4)
+        halo = w.halo.reshape(na + 2, -1) if not curve else w.halo.reshape(-1, 1)
+        mirror = w.mirror.reshape(halo.shape)
+        pu_p = w.pu.reshape(halo.shape + (3,)) if not curve else w.pu.reshape(-1, 1, 3)
+        pd_p = pd.reshape(pu_p.shape)
+        I, J = np.meshgrid(np.arange(na) + 1, np.arange(nb) + (0 if curve else 1), indexing="ij")
+        I, J = I.ravel(), J.ravel()
+        offs = [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)]
+        gids = np.full((I.size, 5), -1, dtype=np.int64)
+        mirr = np.full((I.size, 5), -1, dtype=np.int64)
+        pu_s = np.zeros((I.size, 5, 3))
+        pd_s = np.zeros((I.size, 5, 3))
+        for s, (di, dj) in enumerate(offs):
+            if curve and dj != 0:
+                continue
+            a, b = I + di, J + dj
+            inside = (a >= 0) & (b >= 0) & (a < halo.shape[0]) & (b < halo.shape[1])
+            a2, b2 = np.where(inside, a, 0), np.where(inside, b, 0)
+            g = np.where(inside, halo[a2, b2], -1)
+            gids[:, s] = g
+            mirr[:, s] = np.where(inside, mirror[a2, b2], -1)
+            pu_s[:, s] = np.where((g >= 0)[:, None], pu_p[a2, b2], 0.0)
+            pd_s[:, s] = np.where((g >= 0)[:, None], pd_p[a2, b2], 0.0)
+        ok = gids >= 0
+        # defined normals (else the forward step filled the point: zero tangent)
+        qc = _wall_q_copy(pd_s.reshape(-1, 15).astype(np.complex128), pu_s, ok, e, curve).real
+        Jc = cs_jacobian(_wall_q_copy, pd_s.reshape(-1, 15), pu_s, ok, e, curve)
+        good = np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
+        sgn = np.where(np.sum(qc * qf, axis=1) < 0.0, -1.0, 1.0)
+        Jc = np.where(good[:, None, None], Jc * sgn[:, None, None], 0.0)
+        for m in range(I.size):
+            mats = []
+            for s in range(5):
+                p = mirr[m, s]
+                if p >= 0:
+                    nn = pts.plane_n[p]
+                    mats.append(ident - 2.0 * np.outer(nn, nn))
+                else:
+                    mats.append(ident)
+            copies[lid[m]].append((qf[m], Jc[m], gids[m], mats))
+    kmax = 5 * max((len(c) for c in copies), default=1)
+    idx = np.full((nw, kmax), -1, dtype=np.int64)
+    Jw = np.zeros((nw, 4, 3 * kmax))
+    for v, cl in enumerate(copies):
+        acc = np.zeros(4)
+        sg = []
+        for q, *_ in cl:
+            s = 1.0 if (not sg or acc @ q >= 0.0) else -1.0
+            sg.append(s)
+            acc = acc + s * q
+        nrm = np.linalg.norm(acc)
+        qn = acc / nrm
+        Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
+        for c, (q, Jc, g, mats) in enumerate(cl):
+            for s in range(5):
+                k = 5 * c + s
+                idx[v, k] = g[s]
+                Jw[v, :, 3 * k:3 * k + 3] = sg[c] * Pm @ Jc[:, 3 * s:3 * s + 3] @ mats[s]
+    return idx, Jw
+
+
+def _vertex_ops(sk, Qcur, dcol, qcol, two):
+    """Free vertices: Δ/K (diag), the aligned weighted sum into T (diag), Q = slerp(1,
+    normalise(T), decay)."""
+    vx = sk.vertices
+    if vx.idw is None:
+        return []
+    src, w, decay, ref = vx.idw
+    free = vx.free
+    ops = [Op(free, dcol, 3, np.broadcast_to(src, w.shape), dcol, 3, decay[:, None] * w, diag=True)]
+    if qcol is None:
+        return ops
+    qs = Qcur[src]
+    qref = qs[ref]
+    sign = np.where(qref @ qs.T >= 0.0, 1.0, -1.0)
+    qbar = (w * sign) @ qs
+    norm = np.linalg.norm(qbar, axis=1)
+    small = norm < 1e-6
+    W = np.where(small[:, None], 0.0, w * sign)
+    idxs = np.broadcast_to(src, w.shape).copy()
+    if small.any():
+        W[small] = 0.0
+        W[small, ref[small]] = 1.0
+    ops.append(Op(free, T0, 4, idxs, qcol, 4, W, diag=True))
+    Tv = np.where(small[:, None], qref, qbar)
+
+    def f(X, dec, sm):
+        q = np.where(sm[:, None], X, _normalize(X))
+        one = np.zeros_like(q)
+        one[:, 0] = 1.0
+        return cs_slerp(one, q, dec)
+
+    ops.append(Op(free, qcol, 4, _self(free), T0, 4, cs_jacobian(f, Tv, decay, small)))
+    return ops
+
+
+def _rebase_op(rows, Q, shift):
+    """K[p] += rot(Q[p], shift[p]) (two-level re-basing), reading K and Q of the row."""
+    def f(X, s):
+        return X[:, :3] + _rot(X[:, 3:7], s)
+    X = np.concatenate([np.zeros((rows.size, 3)), Q[rows]], axis=1)
+    return Op(rows, K0, 3, _self(rows), K0, 7, cs_jacobian(f, X, shift[rows]))
+
+
+def _segment_ops(sk, Qcur, dcol, qcol, two):
+    """The gaps level by level (a level reads earlier levels only)."""
+    if sk.segments is None:
+        return []
+    left, right, ptr, pts, s = sk.segments.arrays()
+    level = np.zeros(sk.n_global, dtype=np.int64)
+    glev = np.zeros(left.size, dtype=np.int64)
+    for g in range(left.size):
+        lv = 1 + max(level[left[g]], level[right[g]])
+        glev[g] = lv
+        level[pts[ptr[g]:ptr[g + 1]]] = lv
+    counts = np.diff(ptr)
+    pa = np.repeat(left, counts)
+    pb = np.repeat(right, counts)
+    plev = np.repeat(glev, counts)
+    ops = []
+    for lv in range(1, int(glev.max(initial=0)) + 1):
+        sel = plev == lv
+        rows, a, b, t = pts[sel], pa[sel], pb[sel], s[sel]
+        ops.append(Op(rows, dcol, 3, np.stack([a, b], 1), dcol, 3,
+                      np.stack([1.0 - t, t], 1), diag=True))
+        if qcol is None:
+            continue
+        damp = two.damp[rows] if two is not None else None
+
+        def f(X, t, damp):
+            q = cs_slerp(X[:, :4], X[:, 4:], t)
+            return q if damp is None else cs_fade(q, damp)
+
+        X = np.concatenate([Qcur[a], Qcur[b]], axis=1)
+        ops.append(Op(rows, qcol, 4, np.stack([a, b], 1), qcol, 4, cs_jacobian(f, X, t, damp)))
+        if two is not None:
+            ops.append(_rebase_op(rows, Qcur, two.shift))
+    return ops
+
+
+def _patch_ops(sk, Qcur, dcol, qcol, two):
+    """The derived patches: Δ/K (diag, 8 reads), Q (the normalised Soni blend of 8 quaternions,
+    faded for two-level), the re-basing."""
+    rows, idx, wd, X, cst = [], [], [], [], []
+    for p in sk.patches.items:
+        lead = p.lead
+        Gp = p.gid if lead == 0 else p.gid.T
+        Sp = p.s if lead == 0 else np.transpose(p.s, (1, 0, 2))
+        Wp = p.write if lead == 0 else p.write.T
+        nl, nm = Gp.shape
+        if nl < 3 or nm < 3:
+            continue
+        tt = Sp[..., lead]
+        ss = Sp[..., 1 - lead]
+        s0 = np.ones(nm)
+        if qcol is not None:
+            prev = None
+            for m in range(nm):
+                q = Qcur[Gp[0, m]]
+                if prev is not None and prev @ q < 0.0:
+                    s0[m] = -1.0
+                prev = s0[m] * q
+        L, M = np.meshgrid(np.arange(1, nl - 1), np.arange(1, nm - 1), indexing="ij")
+        keep = Wp[L, M]
+        L, M = L[keep], M[keep]
+        g = Gp[L, M]
+        t, sm = tt[L, M], ss[L, M]
+        t0, t1 = tt[L, 0], tt[L, nm - 1]
+        reads = np.stack([Gp[0, M], Gp[nl - 1, M], Gp[0, 0].repeat(L.size), Gp[nl - 1, 0].repeat(L.size),
+                          Gp[L, 0], Gp[0, nm - 1].repeat(L.size), Gp[nl - 1, nm - 1].repeat(L.size),
+                          Gp[L, nm - 1]], 1)
+        wts = np.stack([1.0 - t, t, -(1.0 - sm) * (1.0 - t0), -(1.0 - sm) * t0, 1.0 - sm,
+                        -sm * (1.0 - t1), -sm * t1, sm], 1)
+        rows.append(g)
+        idx.append(reads)
+        wd.append(wts)
+        cst.append(np.stack([t, sm, t0, t1, s0[M], np.full(L.size, s0[0]), np.full(L.size, s0[-1])], 1))
+    if not rows:
+        return []
+    rows = np.concatenate(rows)
+    idx = np.concatenate(idx)
+    ops = [Op(rows, dcol, 3, idx, dcol, 3, np.concatenate(wd), diag=True)]
+    if qcol is None:
+        return ops
+    cst = np.concatenate(cst)
+    X = Qcur[idx].reshape(rows.size, 32)
+    damp = two.damp[rows] if two is not None else None
+
+    def line(a, b, s0, t):
+        a = s0[:, None] * a
+        b = _sign(_dot(a, b))[:, None] * b
+        wa, wb = _slerp_w(t, _omega2(a, b))
+        return wa[:, None] * a + wb[:, None] * b
+
+    def f(X, c, damp, fall=False):
+        q = [X[:, 4 * k:4 * k + 4] for k in range(8)]
+        t, sm, t0, t1, sm_, s00, s0e = (c[:, k] for k in range(7))
+        U = line(q[0], q[1], sm_, t)
+        U0 = line(q[2], q[3], s00, t0)
+        U1 = line(q[5], q[6], s0e, t1)
+        r0 = _sign(_dot(U0, q[4]))[:, None] * q[4] - U0
+        r1 = _sign(_dot(U1, q[7]))[:, None] * q[7] - U1
+        V = U + (1.0 - sm)[:, None] * r0 + sm[:, None] * r1
+        if fall:
+            return np.sqrt(_dot(V, V)).real
+        out = _normalize(V)
+        return out if damp is None else cs_fade(out, damp)
+
+    Jq = cs_jacobian(f, X, cst, damp)
+    fallback = f(X.astype(np.complex128), cst, damp, True) < tfi.QNORM_MIN
+    Jq[fallback] = 0.0
+    ops.append(Op(rows, qcol, 4, idx, qcol, 4, Jq))
+    if two is not None:
+        ops.append(_rebase_op(rows, Qcur, two.shift))
+    return ops
+
+
+def _symmetry_op(sk, F, Q, X, carm, dcol, use_q):
+    """Symmetry points (stages.symmetry_fix): reads F and Q of the row, writes both."""
+    sym = sk.symmetry
+    g = sym.gids
+    if not g.size:
+        return []
+    n = sym.normal
+    if not use_q:
+        J = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+        return [Op(g, dcol, 3, _self(g), dcol, 3, J)]
+
+    def f(Y, arm, point, nrm):
+        Fv, q = Y[:, :3], Y[:, 3:]
+        pos = carm + Fv + _rot(q, arm)
+        d = _dot(pos - point, nrm)
+        pos = pos - d[:, None] * nrm
+        u = _dot(q[:, 1:], nrm)
+        tw = np.concatenate([q[:, :1], u[:, None] * nrm], axis=1)
+        tw = _normalize(tw)
+        return np.concatenate([pos - carm - _rot(tw, arm), tw], axis=1)
+
+    Y = np.concatenate([F[g], Q[g]], axis=1)
+    return [Op(g, dcol, 7, _self(g), dcol, 7, cs_jacobian(f, Y, X[g] - carm, sym.point, n))]
+
+
+def _project_op(sk, col=POS):
+    sym = sk.symmetry
+    g = sym.gids
+    if not g.size:
+        return []
+    n = sym.normal
+    J = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
+    return [Op(g, col, 3, _self(g), col, 3, J)]
+
+
+def linearise(deformer, rd):
+    """The chain of ops of ``deformer``'s boundary level at the wall targets ``rd`` (G, 3)."""
+    # degenerate items (undefined normals, ...) give non-finite transcriptions: their
+    # tangents are set to zero (the module docstring), so the warnings are not wanted
+    with np.errstate(all="ignore"):
+        return _build(deformer, np.asarray(rd, dtype=np.float64))
+
+
+def _build(deformer, rd):
+    sk = deformer.skeleton
+    G = sk.n_global
+    wall = sk.points.wall
+    der = sk.derived
+    P = sk.points.P
+    c = np.asarray(deformer.centre, dtype=np.float64)
+    two = deformer.two_level
+    ops = []
+    if two is None:
+        use_q = deformer.method != "tfi"
+        rec = forward_record(deformer, rd)
+        (gd, gq, _, _), = rec["passes"]
+        Dpre, Qpre = rec["pre"]
+        if use_q:
+            idx, Jw = _wall_op(sk, rd, c, RD)
+            ops.append(Op(wall, P0, 4, idx, RD, 3, Jw))
+
+            def fw(Xw, arm):
+                return Xw[:, 7:10] - _rot(Xw[:, :4], arm)
+            Xw = np.concatenate([Qpre[wall], np.zeros((wall.size, 3)), rd[wall]], axis=1)
+            ops.append(Op(wall, D0, 3, _self(wall), P0, 10, cs_jacobian(fw, Xw, P[wall] - c)))
+        else:
+            ops.append(_copy_op(wall, D0, RD, 3))
+        qcol = P0 if use_q else None
+        ops += _vertex_ops(sk, Qpre, D0, qcol, None)
+        ops += _segment_ops(sk, Qpre, D0, qcol, None)
+        ops += _patch_ops(sk, Qpre, D0, qcol, None)
+        ops += _symmetry_op(sk, Dpre, Qpre, P, c, D0, use_q)
+        if use_q:
+            def fp(Xp, arm):
+                return Xp[:, :3] + _rot(Xp[:, 3:7], arm)
+            Xp = np.concatenate([gd[der], gq[der]], axis=1)
+            ops.append(Op(der, POS, 3, _self(der), D0, 7, cs_jacobian(fp, Xp, P[der] - c)))
+        else:
+            ops.append(_copy_op(der, POS, D0, 3))
+        ops += _project_op(sk)
+        ops.append(_copy_op(wall, POS, RD, 3))
+        return Linearisation(ops, G, 0, [(D0, P0 if use_q else None)], False, rec["passes"])
+    # ---- two-level
+    rec = forward_record(deformer, rd)
+    (K, ql, _, _), (gd, qg, _, _) = rec["passes"]
+    Kpre, qlpre = rec["pre"]
+    fits = rec["fits"]
+    y = rec["y"]
+    nb = len(two.bodies)
+    brow = G + np.arange(nb)
+    # the fits: body rows (q, t) from the body's targets
+    for b, (body, (q, t)) in enumerate(zip(two.bodies, fits)):
+        g = body.gids
+        Jf = fit_jacobian(P[g], rd[g], q, body.axis, body.tproj)
+        ops.append(Op(brow[b:b + 1], 0, 7, g[None, :], RD, 3, Jf[None]))
+    # y = rot(q)^-1 (rd - t) on the walls: reads the row's rd and the body's (q, t)
+    bwall = np.empty(wall.size, dtype=np.int64)
+    pos_w = np.full(G, -1, dtype=np.int64)
+    pos_w[wall] = np.arange(wall.size)
+    for b, body in enumerate(two.bodies):
+        bwall[pos_w[body.gids]] = b
+
+    def fy(X):
+        qt, r = X[:, :7], X[:, 20 + RD:20 + RD + 3]
+        qc = qt[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
+        return _rot(qc, r - qt[:, 4:7])
+
+    Xy = np.zeros((wall.size, 40))
+    for b, (q, t) in enumerate(fits):
+        sel = bwall == b
+        Xy[sel, :4] = q
+        Xy[sel, 4:7] = t
+    Xy[:, 20 + RD:20 + RD + 3] = rd[wall]
+    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, cs_jacobian(fy, Xy)))
+    # residual pass
+    idx, Jw = _wall_op(sk, y, c, Y)
+    ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
+    ops.append(_copy_op(wall, K0, Y, 3))
+    ops += _vertex_ops(sk, qlpre, K0, Q0, two)
+    if sk.vertices.idw is not None:
+        ops.append(_rebase_op(sk.vertices.free, qlpre, two.shift))
+    ops += _segment_ops(sk, qlpre, K0, Q0, two)
+    ops += _patch_ops(sk, qlpre, K0, Q0, two)
+    ops += _symmetry_op(sk, Kpre, qlpre, two.arm, np.zeros(3), K0, True)
+
+    def fl(Xp, arm):
+        return Xp[:, :3] + _rot(Xp[:, 3:7], arm)
+    ops.append(Op(der, POS, 3, _self(der), K0, 7,
+                  cs_jacobian(fl, np.concatenate([K[der], ql[der]], axis=1), two.arm[der])))
+    ops.append(_copy_op(wall, POS, Y, 3))
+    # rigid pass: body rows Δ_b, q_b, v_b from (q, t)
+    qts = np.array([np.concatenate([q, t]) for q, t in fits]).reshape(nb, 7)
+
+    def fb(X):
+        q, t = X[:, :4], X[:, 4:7]
+        cc = np.broadcast_to(c, t.shape)
+        return np.concatenate([t + _rot(q, cc) - cc, q, cs_log(q)], axis=1)
+    ops.append(Op(brow, 7, 10, _self(brow), 0, 7, cs_jacobian(fb, qts)))
+    bq = fb(qts.astype(np.complex128)).real
+    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.broadcast_to(np.eye(7), (wall.size, 7, 7))))
+    if der.size:
+        phi = two.phi
+
+        def fr(X, phi):
+            Xb = X.reshape(X.shape[0], nb, 10)
+            D = np.einsum("nb,nbk->nk", phi, Xb[:, :, :3])
+            v = np.einsum("nb,nbk->nk", phi, Xb[:, :, 7:10])
+            return np.concatenate([D, cs_exp_half(v)], axis=1)
+        Xr = np.broadcast_to(bq.reshape(1, -1), (der.size, nb * 10))
+        ops.append(Op(der, D0, 7, np.broadcast_to(brow, (der.size, nb)), 7, 10,
+                      cs_jacobian(fr, Xr, phi)))
+    ops += _symmetry_op(sk, *rec["rigid_pre"], P, c, D0, True)
+
+    def fg(Xp, cc):
+        return cc + Xp[:, :3] + _rot(Xp[:, 3:7], Xp[:, 7:10] - cc)
+    Xg = np.concatenate([gd[der], qg[der], rec["posl"][der]], axis=1)
+    ops.append(Op(der, POS, 3, _self(der), D0, 10,
+                  cs_jacobian(fg, Xg, np.broadcast_to(c, (der.size, 3)))))
+    ops += _project_op(sk)
+    ops.append(_copy_op(wall, POS, RD, 3))
+    return Linearisation(ops, G, nb, [(K0, Q0), (D0, P0)], True, rec["passes"])
+
+
+def forward_record(deformer, rd):
+    """The boundary level of a step at the targets ``rd`` (G, 3) with what its linearisation
+    reads: a dict with ``passes`` (always both passes for two-level) and the fields before
+    the symmetry stages.  The same stage calls as :meth:`Deformer.deform`, on new arrays."""
+    from .. import quaternion as qa
+    from . import stages, twolevel
+    sk = deformer.skeleton
+    wall = sk.points.wall
+    der = sk.derived
+    P = sk.points.P
+    c = np.asarray(deformer.centre, dtype=np.float64)
+    G = sk.n_global
+    rec = {}
+    one = np.zeros((G, 4))
+    one[:, 0] = 1.0
+    two = deformer.two_level
+    if two is None:
+        use_q = deformer.method != "tfi"
+        gd = np.zeros((G, 3))
+        gq = one.copy() if use_q else None
+        if use_q:
+            qw = stages.wall_quaternions(sk, rd, c)
+            gq[wall] = qw
+            gd[wall] = rd[wall] - c - qa.rotate(qw, P[wall] - c)
+        else:
+            gd[wall] = rd[wall] - P[wall]
+        stages.vertex_stage(sk, gd, gq)
+        stages.segment_stage(sk, gd, gq)
+        stages.patch_stage(sk, gd, gq)
+        rec["pre"] = (gd.copy(), one.copy() if gq is None else gq.copy())
+        stages.symmetry_stage(sk, gd, gq, c)
+        pos = P.copy()
+        if gq is not None:
+            stages.positions_global(gd, gq, c, der, pos)
+        else:
+            pos[der] = P[der] + gd[der]
+        stages.onto_symmetry(sk, pos)
+        pos[wall] = rd[wall]
+        rec["pos"] = pos
+        rec["passes"] = [(gd, gq, c, None)]
+        return rec
+    y = P.copy()
+    fits = twolevel.fit_bodies(sk, two, rd, y)
+    rec["fits"] = fits
+    rec["y"] = y
+    qwall = stages.wall_quaternions(sk, y, c)
+    K = two.c.copy()
+    ql = one.copy()
+    A = two.arm
+    ql[wall] = qwall
+    K[wall] = y[wall]
+    vx = sk.vertices
+    if vx.idw is not None:
+        src, w, decay, _ = vx.idw
+        free = vx.free
+        K[free] = decay[:, None] * (w @ K[src]) + (1.0 - decay)[:, None] * P[free]
+        ql[free] = stages.vertex_q(vx, ql, decay)
+        K[free] += qa.rotate(ql[free], two.shift[free])
+    if sk.segments is not None:
+        stages.fill_gaps(K, ql, *sk.segments.arrays(), True, two.damp, two.shift)
+    stages.patch_stage(sk, K, ql, two.damp, two.shift)
+    rec["pre"] = (K.copy(), ql.copy())
+    sym = sk.symmetry
+    if sym.gids.size:
+        stages.symmetry_fix(K, ql, True, A, np.zeros(3), sym.gids, sym.point, sym.normal)
+    pos = P.copy()
+    stages.positions_local(K, ql, A, der, pos)
+    pos[wall] = y[wall]
+    rec["posl"] = pos
+    gd = np.zeros((G, 3))
+    qg = one.copy()
+    nb = len(two.bodies)
+    Db = np.empty((nb, 3))
+    Qb = np.empty((nb, 4))
+    for b, (body, (q, t)) in enumerate(zip(two.bodies, fits)):
+        Db[b] = t + qa.rotate(q, c) - c
+        Qb[b] = q
+        gd[body.gids] = Db[b]
+        qg[body.gids] = q
+    stages.rigid_blend(two.phi, der, Db, qa.log(Qb), gd, qg)
+    rec["rigid_pre"] = (gd.copy(), qg.copy())
+    stages.symmetry_stage(sk, gd, qg, c)
+    pos = pos.copy()
+    stages.positions_global(gd, qg, c, der, pos)
+    stages.onto_symmetry(sk, pos)
+    pos[wall] = rd[wall]
+    rec["pos"] = pos
+    rec["passes"] = [(K, ql, np.zeros(3), two.base), (gd, qg, c, None)]
+    return rec
