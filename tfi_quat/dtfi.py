@@ -351,132 +351,234 @@ def _drot(qw, qx, qy, qz, tx, ty, tz, vx, vy, vz, dw, dx, dy, dz, ex, ey, ez):
             dw * tz + qw * sz + (dx * ty - dy * tx) + (qx * sy - qy * sx))
 
 
-@functools.lru_cache(maxsize=None)
+@jit(forceinline=True)
+def _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb,
+               gD, gQ, ma, mb, hD, hQ, na, nb, dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB,
+               hasn, hasq, based, dbased):
+    """Tangent of one point (flags None or True, as the forward kernels' ``tfi._point``:
+    numba prunes the branches of the kinds off); returns 1 where the blended Q is below
+    QNORM_MIN (not differentiated)."""
+    t = s[i, j, k, L]
+    sm = s[i, j, k, M]
+    if hasn is not None:
+        sn = s[i, j, k, N]
+    else:                       # 2-D: the N tables are zero dummies, read at (0, 0)
+        sn = 0.0
+        na = 0
+        nb = 0
+    if based is not None:
+        bx, by, bz = w_d(lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
+        x0 = xyz[i, j, k, 0] + bx
+        y0 = xyz[i, j, k, 1] + by
+        z0 = xyz[i, j, k, 2] + bz
+    else:
+        x0 = xyz[i, j, k, 0]
+        y0 = xyz[i, j, k, 1]
+        z0 = xyz[i, j, k, 2]
+    if dbased is not None:
+        ex = dxyz[i, j, k, 0]
+        ey = dxyz[i, j, k, 1]
+        ez = dxyz[i, j, k, 2]
+    else:
+        ex = ey = ez = 0.0
+    dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
+    fx, fy, fz = w_d(dlineD, la, lb, t, dgD, ma, mb, sm, dhD, na, nb, sn)
+    if hasq is None:
+        out[i, j, k, 0] = x0 + dx
+        out[i, j, k, 1] = y0 + dy
+        out[i, j, k, 2] = z0 + dz
+        dout[i, j, k, 0] = ex + fx
+        dout[i, j, k, 1] = ey + fy
+        dout[i, j, k, 2] = ez + fz
+        return 0
+    qw, qx, qy, qz = w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    inv = 1.0 / max(n, QNORM_MIN)
+    qw *= inv
+    qx *= inv
+    qy *= inv
+    qz *= inv
+    # dW: the slerp's tangent plus the residuals' (linear)
+    aw, ax, ay, az = _du_q(lineQ, dlineQ, la, lb, t)
+    um = 1.0 - sm
+    aw += um * dgQ[ma, mb, 0] + sm * dgQ[ma, mb, 4]
+    ax += um * dgQ[ma, mb, 1] + sm * dgQ[ma, mb, 5]
+    ay += um * dgQ[ma, mb, 2] + sm * dgQ[ma, mb, 6]
+    az += um * dgQ[ma, mb, 3] + sm * dgQ[ma, mb, 7]
+    if hasn is not None:
+        un = 1.0 - sn
+        aw += un * dhQ[na, nb, 0] + sn * dhQ[na, nb, 4]
+        ax += un * dhQ[na, nb, 1] + sn * dhQ[na, nb, 5]
+        ay += un * dhQ[na, nb, 2] + sn * dhQ[na, nb, 6]
+        az += un * dhQ[na, nb, 3] + sn * dhQ[na, nb, 7]
+    # dq̂ = (dW - q̂ (q̂ . dW)) / |W|
+    pr = qw * aw + qx * ax + qy * ay + qz * az
+    aw = (aw - qw * pr) * inv
+    ax = (ax - qx * pr) * inv
+    ay = (ay - qy * pr) * inv
+    az = (az - qz * pr) * inv
+    vx = x0 - cx
+    vy = y0 - cy
+    vz = z0 - cz
+    tx, ty, tz, rx, ry, rz = _rot_parts(qw, qx, qy, qz, vx, vy, vz)
+    out[i, j, k, 0] = x0 + dx + rx
+    out[i, j, k, 1] = y0 + dy + ry
+    out[i, j, k, 2] = z0 + dz + rz
+    gx, gy, gz = _drot(qw, qx, qy, qz, tx, ty, tz, vx, vy, vz, aw, ax, ay, az, ex, ey, ez)
+    dout[i, j, k, 0] = ex + fx + gx
+    dout[i, j, k, 1] = ey + fy + gy
+    dout[i, j, k, 2] = ez + fz + gz
+    return 1 if n < QNORM_MIN else 0
+
+
+@jit(forceinline=True)
+def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, gQ, ma, mb,
+               hQ, na, nb, lineB, gB, hB, bLD, bLQ, bMD, bMQ, bND, bNQ, hasn, hasq, based, rbar):
+    """Adjoint of :func:`_jvp_point`: the bar of ``out`` at the point into the table bars
+    (``bLD``... the chunk's) and ``xbar``; returns 1 below QNORM_MIN."""
+    t = s[i, j, k, L]
+    sm = s[i, j, k, M]
+    if hasn is not None:
+        sn = s[i, j, k, N]
+    else:                       # 2-D: the N tables are zero dummies, read at (0, 0)
+        sn = 0.0
+        na = 0
+        nb = 0
+    um = 1.0 - sm
+    un = 1.0 - sn
+    ox = obar[i, j, k, 0]
+    oy = obar[i, j, k, 1]
+    oz = obar[i, j, k, 2]
+    # Δ (linear in the D tables)
+    _d_bar(bLD, la, lb, 0, 1.0 - t, ox, oy, oz)
+    _d_bar(bLD, la, lb, 3, t, ox, oy, oz)
+    _d_bar(bMD, ma, mb, 0, um, ox, oy, oz)
+    _d_bar(bMD, ma, mb, 3, sm, ox, oy, oz)
+    if hasn is not None:
+        _d_bar(bND, na, nb, 0, un, ox, oy, oz)
+        _d_bar(bND, na, nb, 3, sn, ox, oy, oz)
+    if hasq is None:
+        if rbar is not None:
+            xbar[i, j, k, 0] = ox
+            xbar[i, j, k, 1] = oy
+            xbar[i, j, k, 2] = oz
+        return 0
+    if based is not None:
+        bx, by, bz = w_d(lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
+        x0 = xyz[i, j, k, 0] + bx
+        y0 = xyz[i, j, k, 1] + by
+        z0 = xyz[i, j, k, 2] + bz
+    else:
+        x0 = xyz[i, j, k, 0]
+        y0 = xyz[i, j, k, 1]
+        z0 = xyz[i, j, k, 2]
+    qw, qx, qy, qz = w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    inv = 1.0 / max(n, QNORM_MIN)
+    qw *= inv
+    qx *= inv
+    qy *= inv
+    qz *= inv
+    vx = x0 - cx
+    vy = y0 - cy
+    vz = z0 - cz
+    tx = 2.0 * (qy * vz - qz * vy)
+    ty = 2.0 * (qz * vx - qx * vz)
+    tz = 2.0 * (qx * vy - qy * vx)
+    # rot(q, v) = v + w t + u × t,  t = 2 u × v
+    bw = tx * ox + ty * oy + tz * oz
+    sx = qw * ox + (oy * qz - oz * qy)                      # t_bar = w o + o × u
+    sy = qw * oy + (oz * qx - ox * qz)
+    sz = qw * oz + (ox * qy - oy * qx)
+    bx_ = ty * oz - tz * oy + 2.0 * (vy * sz - vz * sy)     # u_bar = t × o + 2 v × t_bar
+    by_ = tz * ox - tx * oz + 2.0 * (vz * sx - vx * sz)
+    bz_ = tx * oy - ty * ox + 2.0 * (vx * sy - vy * sx)
+    if rbar is not None:                                    # v_bar = o + 2 t_bar × u
+        xbar[i, j, k, 0] = ox + 2.0 * (sy * qz - sz * qy)
+        xbar[i, j, k, 1] = oy + 2.0 * (sz * qx - sx * qz)
+        xbar[i, j, k, 2] = oz + 2.0 * (sx * qy - sy * qx)
+    # W_bar = (q̂_bar - q̂ (q̂ . q̂_bar)) / |W|
+    pr = qw * bw + qx * bx_ + qy * by_ + qz * bz_
+    ww = (bw - qw * pr) * inv
+    wx = (bx_ - qx * pr) * inv
+    wy = (by_ - qy * pr) * inv
+    wz = (bz_ - qz * pr) * inv
+    _du_q_bar(lineQ, bLQ, la, lb, t, ww, wx, wy, wz)
+    _q_bar(bMQ, ma, mb, 0, um, ww, wx, wy, wz)
+    _q_bar(bMQ, ma, mb, 4, sm, ww, wx, wy, wz)
+    if hasn is not None:
+        _q_bar(bNQ, na, nb, 0, un, ww, wx, wy, wz)
+        _q_bar(bNQ, na, nb, 4, sn, ww, wx, wy, wz)
+    return 1 if n < QNORM_MIN else 0
+
+
 def _jvp_kernel(hasn: bool, hasq: bool, based: bool, dbased: bool):
-    """The tangent kernel of one kind (made on first use): tasks are planes (3-D: k, 2-D: j).
+    """The tangent kernel of one kind (made on first use, then kept): tasks are planes
+    (3-D: k, 2-D: j).
 
     Signature: ``(lo, hi, xyz, dxyz, s, out, dout, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ,
-    hD, hQ, dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB, bad)``; ``xyz`` the base
-    points ``R`` (with ``based``: ``R = xyz + TFI(B)``), ``dxyz`` their tangent (read with
-    ``dbased``); ``bad[p]``: points of plane ``p`` below QNORM_MIN.
+    hD, hQ, dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB, bad)``;
+    ``xyz`` the base points ``R`` (with ``based``: ``R = xyz + TFI(B)``), ``dxyz`` their
+    tangent (read with ``dbased``); ``bad[p]``: points of plane ``p`` below QNORM_MIN.
+    (Every flag a compile-time kind: with ``based``/``dbased`` run-time flags the kernel
+    compiled in half the time but ran 10 times slower.)
     """
-    @task_jit
-    def jvp(lo, hi, xyz, dxyz, s, out, dout, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
-            dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB, bad):
-        ni = xyz.shape[0]
-        nj = xyz.shape[1]
-        for p in range(lo, hi):
-            nbad = 0
-            for q in range(nj if hasn else 1):
-                j = q if hasn else p
-                k = p if hasn else 0
-                for i in range(ni):
-                    la, lb = face_coords(i, j, k, L)
-                    ma, mb = face_coords(i, j, k, M)
-                    if hasn:
-                        na, nb = face_coords(i, j, k, N)
-                    else:
-                        na, nb = 0, 0
-                    t = s[i, j, k, L]
-                    sm = s[i, j, k, M]
-                    sn = s[i, j, k, N] if hasn else 0.0
-                    if based:
-                        bx, by, bz = w_d(lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
-                        x0 = xyz[i, j, k, 0] + bx
-                        y0 = xyz[i, j, k, 1] + by
-                        z0 = xyz[i, j, k, 2] + bz
-                    else:
-                        x0 = xyz[i, j, k, 0]
-                        y0 = xyz[i, j, k, 1]
-                        z0 = xyz[i, j, k, 2]
-                    if dbased:
-                        ex = dxyz[i, j, k, 0]
-                        ey = dxyz[i, j, k, 1]
-                        ez = dxyz[i, j, k, 2]
-                    else:
-                        ex = ey = ez = 0.0
-                    dx, dy, dz = w_d(lineD, la, lb, t, gD, ma, mb, sm, hD, na, nb, sn)
-                    fx, fy, fz = w_d(dlineD, la, lb, t, dgD, ma, mb, sm, dhD, na, nb, sn)
-                    if not hasq:
-                        out[i, j, k, 0] = x0 + dx
-                        out[i, j, k, 1] = y0 + dy
-                        out[i, j, k, 2] = z0 + dz
-                        dout[i, j, k, 0] = ex + fx
-                        dout[i, j, k, 1] = ey + fy
-                        dout[i, j, k, 2] = ez + fz
-                        continue
-                    qw, qx, qy, qz = w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
-                    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                    if n < QNORM_MIN:
-                        nbad += 1
-                        n = QNORM_MIN
-                    inv = 1.0 / n
-                    qw *= inv
-                    qx *= inv
-                    qy *= inv
-                    qz *= inv
-                    # dW: the slerp's tangent plus the residuals' (linear)
-                    aw, ax, ay, az = _du_q(lineQ, dlineQ, la, lb, t)
-                    um = 1.0 - sm
-                    aw += um * dgQ[ma, mb, 0] + sm * dgQ[ma, mb, 4]
-                    ax += um * dgQ[ma, mb, 1] + sm * dgQ[ma, mb, 5]
-                    ay += um * dgQ[ma, mb, 2] + sm * dgQ[ma, mb, 6]
-                    az += um * dgQ[ma, mb, 3] + sm * dgQ[ma, mb, 7]
-                    if hasn:
-                        un = 1.0 - sn
-                        aw += un * dhQ[na, nb, 0] + sn * dhQ[na, nb, 4]
-                        ax += un * dhQ[na, nb, 1] + sn * dhQ[na, nb, 5]
-                        ay += un * dhQ[na, nb, 2] + sn * dhQ[na, nb, 6]
-                        az += un * dhQ[na, nb, 3] + sn * dhQ[na, nb, 7]
-                    # dq̂ = (dW - q̂ (q̂ . dW)) / |W|
-                    pr = qw * aw + qx * ax + qy * ay + qz * az
-                    aw = (aw - qw * pr) * inv
-                    ax = (ax - qx * pr) * inv
-                    ay = (ay - qy * pr) * inv
-                    az = (az - qz * pr) * inv
-                    vx = x0 - cx
-                    vy = y0 - cy
-                    vz = z0 - cz
-                    tx, ty, tz, rx, ry, rz = _rot_parts(qw, qx, qy, qz, vx, vy, vz)
-                    out[i, j, k, 0] = x0 + dx + rx
-                    out[i, j, k, 1] = y0 + dy + ry
-                    out[i, j, k, 2] = z0 + dz + rz
-                    gx, gy, gz = _drot(qw, qx, qy, qz, tx, ty, tz, vx, vy, vz, aw, ax, ay, az,
-                                       ex, ey, ez)
-                    dout[i, j, k, 0] = ex + fx + gx
-                    dout[i, j, k, 1] = ey + fy + gy
-                    dout[i, j, k, 2] = ez + fz + gz
-            bad[p] = nbad
+    return _kernel("jvp", hasn, hasq, based, dbased)
 
-    return jvp
+
+def _vjp_kernel(hasn: bool, hasq: bool, based: bool, rbar: bool):
+    """The adjoint kernel of one kind (made on first use, then kept): tasks are the chunks
+    of planes ``[p0[c], p0[c + 1])``.
+
+    Signature: ``(lo, hi, p0, xyz, s, obar, xbar, cx, cy, cz, L, M, N, lineQ, gQ, hQ,
+    lineB, gB, hB, blineD, blineQ, bgD, bgQ, bhD, bhQ, share, bad)``: ``obar``
+    the bar of ``out``; ``xbar`` receives the bar of the base points (with ``rbar``); the
+    table bars have a last chunk axis, whose index is the chunk for the tables in ``share``
+    (role L, M, N) and 0 for the others (whose entries each chunk's planes own).
+    """
+    return _kernel("vjp", hasn, hasq, based, rbar)
 
 
 @functools.lru_cache(maxsize=None)
-def _vjp_kernel(hasn: bool, hasq: bool, based: bool, rbar: bool):
-    """The adjoint kernel of one kind (made on first use): tasks are the chunks of planes
-    ``[p0[c], p0[c + 1])``.
+def _kernel(kind, hasn, hasq, based, extra):
+    nflag = True if hasn else None
+    qflag = True if hasq else None
+    bflag = True if based else None
+    xflag = True if extra else None
+    if kind == "jvp":
+        @task_jit
+        def jvp(lo, hi, xyz, dxyz, s, out, dout, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ,
+                hD, hQ, dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB, bad):
+            ni = xyz.shape[0]
+            nj = xyz.shape[1]
+            for p in range(lo, hi):
+                nbad = 0
+                for q in range(nj if hasn else 1):
+                    j = q if hasn else p
+                    k = p if hasn else 0
+                    for i in range(ni):
+                        la, lb = face_coords(i, j, k, L)
+                        ma, mb = face_coords(i, j, k, M)
+                        na, nb = face_coords(i, j, k, N)
+                        nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz, L, M, N,
+                                           lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb,
+                                           dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB,
+                                           nflag, qflag, bflag, xflag)
+                bad[p] = nbad
+        return jvp
 
-    Signature: ``(lo, hi, p0, xyz, s, obar, xbar, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ,
-    hD, hQ, lineB, gB, hB, blineD, blineQ, bgD, bgQ, bhD, bhQ, share, bad)``: ``obar`` the
-    bar of ``out``; ``xbar`` receives the bar of the base points (with ``rbar``); the table
-    bars have a leading chunk axis, whose index is the chunk for the tables in ``share``
-    (role L, M, N) and 0 for the others (whose entries each chunk's planes own).
-    """
     @task_jit
-    def vjp(lo, hi, p0, xyz, s, obar, xbar, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ,
+    def vjp(lo, hi, p0, xyz, s, obar, xbar, cx, cy, cz, L, M, N, lineQ, gQ, hQ,
             lineB, gB, hB, blineD, blineQ, bgD, bgQ, bhD, bhQ, share, bad):
         ni = xyz.shape[0]
         nj = xyz.shape[1]
         for ch in range(lo, hi):
-            cL = ch if share[0] else 0
-            cM = ch if share[1] else 0
-            cN = ch if share[2] else 0
-            bLD = blineD[cL]
-            bLQ = blineQ[cL]
-            bMD = bgD[cM]
-            bMQ = bgQ[cM]
-            bND = bhD[cN]
-            bNQ = bhQ[cN]
+            bLD = blineD[:, :, :, ch if share[0] else 0]
+            bLQ = blineQ[:, :, :, ch if share[0] else 0]
+            bMD = bgD[:, :, :, ch if share[1] else 0]
+            bMQ = bgQ[:, :, :, ch if share[1] else 0]
+            bND = bhD[:, :, :, ch if share[2] else 0]
+            bNQ = bhQ[:, :, :, ch if share[2] else 0]
             nbad = 0
             for p in range(p0[ch], p0[ch + 1]):
                 for q in range(nj if hasn else 1):
@@ -485,83 +587,12 @@ def _vjp_kernel(hasn: bool, hasq: bool, based: bool, rbar: bool):
                     for i in range(ni):
                         la, lb = face_coords(i, j, k, L)
                         ma, mb = face_coords(i, j, k, M)
-                        if hasn:
-                            na, nb = face_coords(i, j, k, N)
-                        else:
-                            na, nb = 0, 0
-                        t = s[i, j, k, L]
-                        sm = s[i, j, k, M]
-                        sn = s[i, j, k, N] if hasn else 0.0
-                        um = 1.0 - sm
-                        un = 1.0 - sn
-                        ox = obar[i, j, k, 0]
-                        oy = obar[i, j, k, 1]
-                        oz = obar[i, j, k, 2]
-                        # Δ (linear in the D tables)
-                        _d_bar(bLD, la, lb, 0, 1.0 - t, ox, oy, oz)
-                        _d_bar(bLD, la, lb, 3, t, ox, oy, oz)
-                        _d_bar(bMD, ma, mb, 0, um, ox, oy, oz)
-                        _d_bar(bMD, ma, mb, 3, sm, ox, oy, oz)
-                        if hasn:
-                            _d_bar(bND, na, nb, 0, un, ox, oy, oz)
-                            _d_bar(bND, na, nb, 3, sn, ox, oy, oz)
-                        if not hasq:
-                            if rbar:
-                                xbar[i, j, k, 0] = ox
-                                xbar[i, j, k, 1] = oy
-                                xbar[i, j, k, 2] = oz
-                            continue
-                        if based:
-                            bx, by, bz = w_d(lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn)
-                            x0 = xyz[i, j, k, 0] + bx
-                            y0 = xyz[i, j, k, 1] + by
-                            z0 = xyz[i, j, k, 2] + bz
-                        else:
-                            x0 = xyz[i, j, k, 0]
-                            y0 = xyz[i, j, k, 1]
-                            z0 = xyz[i, j, k, 2]
-                        qw, qx, qy, qz = w_q(lineQ, la, lb, t, gQ, ma, mb, sm, hQ, na, nb, sn)
-                        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-                        if n < QNORM_MIN:
-                            nbad += 1
-                            n = QNORM_MIN
-                        inv = 1.0 / n
-                        qw *= inv
-                        qx *= inv
-                        qy *= inv
-                        qz *= inv
-                        vx = x0 - cx
-                        vy = y0 - cy
-                        vz = z0 - cz
-                        tx = 2.0 * (qy * vz - qz * vy)
-                        ty = 2.0 * (qz * vx - qx * vz)
-                        tz = 2.0 * (qx * vy - qy * vx)
-                        # rot(q, v) = v + w t + u × t,  t = 2 u × v
-                        bw = tx * ox + ty * oy + tz * oz
-                        sx = qw * ox + (oy * qz - oz * qy)          # t_bar = w o + o × u
-                        sy = qw * oy + (oz * qx - ox * qz)
-                        sz = qw * oz + (ox * qy - oy * qx)
-                        bx_ = ty * oz - tz * oy + 2.0 * (vy * sz - vz * sy)   # u_bar = t × o + 2 v × t_bar
-                        by_ = tz * ox - tx * oz + 2.0 * (vz * sx - vx * sz)
-                        bz_ = tx * oy - ty * ox + 2.0 * (vx * sy - vy * sx)
-                        if rbar:                                    # v_bar = o + 2 t_bar × u
-                            xbar[i, j, k, 0] = ox + 2.0 * (sy * qz - sz * qy)
-                            xbar[i, j, k, 1] = oy + 2.0 * (sz * qx - sx * qz)
-                            xbar[i, j, k, 2] = oz + 2.0 * (sx * qy - sy * qx)
-                        # W_bar = (q̂_bar - q̂ (q̂ . q̂_bar)) / |W|
-                        pr = qw * bw + qx * bx_ + qy * by_ + qz * bz_
-                        ww = (bw - qw * pr) * inv
-                        wx = (bx_ - qx * pr) * inv
-                        wy = (by_ - qy * pr) * inv
-                        wz = (bz_ - qz * pr) * inv
-                        _du_q_bar(lineQ, bLQ, la, lb, t, ww, wx, wy, wz)
-                        _q_bar(bMQ, ma, mb, 0, um, ww, wx, wy, wz)
-                        _q_bar(bMQ, ma, mb, 4, sm, ww, wx, wy, wz)
-                        if hasn:
-                            _q_bar(bNQ, na, nb, 0, un, ww, wx, wy, wz)
-                            _q_bar(bNQ, na, nb, 4, sn, ww, wx, wy, wz)
+                        na, nb = face_coords(i, j, k, N)
+                        nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N,
+                                           lineQ, la, lb, gQ, ma, mb, hQ, na, nb, lineB, gB,
+                                           hB, bLD, bLQ, bMD, bMQ, bND, bNQ, nflag, qflag,
+                                           bflag, xflag)
             bad[ch] = nbad
-
     return vjp
 
 
@@ -632,21 +663,30 @@ def volume_vjp(plan, xyz, s, gd, gq, centre, obar, gd_bar, gq_bar, *, base=None,
     share = np.array([r == pdir for r in roles], dtype=np.bool_)
     tabs = (lineD, lineQ, gD, gQ, hD, hQ)
     rank = (0, 0, 1, 1, 2, 2)
-    bars = [np.zeros((nch if share[r] else 1,) + a.shape) for a, r in zip(tabs, rank)]
+    # F order, the chunk last: each chunk's table is laid out as the forward one (i fastest)
+    bars = [np.zeros(a.shape + (nch if share[r] else 1,), order="F") for a, r in zip(tabs, rank)]
     lineB, gB, hB = (lineD, gD, hD) if base is None else base
     bad = np.zeros(nch, dtype=np.int64)
     kern = _vjp_kernel(hasn, hasq, base is not None, xbar is not None)
     c = np.asarray(centre, dtype=np.float64)
     parallel_for(kern, nch, p0, xyz, s, obar, xyz if xbar is None else xbar, c[0], c[1], c[2],
-                 L, M, N, lineD, lineQ, gD, gQ, hD, hQ, lineB, gB, hB, *bars, share, bad)
-    summed = [np.asfortranarray(b.sum(axis=0)) if b.shape[0] > 1 else
-              np.asfortranarray(b[0]) for b in bars]
+                 L, M, N, lineQ, gQ, hQ, lineB, gB, hB, *bars, share, bad)
+    summed = [_chunk_sum(b) for b in bars]
     iL, iM, iN = plan.face_rows
     SM, SN = plan.face_pairs
     _tables_bar(_dims_arr(dims), L, M, N, hasn, hasq, iL, iM, iN, SM, SN,
                 gq if hasq else _NO_Q, lineQ, gQ, *summed, gd_bar,
                 gq_bar if hasq else np.zeros((1, 4)))
     return int(bad.sum())
+
+
+def _chunk_sum(b):
+    """The chunks of a table bar (its last axis) summed in order: the same bits on any
+    number of threads."""
+    out = np.array(b[..., 0], order="F")
+    for c in range(1, b.shape[-1]):
+        out += b[..., c]
+    return out
 
 
 _NO_Q = np.zeros((1, 4))
