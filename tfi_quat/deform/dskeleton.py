@@ -64,6 +64,10 @@ class Op:
 
     __slots__ = ("out", "o0", "no", "idx", "i0", "ni", "J", "diag")
 
+    @property
+    def nbytes(self):
+        return self.out.nbytes + self.idx.nbytes + self.J.nbytes
+
     def __init__(self, out, o0, no, idx, i0, ni, J, diag=False):
         self.out = np.ascontiguousarray(out, dtype=np.int64)
         self.idx = np.ascontiguousarray(np.reshape(idx, (self.out.size, -1)), dtype=np.int64)
@@ -148,10 +152,101 @@ def op_backward_full(Zb, out, o0, no, idx, i0, ni, J):
                     Zb[r, i0 + b] += s
 
 
+class RotOp:
+    """The tangent of ``out = F + sr rot(q, v)`` on rows ``out`` (reading the same rows):
+    ``dF + sr (∂_q rot(q, v) dq + rot(q, dv))`` from columns ``f0`` (F), ``q0`` (q) and
+    ``v0`` (v; -1: v constant), with ``q`` (n, 4) and ``v`` (n, 3) stored at the
+    linearisation point: the rotation's derivative is computed on the fly (7 numbers per
+    point instead of a 3 x 10 block)."""
+
+    __slots__ = ("out", "o0", "f0", "q0", "v0", "sr", "q", "v")
+    diag = False
+
+    def __init__(self, out, o0, f0, q0, v0, sr, q, v):
+        self.out = np.ascontiguousarray(out, dtype=np.int64)
+        self.o0, self.f0, self.q0, self.v0, self.sr = int(o0), int(f0), int(q0), int(v0), float(sr)
+        self.q = np.ascontiguousarray(q, dtype=np.float64)
+        self.v = np.ascontiguousarray(v, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return self.out.nbytes + self.q.nbytes + self.v.nbytes
+
+
+@jit(inline="always")
+def rot_dq(q, v, d0, d1, d2, d3):
+    """The derivative of ``rot(q, v) = v + 2w (u x v) + 2 u x (u x v)`` in q along d."""
+    ux, uy, uz = q[1], q[2], q[3]
+    tx = uy * v[2] - uz * v[1]
+    ty = uz * v[0] - ux * v[2]
+    tz = ux * v[1] - uy * v[0]
+    sx = d2 * v[2] - d3 * v[1]
+    sy = d3 * v[0] - d1 * v[2]
+    sz = d1 * v[1] - d2 * v[0]
+    return (2.0 * (d0 * tx + q[0] * sx + (d2 * tz - d3 * ty) + (uy * sz - uz * sy)),
+            2.0 * (d0 * ty + q[0] * sy + (d3 * tx - d1 * tz) + (uz * sx - ux * sz)),
+            2.0 * (d0 * tz + q[0] * sz + (d1 * ty - d2 * tx) + (ux * sy - uy * sx)))
+
+
+@jit(inline="always")
+def rot_sv(w, ux, uy, uz, vx, vy, vz):
+    """``v + 2w (u x v) + 2 u x (u x v)`` (its transpose in v: u -> -u)."""
+    tx = 2.0 * (uy * vz - uz * vy)
+    ty = 2.0 * (uz * vx - ux * vz)
+    tz = 2.0 * (ux * vy - uy * vx)
+    return (vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz),
+            vz + w * tz + (ux * ty - uy * tx))
+
+
+@jit
+def rot_forward(Z, out, o0, f0, q0, v0, sr, q, v):
+    """Apply a :class:`RotOp` to the tangents ``Z`` in place."""
+    for m in range(out.shape[0]):
+        o = out[m]
+        a, b, c = rot_dq(q[m], v[m], Z[o, q0], Z[o, q0 + 1], Z[o, q0 + 2], Z[o, q0 + 3])
+        if v0 >= 0:
+            x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, v0], Z[o, v0 + 1], Z[o, v0 + 2])
+            a += x
+            b += y
+            c += z
+        fa, fb, fc = Z[o, f0], Z[o, f0 + 1], Z[o, f0 + 2]
+        Z[o, o0] = fa + sr * a
+        Z[o, o0 + 1] = fb + sr * b
+        Z[o, o0 + 2] = fc + sr * c
+
+
+@jit
+def rot_backward(Zb, out, o0, f0, q0, v0, sr, q, v):
+    """The transpose of :func:`rot_forward` in place (items reversed)."""
+    for m in range(out.shape[0] - 1, -1, -1):
+        o = out[m]
+        bx, by, bz = Zb[o, o0], Zb[o, o0 + 1], Zb[o, o0 + 2]
+        Zb[o, o0] = 0.0
+        Zb[o, o0 + 1] = 0.0
+        Zb[o, o0 + 2] = 0.0
+        Zb[o, f0] += bx
+        Zb[o, f0 + 1] += by
+        Zb[o, f0 + 2] += bz
+        for j in range(4):
+            e0 = 1.0 if j == 0 else 0.0
+            e1 = 1.0 if j == 1 else 0.0
+            e2 = 1.0 if j == 2 else 0.0
+            e3 = 1.0 if j == 3 else 0.0
+            a, b, c = rot_dq(q[m], v[m], e0, e1, e2, e3)
+            Zb[o, q0 + j] += sr * (a * bx + b * by + c * bz)
+        if v0 >= 0:
+            x, y, z = rot_sv(q[m, 0], -q[m, 1], -q[m, 2], -q[m, 3], bx, by, bz)
+            Zb[o, v0] += sr * x
+            Zb[o, v0 + 1] += sr * y
+            Zb[o, v0 + 2] += sr * z
+
+
 def chain_forward(ops, Z):
     """Run the ops on the tangent state ``Z`` in place."""
     for op in ops:
-        if op.diag:
+        if isinstance(op, RotOp):
+            rot_forward(Z, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
+        elif op.diag:
             op_forward_diag(Z, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
             op_forward_full(Z, op.out, op.o0, op.no, op.idx, op.i0, op.ni, op.J)
@@ -160,7 +255,9 @@ def chain_forward(ops, Z):
 def chain_backward(ops, Zb):
     """Run the transposed ops backward on the adjoint state ``Zb`` in place."""
     for op in reversed(ops):
-        if op.diag:
+        if isinstance(op, RotOp):
+            rot_backward(Zb, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
+        elif op.diag:
             op_backward_diag(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
             op_backward_full(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.ni, op.J)
@@ -513,7 +610,7 @@ def _wall_op(sk, rd_in, centre, col):
     nw = wall.size
     curve = sk.ndim == 2
     e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
-    copies = [[] for _ in range(nw)]          # per wall point: (q_copy, J_copy (4, 15), gids, mats)
+    copies = [[] for _ in range(nw)]          # per wall point: (q_copy, {gid: (4, 3) block})
     ident = np.eye(3)
     for w, lid in zip(sk.walls.patches, sk.walls.local):
         pd = np.empty_like(w.pu)
@@ -546,41 +643,93 @@ def _wall_op(sk, rd_in, centre, col):
             pu_s[:, s] = np.where((g >= 0)[:, None], pu_p[a2, b2], 0.0)
             pd_s[:, s] = np.where((g >= 0)[:, None], pd_p[a2, b2], 0.0)
         ok = gids >= 0
-        # defined normals (else the forward step filled the point: zero tangent)
         qc = _wall_q_copy(pd_s.reshape(-1, 15).astype(np.complex128), pu_s, ok, e, curve).real
         Jc = cs_jacobian(_wall_q_copy, pd_s.reshape(-1, 15), pu_s, ok, e, curve)
+        # defined normals; the others the step fills from their neighbours (below)
         good = np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
-        sgn = np.where(np.sum(qc * qf, axis=1) < 0.0, -1.0, 1.0)
-        Jc = np.where(good[:, None, None], Jc * sgn[:, None, None], 0.0)
-        for m in range(I.size):
-            mats = []
-            for s in range(5):
-                p = mirr[m, s]
+        rows = [None] * I.size
+        for m in np.flatnonzero(good):
+            row = {}
+            for k in range(5):
+                g = gids[m, k]
+                if g < 0:
+                    continue
+                blk = Jc[m, :, 3 * k:3 * k + 3]
+                p = mirr[m, k]
                 if p >= 0:
                     nn = pts.plane_n[p]
-                    mats.append(ident - 2.0 * np.outer(nn, nn))
-                else:
-                    mats.append(ident)
-            copies[lid[m]].append((qf[m], Jc[m], gids[m], mats))
-    kmax = 5 * max((len(c) for c in copies), default=1)
+                    blk = blk @ (ident - 2.0 * np.outer(nn, nn))
+                row[g] = row.get(g, 0.0) + blk
+            rows[m] = row
+        qcur = np.where(good[:, None], qc, np.nan)
+        _fill_rows(qcur, rows, good, na, nb)
+        for m in range(I.size):
+            sg = -1.0 if qcur[m] @ qf[m] < 0.0 else 1.0
+            copies[lid[m]].append((qf[m], {g: sg * blk for g, blk in rows[m].items()}))
+    kmax = max((len({g for _, r in cl for g in r}) for cl in copies), default=1)
     idx = np.full((nw, kmax), -1, dtype=np.int64)
     Jw = np.zeros((nw, 4, 3 * kmax))
     for v, cl in enumerate(copies):
         acc = np.zeros(4)
         sg = []
-        for q, *_ in cl:
+        for q, _ in cl:
             s = 1.0 if (not sg or acc @ q >= 0.0) else -1.0
             sg.append(s)
             acc = acc + s * q
         nrm = np.linalg.norm(acc)
         qn = acc / nrm
         Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
-        for c, (q, Jc, g, mats) in enumerate(cl):
-            for s in range(5):
-                k = 5 * c + s
-                idx[v, k] = g[s]
-                Jw[v, :, 3 * k:3 * k + 3] = sg[c] * Pm @ Jc[:, 3 * s:3 * s + 3] @ mats[s]
+        tot = {}
+        for s_, (_, row) in zip(sg, cl):
+            for g, blk in row.items():
+                tot[g] = tot.get(g, 0.0) + s_ * blk
+        for k, (g, blk) in enumerate(sorted(tot.items())):
+            idx[v, k] = g
+            Jw[v, :, 3 * k:3 * k + 3] = Pm @ blk
     return idx, Jw
+
+
+def _fill_rows(q, rows, ok, na, nb):
+    """The forward's filling of undefined wall points (boundary._fill_degenerate: sweeps, each
+    undefined point the normalised hemisphere-aligned sum of its defined 8-neighbours) on the
+    values ``q`` (n, 4) and the sparse Jacobian rows ``rows`` (dicts gid -> (4, 3)), in place.
+    Points with no defined point anywhere keep a zero row."""
+    okm = ok.copy()
+    while True:
+        cur = okm.copy()
+        filled = left = 0
+        for i in range(na):
+            for j in range(nb):
+                m = i * nb + j
+                if okm[m]:
+                    continue
+                nbrs = [(a * nb + b) for a in range(i - 1, i + 2) for b in range(j - 1, j + 2)
+                        if (a, b) != (i, j) and 0 <= a < na and 0 <= b < nb and okm[a * nb + b]]
+                if not nbrs:
+                    left += 1
+                    continue
+                ref = q[nbrs[0]]
+                acc = np.zeros(4)
+                row = {}
+                for k in nbrs:
+                    s = -1.0 if q[k] @ ref < 0.0 else 1.0
+                    acc += s * q[k]
+                    for g, blk in rows[k].items():
+                        row[g] = row.get(g, 0.0) + s * blk
+                nrm = np.linalg.norm(acc)
+                qn = acc / nrm
+                Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
+                q[m] = qn
+                rows[m] = {g: Pm @ blk for g, blk in row.items()}
+                cur[m] = True
+                filled += 1
+        okm[:] = cur
+        if left == 0 or filled == 0:
+            break
+    for m in range(q.shape[0]):
+        if rows[m] is None:
+            rows[m] = {}
+            q[m] = (1.0, 0.0, 0.0, 0.0)
 
 
 def _vertex_ops(sk, Qcur, dcol, qcol, two):
@@ -620,10 +769,7 @@ def _vertex_ops(sk, Qcur, dcol, qcol, two):
 
 def _rebase_op(rows, Q, shift):
     """K[p] += rot(Q[p], shift[p]) (two-level re-basing), reading K and Q of the row."""
-    def f(X, s):
-        return X[:, :3] + _rot(X[:, 3:7], s)
-    X = np.concatenate([np.zeros((rows.size, 3)), Q[rows]], axis=1)
-    return Op(rows, K0, 3, _self(rows), K0, 7, cs_jacobian(f, X, shift[rows]))
+    return RotOp(rows, K0, K0, Q0, -1, 1.0, Q[rows], shift[rows])
 
 
 def _segment_ops(sk, Qcur, dcol, qcol, two):
@@ -799,11 +945,7 @@ def _build(deformer, rd):
         if use_q:
             idx, Jw = _wall_op(sk, rd, c, RD)
             ops.append(Op(wall, P0, 4, idx, RD, 3, Jw))
-
-            def fw(Xw, arm):
-                return Xw[:, 7:10] - _rot(Xw[:, :4], arm)
-            Xw = np.concatenate([Qpre[wall], np.zeros((wall.size, 3)), rd[wall]], axis=1)
-            ops.append(Op(wall, D0, 3, _self(wall), P0, 10, cs_jacobian(fw, Xw, P[wall] - c)))
+            ops.append(RotOp(wall, D0, RD, P0, -1, -1.0, Qpre[wall], P[wall] - c))
         else:
             ops.append(_copy_op(wall, D0, RD, 3))
         qcol = P0 if use_q else None
@@ -812,10 +954,7 @@ def _build(deformer, rd):
         ops += _patch_ops(sk, Qpre, D0, qcol, None)
         ops += _symmetry_op(sk, Dpre, Qpre, P, c, D0, use_q)
         if use_q:
-            def fp(Xp, arm):
-                return Xp[:, :3] + _rot(Xp[:, 3:7], arm)
-            Xp = np.concatenate([gd[der], gq[der]], axis=1)
-            ops.append(Op(der, POS, 3, _self(der), D0, 7, cs_jacobian(fp, Xp, P[der] - c)))
+            ops.append(RotOp(der, POS, D0, P0, -1, 1.0, gq[der], P[der] - c))
         else:
             ops.append(_copy_op(der, POS, D0, 3))
         ops += _project_op(sk)
@@ -864,10 +1003,7 @@ def _build(deformer, rd):
     ops += _patch_ops(sk, qlpre, K0, Q0, two)
     ops += _symmetry_op(sk, Kpre, qlpre, two.arm, np.zeros(3), K0, True)
 
-    def fl(Xp, arm):
-        return Xp[:, :3] + _rot(Xp[:, 3:7], arm)
-    ops.append(Op(der, POS, 3, _self(der), K0, 7,
-                  cs_jacobian(fl, np.concatenate([K[der], ql[der]], axis=1), two.arm[der])))
+    ops.append(RotOp(der, POS, K0, Q0, -1, 1.0, ql[der], two.arm[der]))
     ops.append(_copy_op(wall, POS, Y, 3))
     # rigid pass: body rows Δ_b, q_b, v_b from (q, t)
     qts = np.array([np.concatenate([q, t]) for q, t in fits]).reshape(nb, 7)
@@ -880,23 +1016,19 @@ def _build(deformer, rd):
     bq = fb(qts.astype(np.complex128)).real
     ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.broadcast_to(np.eye(7), (wall.size, 7, 7))))
     if der.size:
+        # Δ = Σ φ_b Δ_b, v = Σ φ_b v_b (into the scratch columns), Q = exp(v)
         phi = two.phi
+        reads = np.broadcast_to(brow, (der.size, nb))
+        ops.append(Op(der, D0, 3, reads, 7, 3, phi, diag=True))
+        ops.append(Op(der, T0, 3, reads, 14, 3, phi, diag=True))
+        v = phi @ bq[:, 7:10]
 
-        def fr(X, phi):
-            Xb = X.reshape(X.shape[0], nb, 10)
-            D = np.einsum("nb,nbk->nk", phi, Xb[:, :, :3])
-            v = np.einsum("nb,nbk->nk", phi, Xb[:, :, 7:10])
-            return np.concatenate([D, cs_exp_half(v)], axis=1)
-        Xr = np.broadcast_to(bq.reshape(1, -1), (der.size, nb * 10))
-        ops.append(Op(der, D0, 7, np.broadcast_to(brow, (der.size, nb)), 7, 10,
-                      cs_jacobian(fr, Xr, phi)))
+        def fx(X):
+            return cs_exp_half(X)
+        ops.append(Op(der, P0, 4, _self(der), T0, 3, cs_jacobian(fx, v)))
     ops += _symmetry_op(sk, *rec["rigid_pre"], P, c, D0, True)
 
-    def fg(Xp, cc):
-        return cc + Xp[:, :3] + _rot(Xp[:, 3:7], Xp[:, 7:10] - cc)
-    Xg = np.concatenate([gd[der], qg[der], rec["posl"][der]], axis=1)
-    ops.append(Op(der, POS, 3, _self(der), D0, 10,
-                  cs_jacobian(fg, Xg, np.broadcast_to(c, (der.size, 3)))))
+    ops.append(RotOp(der, POS, D0, P0, POS, 1.0, qg[der], rec["posl"][der] - c))
     ops += _project_op(sk)
     ops.append(_copy_op(wall, POS, RD, 3))
     return Linearisation(ops, G, nb, [(K0, Q0), (D0, P0)], True, rec["passes"])
