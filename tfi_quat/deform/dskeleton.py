@@ -41,6 +41,8 @@ whose normal matrix is singular (degenerate body) gets the least-squares
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .. import tfi
@@ -241,11 +243,372 @@ def rot_backward(Zb, out, o0, f0, q0, v0, sr, q, v):
             Zb[o, v0 + 2] += sr * z
 
 
+# ----------------------------------------------------------------------------- patches, compiled
+@jit(inline="always")
+def sinc_x2(x2):
+    """sin(x) / x as a function of x2 = x^2."""
+    if x2 < 1e-6:
+        return 1.0 - x2 / 6.0 + x2 * x2 / 120.0
+    x = math.sqrt(x2)
+    return math.sin(x) / x
+
+
+@jit(inline="always")
+def sinc_x2_d(x2):
+    """d/dx2 of :func:`sinc_x2`."""
+    if x2 < 1e-3:
+        return -1.0 / 6.0 + x2 / 60.0 - x2 * x2 / 2520.0 + x2 * x2 * x2 / 181440.0
+    x = math.sqrt(x2)
+    return (math.cos(x) - math.sin(x) / x) / (2.0 * x2)
+
+
+@jit(inline="always")
+def atan_over(r2):
+    """atan(sqrt(r2)) / sqrt(r2)."""
+    if r2 < 1e-8:
+        return 1.0 - r2 / 3.0 + r2 * r2 / 5.0
+    r = math.sqrt(r2)
+    return math.atan(r) / r
+
+
+@jit
+def line_terms(a, b, t):
+    """The slerp of the volume kernels (weights from the angle, not normalised) between unit
+    ``a`` and aligned ``b`` at ``t``: returns ``(wa, wb, ga (4), gb (4))`` with the output
+    ``wa a + wb b`` and its derivative ``wa da + wb db + (ga . da + gb . db)(wa' a + wb' b)``
+    through the angle; ``ga``, ``gb`` are ``∂ω²/∂a``, ``∂ω²/∂b`` and the last vector is
+    returned as ``h`` (4) in the tuple ``(wa, wb, ga, gb, h)``."""
+    dn2 = 0.0
+    pn2 = 0.0
+    for c in range(4):
+        dn2 += (a[c] - b[c]) * (a[c] - b[c])
+        pn2 += (a[c] + b[c]) * (a[c] + b[c])
+    r2 = dn2 / pn2
+    A = atan_over(r2)
+    w2 = 4.0 * r2 * A * A
+    cw = 4.0 * A / (1.0 + r2)                  # dω²/dr²
+    u = 1.0 - t
+    S0 = sinc_x2(w2)
+    Su = sinc_x2(u * u * w2)
+    St = sinc_x2(t * t * w2)
+    D0 = sinc_x2_d(w2)
+    wa = u * Su / S0
+    wb = t * St / S0
+    wa_d = u * (u * u * sinc_x2_d(u * u * w2) * S0 - Su * D0) / (S0 * S0)
+    wb_d = t * (t * t * sinc_x2_d(t * t * w2) * S0 - St * D0) / (S0 * S0)
+    ga = np.empty(4)
+    gb = np.empty(4)
+    h = np.empty(4)
+    p4 = pn2 * pn2
+    for c in range(4):
+        dv = a[c] - b[c]
+        pv = a[c] + b[c]
+        ga[c] = cw * (2.0 * dv * pn2 - 2.0 * dn2 * pv) / p4
+        gb[c] = cw * (-2.0 * dv * pn2 - 2.0 * dn2 * pv) / p4
+        h[c] = wa_d * a[c] + wb_d * b[c]
+    return wa, wb, ga, gb, h
+
+
+@jit(inline="always")
+def _dot4(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+
+
+@jit
+def line_tan(a, b, da, db, t, dU):
+    """``dU`` = the tangent of :func:`line_terms`' slerp; returns nothing, fills dU (4)."""
+    wa, wb, ga, gb, h = line_terms(a, b, t)
+    dw = _dot4(ga, da) + _dot4(gb, db)
+    for c in range(4):
+        dU[c] = wa * da[c] + wb * db[c] + dw * h[c]
+
+
+@jit
+def line_adj(a, b, t, Ub, ab, bb):
+    """The adjoint of :func:`line_tan`: ``ab += ∂/∂a``, ``bb += ∂/∂b`` of ``Ub . U``."""
+    wa, wb, ga, gb, h = line_terms(a, b, t)
+    g = _dot4(h, Ub)
+    for c in range(4):
+        ab[c] += wa * Ub[c] + g * ga[c]
+        bb[c] += wb * Ub[c] + g * gb[c]
+
+
+@jit
+def line_val(a, b, t, U):
+    wa, wb, ga, gb, h = line_terms(a, b, t)
+    for c in range(4):
+        U[c] = wa * a[c] + wb * b[c]
+
+
+@jit
+def _aligned(Q, g, s, out):
+    for c in range(4):
+        out[c] = s * Q[g, c]
+
+
+@jit
+def patch_state(Q, ii, ff, m, qa, qb, a0, b0, a1, b1, s):
+    """The aligned quaternions of patch point ``m`` and the signs (line m, side lines, the side
+    points): ``s`` = (sg_m, sg_0, sg_1, ss_0, ss_1)."""
+    _aligned(Q, ii[m, 1], ff[m, 4], qa)
+    s[0] = -1.0 if _dot4(qa, Q[ii[m, 2]]) < 0.0 else 1.0
+    _aligned(Q, ii[m, 2], s[0], qb)
+    _aligned(Q, ii[m, 3], ff[m, 5], a0)
+    s[1] = -1.0 if _dot4(a0, Q[ii[m, 4]]) < 0.0 else 1.0
+    _aligned(Q, ii[m, 4], s[1], b0)
+    _aligned(Q, ii[m, 6], ff[m, 6], a1)
+    s[2] = -1.0 if _dot4(a1, Q[ii[m, 7]]) < 0.0 else 1.0
+    _aligned(Q, ii[m, 7], s[2], b1)
+
+
+@jit
+def patch_value(Q, ii, ff, m, V):
+    """V (not normalised) of patch point m, with the signs; returns (sg..., ss0, ss1) in s."""
+    qa = np.empty(4)
+    qb = np.empty(4)
+    a0 = np.empty(4)
+    b0 = np.empty(4)
+    a1 = np.empty(4)
+    b1 = np.empty(4)
+    s = np.empty(5)
+    patch_state(Q, ii, ff, m, qa, qb, a0, b0, a1, b1, s)
+    U = np.empty(4)
+    U0 = np.empty(4)
+    U1 = np.empty(4)
+    line_val(qa, qb, ff[m, 0], U)
+    line_val(a0, b0, ff[m, 2], U0)
+    line_val(a1, b1, ff[m, 3], U1)
+    s[3] = -1.0 if _dot4(U0, Q[ii[m, 5]]) < 0.0 else 1.0
+    s[4] = -1.0 if _dot4(U1, Q[ii[m, 8]]) < 0.0 else 1.0
+    sm = ff[m, 1]
+    for c in range(4):
+        V[c] = U[c] + (1.0 - sm) * (s[3] * Q[ii[m, 5], c] - U0[c]) + sm * (s[4] * Q[ii[m, 8], c] - U1[c])
+    return qa, qb, a0, b0, a1, b1, s
+
+
+PATCH_W = 8
+
+
+@jit(inline="always")
+def patch_weight(ff, m, k):
+    t, sm, t0, t1 = ff[m, 0], ff[m, 1], ff[m, 2], ff[m, 3]
+    if k == 0:
+        return 1.0 - t
+    if k == 1:
+        return t
+    if k == 2:
+        return -(1.0 - sm) * (1.0 - t0)
+    if k == 3:
+        return -(1.0 - sm) * t0
+    if k == 4:
+        return 1.0 - sm
+    if k == 5:
+        return -sm * (1.0 - t1)
+    if k == 6:
+        return -sm * t1
+    return sm
+
+
+# the D reads in patch_weight's order: g0m, g1m, g00, g10, gs0, g0e, g1e, gs1 -> columns of ii
+_DREAD = (1, 2, 3, 4, 5, 6, 7, 8)
+
+
+@jit
+def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
+    """Tangents of the derived patches' points, in place: Δ/K (8 weights), Q (the normalised
+    Soni blend, faded for two-level), the two-level re-basing ``K += rot(Q, shift)``.
+
+    ``ii`` (n, 9): the point and its reads (line ends g0m, g1m; side-0 line ends, side
+    point; side-1 line ends, side point); ``ff`` (n, 8): t, sm, t0, t1, the line first-end
+    signs (line m, side 0, side 1), the fade; ``Q`` the quaternions the patches read,
+    ``qfin`` (n, 4) the points' own final Q."""
+    one = np.zeros(4)
+    one[0] = 1.0
+    zero = np.zeros(4)
+    da = np.empty(4)
+    db = np.empty(4)
+    dU = np.empty(4)
+    dV = np.empty(4)
+    V = np.empty(4)
+    for m in range(ii.shape[0]):
+        g = ii[m, 0]
+        for c in range(3):
+            s = 0.0
+            for k in range(8):
+                s += patch_weight(ff, m, k) * Z[ii[m, 1 + k], d0 + c]
+            Z[g, d0 + c] = s
+        if not use_q:
+            continue
+        qa, qb, a0, b0, a1, b1, sg = patch_value(Q, ii, ff, m, V)
+        nv = math.sqrt(_dot4(V, V))
+        if nv < qmin:
+            for c in range(4):
+                Z[g, q0 + c] = 0.0
+            continue
+        sm = ff[m, 1]
+        for c in range(4):
+            da[c] = ff[m, 4] * Z[ii[m, 1], q0 + c]
+            db[c] = sg[0] * Z[ii[m, 2], q0 + c]
+        line_tan(qa, qb, da, db, ff[m, 0], dU)
+        for c in range(4):
+            dV[c] = dU[c]
+        for side in range(2):
+            o = 3 * side
+            for c in range(4):
+                da[c] = ff[m, 5 + side] * Z[ii[m, 3 + o], q0 + c]
+                db[c] = sg[1 + side] * Z[ii[m, 4 + o], q0 + c]
+            if side == 0:
+                line_tan(a0, b0, da, db, ff[m, 2], dU)
+                w = 1.0 - sm
+            else:
+                line_tan(a1, b1, da, db, ff[m, 3], dU)
+                w = sm
+            for c in range(4):
+                dV[c] += w * (sg[3 + side] * Z[ii[m, 5 + o], q0 + c] - dU[c])
+        q = np.empty(4)
+        for c in range(4):
+            q[c] = V[c] / nv
+        p = _dot4(q, dV)
+        dq = np.empty(4)
+        for c in range(4):
+            dq[c] = (dV[c] - q[c] * p) / nv
+        if two:
+            f = ff[m, 7]
+            if f <= 0.0:
+                for c in range(4):
+                    dq[c] = 0.0
+            elif f < 1.0:
+                sq = -1.0 if q[0] < 0.0 else 1.0
+                for c in range(4):
+                    q[c] *= sq
+                    dq[c] *= sq
+                line_tan(one, q, zero, dq, f, dU)
+                for c in range(4):
+                    dq[c] = dU[c]
+            a, b, c3 = rot_dq(qfin[m], shift[m], dq[0], dq[1], dq[2], dq[3])
+            Z[g, d0] += a
+            Z[g, d0 + 1] += b
+            Z[g, d0 + 2] += c3
+        for c in range(4):
+            Z[g, q0 + c] = dq[c]
+
+
+@jit
+def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
+    """The transpose of :func:`patch_forward` on the adjoints ``Zb`` in place."""
+    one = np.zeros(4)
+    one[0] = 1.0
+    V = np.empty(4)
+    Kb = np.empty(3)
+    qb_ = np.empty(4)
+    ab = np.empty(4)
+    bb = np.empty(4)
+    junk = np.empty(4)
+    for m in range(ii.shape[0] - 1, -1, -1):
+        g = ii[m, 0]
+        for c in range(3):
+            Kb[c] = Zb[g, d0 + c]
+            Zb[g, d0 + c] = 0.0
+        for c in range(4):
+            qb_[c] = Zb[g, q0 + c] if use_q else 0.0
+            if use_q:
+                Zb[g, q0 + c] = 0.0
+        for k in range(8):
+            w = patch_weight(ff, m, k)
+            r = ii[m, 1 + k]
+            for c in range(3):
+                Zb[r, d0 + c] += w * Kb[c]
+        if not use_q:
+            continue
+        qa, qb, a0, b0, a1, b1, sg = patch_value(Q, ii, ff, m, V)
+        nv = math.sqrt(_dot4(V, V))
+        if nv < qmin:
+            continue
+        q = np.empty(4)
+        for c in range(4):
+            q[c] = V[c] / nv
+        if two:
+            # K += rot(qfin, shift): the faded Q's adjoint gets rot_dq^T Kb
+            for j in range(4):
+                e = np.zeros(4)
+                e[j] = 1.0
+                a, b, c3 = rot_dq(qfin[m], shift[m], e[0], e[1], e[2], e[3])
+                qb_[j] += a * Kb[0] + b * Kb[1] + c3 * Kb[2]
+            f = ff[m, 7]
+            if f <= 0.0:
+                for c in range(4):
+                    qb_[c] = 0.0
+            elif f < 1.0:
+                sq = -1.0 if q[0] < 0.0 else 1.0
+                for c in range(4):
+                    q[c] *= sq
+                    bb[c] = 0.0
+                    junk[c] = 0.0
+                line_adj(one, q, f, qb_, junk, bb)
+                for c in range(4):
+                    qb_[c] = sq * bb[c]
+                    q[c] *= sq
+        p = _dot4(q, qb_)
+        Vb = np.empty(4)
+        for c in range(4):
+            Vb[c] = (qb_[c] - q[c] * p) / nv
+        sm = ff[m, 1]
+        for c in range(4):
+            ab[c] = 0.0
+            bb[c] = 0.0
+        line_adj(qa, qb, ff[m, 0], Vb, ab, bb)
+        for c in range(4):
+            Zb[ii[m, 1], q0 + c] += ff[m, 4] * ab[c]
+            Zb[ii[m, 2], q0 + c] += sg[0] * bb[c]
+        for side in range(2):
+            o = 3 * side
+            w = (1.0 - sm) if side == 0 else sm
+            Ub = np.empty(4)
+            for c in range(4):
+                Zb[ii[m, 5 + o], q0 + c] += w * sg[3 + side] * Vb[c]
+                Ub[c] = -w * Vb[c]
+                ab[c] = 0.0
+                bb[c] = 0.0
+            if side == 0:
+                line_adj(a0, b0, ff[m, 2], Ub, ab, bb)
+            else:
+                line_adj(a1, b1, ff[m, 3], Ub, ab, bb)
+            for c in range(4):
+                Zb[ii[m, 3 + o], q0 + c] += ff[m, 5 + side] * ab[c]
+                Zb[ii[m, 4 + o], q0 + c] += sg[1 + side] * bb[c]
+
+
+class PatchOp:
+    """The derived patches (:func:`patch_forward`): 9 indices and 8 numbers per point, the
+    derivatives computed on the fly from the quaternions ``Q`` the patches read."""
+
+    __slots__ = ("d0", "q0", "use_q", "two", "ii", "ff", "Q", "qfin", "shift")
+    diag = False
+
+    def __init__(self, d0, q0, use_q, two, ii, ff, Q, qfin, shift):
+        self.d0, self.q0, self.use_q, self.two = int(d0), int(q0), bool(use_q), bool(two)
+        self.ii = np.ascontiguousarray(ii, dtype=np.int64)
+        self.ff = np.ascontiguousarray(ff, dtype=np.float64)
+        self.Q = np.ascontiguousarray(Q, dtype=np.float64)
+        self.qfin = np.ascontiguousarray(qfin, dtype=np.float64)
+        self.shift = np.ascontiguousarray(shift, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return sum(getattr(self, k).nbytes for k in ("ii", "ff", "Q", "qfin", "shift"))
+
+    def args(self):
+        return (self.d0, self.q0, self.use_q, self.two, self.ii, self.ff, self.Q, self.qfin,
+                self.shift, tfi.QNORM_MIN)
+
+
 def chain_forward(ops, Z):
     """Run the ops on the tangent state ``Z`` in place."""
     for op in ops:
         if isinstance(op, RotOp):
             rot_forward(Z, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
+        elif isinstance(op, PatchOp):
+            patch_forward(Z, *op.args())
         elif op.diag:
             op_forward_diag(Z, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -257,6 +620,8 @@ def chain_backward(ops, Zb):
     for op in reversed(ops):
         if isinstance(op, RotOp):
             rot_backward(Zb, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
+        elif isinstance(op, PatchOp):
+            patch_backward(Zb, *op.args())
         elif op.diag:
             op_backward_diag(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -848,41 +1213,15 @@ def _patch_ops(sk, Qcur, dcol, qcol, two):
     if not rows:
         return []
     rows = np.concatenate(rows)
-    idx = np.concatenate(idx)
-    ops = [Op(rows, dcol, 3, idx, dcol, 3, np.concatenate(wd), diag=True)]
-    if qcol is None:
-        return ops
+    ii = np.concatenate([rows[:, None], np.concatenate(idx)], axis=1)
     cst = np.concatenate(cst)
-    X = Qcur[idx].reshape(rows.size, 32)
-    damp = two.damp[rows] if two is not None else None
-
-    def line(a, b, s0, t):
-        a = s0[:, None] * a
-        b = _sign(_dot(a, b))[:, None] * b
-        wa, wb = _slerp_w(t, _omega2(a, b))
-        return wa[:, None] * a + wb[:, None] * b
-
-    def f(X, c, damp, fall=False):
-        q = [X[:, 4 * k:4 * k + 4] for k in range(8)]
-        t, sm, t0, t1, sm_, s00, s0e = (c[:, k] for k in range(7))
-        U = line(q[0], q[1], sm_, t)
-        U0 = line(q[2], q[3], s00, t0)
-        U1 = line(q[5], q[6], s0e, t1)
-        r0 = _sign(_dot(U0, q[4]))[:, None] * q[4] - U0
-        r1 = _sign(_dot(U1, q[7]))[:, None] * q[7] - U1
-        V = U + (1.0 - sm)[:, None] * r0 + sm[:, None] * r1
-        if fall:
-            return np.sqrt(_dot(V, V)).real
-        out = _normalize(V)
-        return out if damp is None else cs_fade(out, damp)
-
-    Jq = cs_jacobian(f, X, cst, damp)
-    fallback = f(X.astype(np.complex128), cst, damp, True) < tfi.QNORM_MIN
-    Jq[fallback] = 0.0
-    ops.append(Op(rows, qcol, 4, idx, qcol, 4, Jq))
-    if two is not None:
-        ops.append(_rebase_op(rows, Qcur, two.shift))
-    return ops
+    damp = two.damp[rows] if two is not None else np.zeros(rows.size)
+    ff = np.concatenate([cst, damp[:, None]], axis=1)
+    use_q = qcol is not None
+    Q = Qcur if use_q else np.zeros((1, 4))
+    qfin = Qcur[rows] if use_q else np.zeros((rows.size, 4))
+    shift = two.shift[rows] if two is not None else np.zeros((rows.size, 3))
+    return [PatchOp(dcol, qcol if use_q else 0, use_q, two is not None, ii, ff, Q, qfin, shift)]
 
 
 def _symmetry_op(sk, F, Q, X, carm, dcol, use_q):
