@@ -271,8 +271,8 @@ def atan_over(r2):
     return math.atan(r) / r
 
 
-@jit
-def line_terms(a, b, t):
+@jit(inline="always")
+def line_terms(a, b, t, ga, gb, h):
     """The slerp of the volume kernels (weights from the angle, not normalised) between unit
     ``a`` and aligned ``b`` at ``t``: returns ``(wa, wb, ga (4), gb (4))`` with the output
     ``wa a + wb b`` and its derivative ``wa da + wb db + (ga . da + gb . db)(wa' a + wb' b)``
@@ -296,9 +296,6 @@ def line_terms(a, b, t):
     wb = t * St / S0
     wa_d = u * (u * u * sinc_x2_d(u * u * w2) * S0 - Su * D0) / (S0 * S0)
     wb_d = t * (t * t * sinc_x2_d(t * t * w2) * S0 - St * D0) / (S0 * S0)
-    ga = np.empty(4)
-    gb = np.empty(4)
-    h = np.empty(4)
     p4 = pn2 * pn2
     for c in range(4):
         dv = a[c] - b[c]
@@ -306,7 +303,7 @@ def line_terms(a, b, t):
         ga[c] = cw * (2.0 * dv * pn2 - 2.0 * dn2 * pv) / p4
         gb[c] = cw * (-2.0 * dv * pn2 - 2.0 * dn2 * pv) / p4
         h[c] = wa_d * a[c] + wb_d * b[c]
-    return wa, wb, ga, gb, h
+    return wa, wb
 
 
 @jit(inline="always")
@@ -314,39 +311,35 @@ def _dot4(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 
 
-@jit
-def line_tan(a, b, da, db, t, dU):
-    """``dU`` = the tangent of :func:`line_terms`' slerp; returns nothing, fills dU (4)."""
-    wa, wb, ga, gb, h = line_terms(a, b, t)
+@jit(inline="always")
+def line_tan(a, b, da, db, t, dU, ws):
+    """``dU`` = the tangent of :func:`line_terms`' slerp; returns nothing, fills dU (4)
+    (``ws``: scratch (3, 4))."""
+    ga, gb, h = ws[0], ws[1], ws[2]
+    wa, wb = line_terms(a, b, t, ga, gb, h)
     dw = _dot4(ga, da) + _dot4(gb, db)
     for c in range(4):
         dU[c] = wa * da[c] + wb * db[c] + dw * h[c]
 
 
-@jit
-def line_adj(a, b, t, Ub, ab, bb):
+@jit(inline="always")
+def line_adj(a, b, t, Ub, ab, bb, ws):
     """The adjoint of :func:`line_tan`: ``ab += ∂/∂a``, ``bb += ∂/∂b`` of ``Ub . U``."""
-    wa, wb, ga, gb, h = line_terms(a, b, t)
+    ga, gb, h = ws[0], ws[1], ws[2]
+    wa, wb = line_terms(a, b, t, ga, gb, h)
     g = _dot4(h, Ub)
     for c in range(4):
         ab[c] += wa * Ub[c] + g * ga[c]
         bb[c] += wb * Ub[c] + g * gb[c]
 
 
-@jit
-def line_val(a, b, t, U):
-    wa, wb, ga, gb, h = line_terms(a, b, t)
-    for c in range(4):
-        U[c] = wa * a[c] + wb * b[c]
-
-
-@jit
+@jit(inline="always")
 def _aligned(Q, g, s, out):
     for c in range(4):
         out[c] = s * Q[g, c]
 
 
-@jit
+@jit(inline="always")
 def patch_state(Q, ii, ff, m, qa, qb, a0, b0, a1, b1, s):
     """The aligned quaternions of patch point ``m`` and the signs (line m, side lines, the side
     points): ``s`` = (sg_m, sg_0, sg_1, ss_0, ss_1)."""
@@ -361,29 +354,44 @@ def patch_state(Q, ii, ff, m, qa, qb, a0, b0, a1, b1, s):
     _aligned(Q, ii[m, 7], s[2], b1)
 
 
-@jit
-def patch_value(Q, ii, ff, m, V):
-    """V (not normalised) of patch point m, with the signs; returns (sg..., ss0, ss1) in s."""
-    qa = np.empty(4)
-    qb = np.empty(4)
-    a0 = np.empty(4)
-    b0 = np.empty(4)
-    a1 = np.empty(4)
-    b1 = np.empty(4)
-    s = np.empty(5)
-    patch_state(Q, ii, ff, m, qa, qb, a0, b0, a1, b1, s)
-    U = np.empty(4)
-    U0 = np.empty(4)
-    U1 = np.empty(4)
-    line_val(qa, qb, ff[m, 0], U)
-    line_val(a0, b0, ff[m, 2], U0)
-    line_val(a1, b1, ff[m, 3], U1)
+@jit(inline="always")
+def patch_value(Q, ii, ff, m, V, sc, s, ws, lt):
+    """V (not normalised) of patch point m into ``V``; ``sc`` (9, 4): the aligned quaternions
+    (qa, qb, a0, b0, a1, b1) and U, U0, U1; ``s`` (5,): the signs; ``ws`` (3, 3, 4) and ``lt``
+    (3, 2): the three lines' :func:`line_terms` (ga, gb, h; wa, wb)."""
+    patch_state(Q, ii, ff, m, sc[0], sc[1], sc[2], sc[3], sc[4], sc[5], s)
+    for k in range(3):
+        a = sc[2 * k]
+        b = sc[2 * k + 1]
+        t = ff[m, 0] if k == 0 else ff[m, 1 + k]
+        wa, wb = line_terms(a, b, t, ws[k, 0], ws[k, 1], ws[k, 2])
+        lt[k, 0] = wa
+        lt[k, 1] = wb
+        for c in range(4):
+            sc[6 + k, c] = wa * a[c] + wb * b[c]
+    U, U0, U1 = sc[6], sc[7], sc[8]
     s[3] = -1.0 if _dot4(U0, Q[ii[m, 5]]) < 0.0 else 1.0
     s[4] = -1.0 if _dot4(U1, Q[ii[m, 8]]) < 0.0 else 1.0
     sm = ff[m, 1]
     for c in range(4):
         V[c] = U[c] + (1.0 - sm) * (s[3] * Q[ii[m, 5], c] - U0[c]) + sm * (s[4] * Q[ii[m, 8], c] - U1[c])
-    return qa, qb, a0, b0, a1, b1, s
+
+
+@jit(inline="always")
+def lt_tan(k, da, db, dU, ws, lt):
+    """The tangent of line ``k`` of :func:`patch_value` from its stored terms."""
+    dw = _dot4(ws[k, 0], da) + _dot4(ws[k, 1], db)
+    for c in range(4):
+        dU[c] = lt[k, 0] * da[c] + lt[k, 1] * db[c] + dw * ws[k, 2, c]
+
+
+@jit(inline="always")
+def lt_adj(k, Ub, ab, bb, ws, lt):
+    """The adjoint of :func:`lt_tan` (accumulating into ``ab``, ``bb``)."""
+    g = _dot4(ws[k, 2], Ub)
+    for c in range(4):
+        ab[c] += lt[k, 0] * Ub[c] + g * ws[k, 0, c]
+        bb[c] += lt[k, 1] * Ub[c] + g * ws[k, 1, c]
 
 
 PATCH_W = 8
@@ -430,6 +438,13 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
     dU = np.empty(4)
     dV = np.empty(4)
     V = np.empty(4)
+    q = np.empty(4)
+    dq = np.empty(4)
+    sc = np.empty((9, 4))
+    sg = np.empty(5)
+    ws = np.empty((3, 3, 4))
+    lt = np.empty((3, 2))
+    wf = np.empty((3, 4))
     for m in range(ii.shape[0]):
         g = ii[m, 0]
         for c in range(3):
@@ -439,7 +454,7 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
             Z[g, d0 + c] = s
         if not use_q:
             continue
-        qa, qb, a0, b0, a1, b1, sg = patch_value(Q, ii, ff, m, V)
+        patch_value(Q, ii, ff, m, V, sc, sg, ws, lt)
         nv = math.sqrt(_dot4(V, V))
         if nv < qmin:
             for c in range(4):
@@ -449,7 +464,7 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
         for c in range(4):
             da[c] = ff[m, 4] * Z[ii[m, 1], q0 + c]
             db[c] = sg[0] * Z[ii[m, 2], q0 + c]
-        line_tan(qa, qb, da, db, ff[m, 0], dU)
+        lt_tan(0, da, db, dU, ws, lt)
         for c in range(4):
             dV[c] = dU[c]
         for side in range(2):
@@ -457,19 +472,13 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
             for c in range(4):
                 da[c] = ff[m, 5 + side] * Z[ii[m, 3 + o], q0 + c]
                 db[c] = sg[1 + side] * Z[ii[m, 4 + o], q0 + c]
-            if side == 0:
-                line_tan(a0, b0, da, db, ff[m, 2], dU)
-                w = 1.0 - sm
-            else:
-                line_tan(a1, b1, da, db, ff[m, 3], dU)
-                w = sm
+            lt_tan(1 + side, da, db, dU, ws, lt)
+            w = (1.0 - sm) if side == 0 else sm
             for c in range(4):
                 dV[c] += w * (sg[3 + side] * Z[ii[m, 5 + o], q0 + c] - dU[c])
-        q = np.empty(4)
         for c in range(4):
             q[c] = V[c] / nv
         p = _dot4(q, dV)
-        dq = np.empty(4)
         for c in range(4):
             dq[c] = (dV[c] - q[c] * p) / nv
         if two:
@@ -482,7 +491,7 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
                 for c in range(4):
                     q[c] *= sq
                     dq[c] *= sq
-                line_tan(one, q, zero, dq, f, dU)
+                line_tan(one, q, zero, dq, f, dU, wf)
                 for c in range(4):
                     dq[c] = dU[c]
             a, b, c3 = rot_dq(qfin[m], shift[m], dq[0], dq[1], dq[2], dq[3])
@@ -504,6 +513,15 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
     ab = np.empty(4)
     bb = np.empty(4)
     junk = np.empty(4)
+    q = np.empty(4)
+    Vb = np.empty(4)
+    Ub = np.empty(4)
+    e = np.empty(4)
+    sc = np.empty((9, 4))
+    sg = np.empty(5)
+    ws = np.empty((3, 3, 4))
+    lt = np.empty((3, 2))
+    wf = np.empty((3, 4))
     for m in range(ii.shape[0] - 1, -1, -1):
         g = ii[m, 0]
         for c in range(3):
@@ -520,17 +538,17 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
                 Zb[r, d0 + c] += w * Kb[c]
         if not use_q:
             continue
-        qa, qb, a0, b0, a1, b1, sg = patch_value(Q, ii, ff, m, V)
+        patch_value(Q, ii, ff, m, V, sc, sg, ws, lt)
         nv = math.sqrt(_dot4(V, V))
         if nv < qmin:
             continue
-        q = np.empty(4)
         for c in range(4):
             q[c] = V[c] / nv
         if two:
             # K += rot(qfin, shift): the faded Q's adjoint gets rot_dq^T Kb
             for j in range(4):
-                e = np.zeros(4)
+                for c in range(4):
+                    e[c] = 0.0
                 e[j] = 1.0
                 a, b, c3 = rot_dq(qfin[m], shift[m], e[0], e[1], e[2], e[3])
                 qb_[j] += a * Kb[0] + b * Kb[1] + c3 * Kb[2]
@@ -544,35 +562,30 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
                     q[c] *= sq
                     bb[c] = 0.0
                     junk[c] = 0.0
-                line_adj(one, q, f, qb_, junk, bb)
+                line_adj(one, q, f, qb_, junk, bb, wf)
                 for c in range(4):
                     qb_[c] = sq * bb[c]
                     q[c] *= sq
         p = _dot4(q, qb_)
-        Vb = np.empty(4)
         for c in range(4):
             Vb[c] = (qb_[c] - q[c] * p) / nv
         sm = ff[m, 1]
         for c in range(4):
             ab[c] = 0.0
             bb[c] = 0.0
-        line_adj(qa, qb, ff[m, 0], Vb, ab, bb)
+        lt_adj(0, Vb, ab, bb, ws, lt)
         for c in range(4):
             Zb[ii[m, 1], q0 + c] += ff[m, 4] * ab[c]
             Zb[ii[m, 2], q0 + c] += sg[0] * bb[c]
         for side in range(2):
             o = 3 * side
             w = (1.0 - sm) if side == 0 else sm
-            Ub = np.empty(4)
             for c in range(4):
                 Zb[ii[m, 5 + o], q0 + c] += w * sg[3 + side] * Vb[c]
                 Ub[c] = -w * Vb[c]
                 ab[c] = 0.0
                 bb[c] = 0.0
-            if side == 0:
-                line_adj(a0, b0, ff[m, 2], Ub, ab, bb)
-            else:
-                line_adj(a1, b1, ff[m, 3], Ub, ab, bb)
+            lt_adj(1 + side, Ub, ab, bb, ws, lt)
             for c in range(4):
                 Zb[ii[m, 3 + o], q0 + c] += ff[m, 5 + side] * ab[c]
                 Zb[ii[m, 4 + o], q0 + c] += sg[1 + side] * bb[c]
@@ -1353,7 +1366,7 @@ def _build(deformer, rd):
         return np.concatenate([t + _rot(q, cc) - cc, q, cs_log(q)], axis=1)
     ops.append(Op(brow, 7, 10, _self(brow), 0, 7, cs_jacobian(fb, qts)))
     bq = fb(qts.astype(np.complex128)).real
-    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.broadcast_to(np.eye(7), (wall.size, 7, 7))))
+    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.ones((wall.size, 1)), diag=True))
     if der.size:
         # Δ = Σ φ_b Δ_b, v = Σ φ_b v_b (into the scratch columns), Q = exp(v)
         phi = two.phi
