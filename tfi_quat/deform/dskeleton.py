@@ -49,7 +49,7 @@ from .. import tfi
 from .._jit import jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "chain_forward", "chain_backward", "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp", "chain_forward", "chain_backward", "Op"]
 
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
@@ -978,9 +978,14 @@ def _wall_q_copy(X, pu, ok, e, curve):
     return _qmul(Q2, Q1)
 
 
-def _wall_op(sk, rd_in, centre, col):
-    """The merged wall quaternions of the targets ``rd_in`` (G, 3) read from column ``col``:
-    an op writing Q (columns Q0 or P0 chosen by the caller) of the wall points."""
+def wall_jacobian(sk, rd_in, centre):
+    """The Jacobian of the merged wall quaternions (:func:`stages.wall_quaternions`) in the
+    targets ``rd_in`` (G, 3): ``(idx (n_wall, k), J (n_wall, 4, 3 k))``, -1 for no read."""
+    with np.errstate(all="ignore"):         # undefined normals: NaN, then filled
+        return _wall_jacobian(sk, rd_in, centre)
+
+
+def _wall_jacobian(sk, rd_in, centre):
     from ..boundary import motion_padded
     from .stages import halo_points
     pts = sk.points
@@ -1186,7 +1191,7 @@ def _segment_ops(sk, Qcur, dcol, qcol, two):
     return ops
 
 
-def _patch_ops(sk, Qcur, dcol, qcol, two):
+def patch_ops(sk, Qcur, dcol, qcol, two):
     """The derived patches: Δ/K (diag, 8 reads), Q (the normalised Soni blend of 8 quaternions,
     faded for two-level), the re-basing."""
     rows, idx, wd, X, cst = [], [], [], [], []
@@ -1295,7 +1300,7 @@ def _build(deformer, rd):
         (gd, gq, _, _), = rec["passes"]
         Dpre, Qpre = rec["pre"]
         if use_q:
-            idx, Jw = _wall_op(sk, rd, c, RD)
+            idx, Jw = wall_jacobian(sk, rd, c)
             ops.append(Op(wall, P0, 4, idx, RD, 3, Jw))
             ops.append(RotOp(wall, D0, RD, P0, -1, -1.0, Qpre[wall], P[wall] - c))
         else:
@@ -1303,7 +1308,7 @@ def _build(deformer, rd):
         qcol = P0 if use_q else None
         ops += _vertex_ops(sk, Qpre, D0, qcol, None)
         ops += _segment_ops(sk, Qpre, D0, qcol, None)
-        ops += _patch_ops(sk, Qpre, D0, qcol, None)
+        ops += patch_ops(sk, Qpre, D0, qcol, None)
         ops += _symmetry_op(sk, Dpre, Qpre, P, c, D0, use_q)
         if use_q:
             ops.append(RotOp(der, POS, D0, P0, -1, 1.0, gq[der], P[der] - c))
@@ -1345,14 +1350,14 @@ def _build(deformer, rd):
     Xy[:, 20 + RD:20 + RD + 3] = rd[wall]
     ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, cs_jacobian(fy, Xy)))
     # residual pass
-    idx, Jw = _wall_op(sk, y, c, Y)
+    idx, Jw = wall_jacobian(sk, y, c)
     ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
     ops.append(_copy_op(wall, K0, Y, 3))
     ops += _vertex_ops(sk, qlpre, K0, Q0, two)
     if sk.vertices.idw is not None:
         ops.append(_rebase_op(sk.vertices.free, qlpre, two.shift))
     ops += _segment_ops(sk, qlpre, K0, Q0, two)
-    ops += _patch_ops(sk, qlpre, K0, Q0, two)
+    ops += patch_ops(sk, qlpre, K0, Q0, two)
     ops += _symmetry_op(sk, Kpre, qlpre, two.arm, np.zeros(3), K0, True)
 
     ops.append(RotOp(der, POS, K0, Q0, -1, 1.0, ql[der], two.arm[der]))
