@@ -41,6 +41,7 @@ whose normal matrix is singular (degenerate body) gets the least-squares
 
 from __future__ import annotations
 
+import cmath
 import math
 
 import numpy as np
@@ -653,18 +654,23 @@ def _copy_op(rows, o0, i0, n):
 # ----------------------------------------------------------------------------- complex step
 def cs_jacobian(f, X, *args):
     """Jacobian ``(n, m, k)`` of a row-wise function ``f(X (n, k) complex, *args) -> (n, m)``
-    by the complex step (exact to round-off: no difference is taken)."""
+    by the complex step (exact to round-off: no difference is taken).  The k probes run as
+    one call on k n rows (array arguments with n rows are tiled)."""
     X = np.asarray(X, dtype=np.float64)
     n, k = X.shape
-    cols = []
-    for j in range(k):
-        Xc = X.astype(np.complex128)
-        Xc[:, j] += 1j * _H
-        cols.append(np.asarray(f(Xc, *args)).imag / _H)
     if n == 0:
-        m = np.asarray(f(X.astype(np.complex128), *args)).shape[1] if n else 0
+        m = np.asarray(f(X.astype(np.complex128), *args)).shape[-1]
         return np.zeros((0, m, k))
-    return np.stack(cols, axis=2)
+    Xc = np.tile(X.astype(np.complex128), (k, 1))
+    Xc[np.arange(k * n), np.repeat(np.arange(k), n)] += 1j * _H
+    out = np.asarray(f(Xc, *[_tile(a, n, k) for a in args])).imag / _H
+    return np.moveaxis(out.reshape(k, n, -1), 0, 2)
+
+
+def _tile(a, n, k):
+    if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n:
+        return np.tile(a, (k,) + (1,) * (a.ndim - 1))
+    return a
 
 
 def _dot(a, b):
@@ -919,63 +925,214 @@ def fields_vjp(deformer, pass_bars, pos_bar):
 
 
 # ----------------------------------------------------------------------------- stages
-def _wall_q_copy(X, pu, ok, e, curve):
-    """The quaternion of one wall point copy (boundary._point_quaternion) from its deformed
-    stencil ``X`` (n, 15) complex: centre, +a, -a, +b, -b; ``pu`` (n, 5, 3), ``ok`` (n, 5)."""
-    n = X.shape[0]
-    pd = X.reshape(n, 5, 3)
-    E = pu[:, 1:] - pu[:, :1]
-    F = pd[:, 1:] - pd[:, :1]
-    E = np.where(ok[:, 1:, None], E, 0.0)
-    F = np.where(ok[:, 1:, None], F, 0.0)
+# ----------------------------------------------------------------------------- wall copies, compiled
+@jit(inline="always")
+def _c3(ax, ay, az, bx, by, bz):
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
-    def diff(p, pok, m, mok):
-        both = (pok & mok)[:, None]
-        return np.where(both, p - m, np.where(pok[:, None], p, np.where(mok[:, None], -m, 0.0)))
 
-    au = diff(E[:, 0], ok[:, 1], E[:, 1], ok[:, 2])
-    ad = diff(F[:, 0], ok[:, 1], F[:, 1], ok[:, 2])
-    if curve:
-        bu = np.broadcast_to(e, au.shape).astype(au.dtype)
-        bd = bu
-    else:
-        bu = diff(E[:, 2], ok[:, 3], E[:, 3], ok[:, 4])
-        bd = diff(F[:, 2], ok[:, 3], F[:, 3], ok[:, 4])
-    u = _normalize(_cross(au, bu))
-    d = _normalize(_cross(ad, bd))
-    if curve:
-        h = 0.5 * _atan2(_dot(np.broadcast_to(e, u.shape), _cross(u, d)), _dot(u, d))
-        Q1 = np.concatenate([np.cos(h)[:, None], np.sin(h)[:, None] * e[None, :]], axis=1)
-    else:
-        c = _dot(u, d)
-        Q1 = _normalize(np.concatenate([(1.0 + c)[:, None], _cross(u, d)], axis=1))
-    t1 = _normalize(au)
-    t2 = _cross(u, t1)
-    T1 = _rot(Q1, t1)
-    T2 = _cross(d, T1)
-    ss = 0.0
-    cc = 0.0
+@jit(inline="always")
+def _cunit(x, y, z):
+    n = cmath.sqrt(x * x + y * y + z * z)
+    return x / n, y / n, z / n
+
+
+@jit(inline="always")
+def _catan2(y, x):
+    yr, xr = y.real, x.real
+    d = xr * xr + yr * yr
+    if d == 0.0:
+        d = 1.0
+    return math.atan2(yr, xr) + 1j * ((xr * y.imag - yr * x.imag) / d)
+
+
+@jit
+def wall_q_cs(pu, pd, ok, e, curve, out):
+    """The quaternion of one wall point copy (boundary._point_quaternion) on its complex ``pd`` (5, 3): the quaternion
+    into ``out`` (4, complex); returns False where a normal is undefined."""
+    E = np.zeros((4, 3))
+    F = np.zeros((4, 3), dtype=np.complex128)
     for k in range(4):
-        ek, fk = E[:, k], F[:, k]
-        a1, a2 = _dot(ek, t1), _dot(ek, t2)
-        b1, b2 = _dot(fk, T1), _dot(fk, T2)
-        la2, lb2 = a1 * a1 + a2 * a2, b1 * b1 + b2 * b2
-        d2 = 1e-20
-        good = ok[:, 1 + k] & (np.real(la2) > d2 * np.real(_dot(ek, ek))) & \
-            (np.real(lb2) > d2 * np.real(_dot(fk, fk)))
-        inv = 1.0 / np.sqrt(np.where(good, la2 * lb2, 1.0))
-        ss = ss + np.where(good, (a1 * b2 - a2 * b1) * inv, 0.0)
-        cc = cc + np.where(good, (a1 * b1 + a2 * b2) * inv, 0.0)
-    r = np.sqrt(ss * ss + cc * cc)
-    pos = np.real(cc) >= 0.0
-    hw = np.where(pos, r + cc, ss)
-    hs = np.where(pos, ss, r - cc)
-    flip = (~pos) & (np.real(hw) < 0.0)
-    hw = np.where(flip, -hw, hw)
-    hs = np.where(flip, -hs, hs)
-    hn = np.sqrt(hw * hw + hs * hs)
-    Q2 = np.concatenate([(hw / hn)[:, None], d * (hs / hn)[:, None]], axis=1)
-    return _qmul(Q2, Q1)
+        if ok[1 + k]:
+            for c in range(3):
+                E[k, c] = pu[1 + k, c] - pu[0, c]
+                F[k, c] = pd[1 + k, c] - pd[0, c]
+    au = np.zeros(3)
+    ad = np.zeros(3, dtype=np.complex128)
+    bu = np.zeros(3)
+    bd = np.zeros(3, dtype=np.complex128)
+    for c in range(3):
+        if ok[1] and ok[2]:
+            au[c] = E[0, c] - E[1, c]
+            ad[c] = F[0, c] - F[1, c]
+        elif ok[1]:
+            au[c] = E[0, c]
+            ad[c] = F[0, c]
+        elif ok[2]:
+            au[c] = -E[1, c]
+            ad[c] = -F[1, c]
+        if curve:
+            bu[c] = e[c]
+            bd[c] = e[c]
+        elif ok[3] and ok[4]:
+            bu[c] = E[2, c] - E[3, c]
+            bd[c] = F[2, c] - F[3, c]
+        elif ok[3]:
+            bu[c] = E[2, c]
+            bd[c] = F[2, c]
+        elif ok[4]:
+            bu[c] = -E[3, c]
+            bd[c] = -F[3, c]
+    nx, ny, nz = _c3(au[0], au[1], au[2], bu[0], bu[1], bu[2])
+    nn = nx * nx + ny * ny + nz * nz
+    mx, my, mz = _c3(ad[0], ad[1], ad[2], bd[0], bd[1], bd[2])
+    mn = mx * mx + my * my + mz * mz
+    la = au[0] * au[0] + au[1] * au[1] + au[2] * au[2]
+    lb = bu[0] * bu[0] + bu[1] * bu[1] + bu[2] * bu[2]
+    ma = (ad[0] * ad[0] + ad[1] * ad[1] + ad[2] * ad[2]).real
+    mb = (bd[0] * bd[0] + bd[1] * bd[1] + bd[2] * bd[2]).real
+    d2 = 1e-20
+    if not (la > 0.0 and lb > 0.0 and nn > d2 * la * lb and ma > 0.0 and mb > 0.0
+            and mn.real > d2 * ma * mb):
+        return False
+    if not curve and (la <= d2 * lb or lb <= d2 * la or ma <= d2 * mb or mb <= d2 * ma):
+        return False
+    ux, uy, uz = _cunit(nx + 0j, ny + 0j, nz + 0j)
+    dx, dy, dz = _cunit(mx, my, mz)
+    if curve:
+        cx, cy, cz = _c3(ux, uy, uz, dx, dy, dz)
+        h = 0.5 * _catan2(e[0] * cx + e[1] * cy + e[2] * cz, ux * dx + uy * dy + uz * dz)
+        sh = cmath.sin(h)
+        a0, a1, a2, a3 = cmath.cos(h), e[0] * sh, e[1] * sh, e[2] * sh
+    else:
+        cc_ = ux * dx + uy * dy + uz * dz
+        vx, vy, vz = _c3(ux, uy, uz, dx, dy, dz)
+        w = 1.0 + cc_
+        n = cmath.sqrt(w * w + vx * vx + vy * vy + vz * vz)
+        a0, a1, a2, a3 = w / n, vx / n, vy / n, vz / n
+    t1x, t1y, t1z = _cunit(au[0] + 0j, au[1] + 0j, au[2] + 0j)
+    t2x, t2y, t2z = _c3(ux, uy, uz, t1x, t1y, t1z)
+    # T1 = rot(Q1, t1)
+    qx, qy, qz = 2.0 * (a2 * t1z - a3 * t1y), 2.0 * (a3 * t1x - a1 * t1z), 2.0 * (a1 * t1y - a2 * t1x)
+    T1x = t1x + a0 * qx + (a2 * qz - a3 * qy)
+    T1y = t1y + a0 * qy + (a3 * qx - a1 * qz)
+    T1z = t1z + a0 * qz + (a1 * qy - a2 * qx)
+    T2x, T2y, T2z = _c3(dx, dy, dz, T1x, T1y, T1z)
+    ss = 0j
+    cc = 0j
+    for k in range(4):
+        if not ok[1 + k]:
+            continue
+        ex, ey, ez = E[k, 0], E[k, 1], E[k, 2]
+        fx, fy, fz = F[k, 0], F[k, 1], F[k, 2]
+        a1_ = ex * t1x + ey * t1y + ez * t1z
+        a2_ = ex * t2x + ey * t2y + ez * t2z
+        b1 = fx * T1x + fy * T1y + fz * T1z
+        b2 = fx * T2x + fy * T2y + fz * T2z
+        la2 = a1_ * a1_ + a2_ * a2_
+        lb2 = b1 * b1 + b2 * b2
+        if not (la2.real > d2 * (ex * ex + ey * ey + ez * ez) and
+                lb2.real > d2 * (fx * fx + fy * fy + fz * fz).real):
+            continue
+        inv = 1.0 / cmath.sqrt(la2 * lb2)
+        ss += (a1_ * b2 - a2_ * b1) * inv
+        cc += (a1_ * b1 + a2_ * b2) * inv
+    r = cmath.sqrt(ss * ss + cc * cc)
+    if cc.real >= 0.0:
+        hw = r + cc
+        hs = ss
+    else:
+        hw = ss
+        hs = r - cc
+        if hw.real < 0.0:
+            hw = -hw
+            hs = -hs
+    hn = cmath.sqrt(hw * hw + hs * hs)
+    hw = hw / hn
+    hs = hs / hn
+    b0, b1_, b2_, b3 = hw, dx * hs, dy * hs, dz * hs
+    out[0] = b0 * a0 - b1_ * a1 - b2_ * a2 - b3 * a3
+    out[1] = b0 * a1 + b1_ * a0 + b2_ * a3 - b3 * a2
+    out[2] = b0 * a2 - b1_ * a3 + b2_ * a0 + b3 * a1
+    out[3] = b0 * a3 + b1_ * a2 - b2_ * a1 + b3 * a0
+    return True
+
+
+@jit
+def wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good):
+    """Every copy of a wall patch: the quaternion ``qc`` (n, 4), its complex-step Jacobian
+    ``Jc`` (n, 4, 15) in the deformed stencil and the defined flag ``good``."""
+    pd = np.empty((5, 3), dtype=np.complex128)
+    out = np.empty(4, dtype=np.complex128)
+    h = 1e-30
+    for m in range(pu_s.shape[0]):
+        for s in range(5):
+            for c in range(3):
+                pd[s, c] = pd_s[m, s, c]
+        good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+        for c in range(4):
+            qc[m, c] = out[c].real if good[m] else np.nan
+        for j in range(15):
+            if not good[m]:
+                for c in range(4):
+                    Jc[m, c, j] = 0.0
+                continue
+            s, c0 = j // 3, j % 3
+            if not ok[m, s]:
+                for c in range(4):
+                    Jc[m, c, j] = 0.0
+                continue
+            pd[s, c0] = pd_s[m, s, c0] + 1j * h
+            wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+            pd[s, c0] = pd_s[m, s, c0]
+            for c in range(4):
+                Jc[m, c, j] = out[c].imag / h
+
+
+@jit(inline="always")
+def _crot(w, x, y, z, vx, vy, vz):
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return (vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz),
+            vz + w * tz + (x * ty - y * tx))
+
+
+@jit
+def symmetry_cs(Y, arm, carm, point, normal, J):
+    """The complex-step Jacobians ``J`` (n, 7, 7) of the symmetry fix (stages.symmetry_fix,
+    with Q) in ``(F, Q)`` = ``Y`` (n, 7), arms ``arm`` (n, 3) from ``carm``."""
+    y = np.empty(7, dtype=np.complex128)
+    h = 1e-30
+    for m in range(Y.shape[0]):
+        nx, ny, nz = normal[m, 0], normal[m, 1], normal[m, 2]
+        for j in range(7):
+            for c in range(7):
+                y[c] = Y[m, c]
+            y[j] += 1j * h
+            rx, ry, rz = _crot(y[3], y[4], y[5], y[6], arm[m, 0] + 0j, arm[m, 1] + 0j, arm[m, 2] + 0j)
+            px = carm[0] + y[0] + rx
+            py = carm[1] + y[1] + ry
+            pz = carm[2] + y[2] + rz
+            dd = (px - point[m, 0]) * nx + (py - point[m, 1]) * ny + (pz - point[m, 2]) * nz
+            px -= dd * nx
+            py -= dd * ny
+            pz -= dd * nz
+            u = y[4] * nx + y[5] * ny + y[6] * nz
+            t0, t1, t2, t3 = y[3], u * nx, u * ny, u * nz
+            nn = cmath.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+            if nn.real == 0.0:
+                t0, t1, t2, t3 = 1.0 + 0j, 0j, 0j, 0j
+            else:
+                t0, t1, t2, t3 = t0 / nn, t1 / nn, t2 / nn, t3 / nn
+            sx, sy, sz = _crot(t0, t1, t2, t3, arm[m, 0] + 0j, arm[m, 1] + 0j, arm[m, 2] + 0j)
+            J[m, 0, j] = (px - carm[0] - sx).imag / h
+            J[m, 1, j] = (py - carm[1] - sy).imag / h
+            J[m, 2, j] = (pz - carm[2] - sz).imag / h
+            J[m, 3, j] = t0.imag / h
+            J[m, 4, j] = t1.imag / h
+            J[m, 5, j] = t2.imag / h
+            J[m, 6, j] = t3.imag / h
 
 
 def wall_jacobian(sk, rd_in, centre):
@@ -993,7 +1150,8 @@ def _wall_jacobian(sk, rd_in, centre):
     nw = wall.size
     curve = sk.ndim == 2
     e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
-    copies = [[] for _ in range(nw)]          # per wall point: (q_copy, {gid: (4, 3) block})
+    seq_w, seq_q = [], []                     # the copies, in the step's merge order
+    r_w, r_g, r_b = [], [], []                # their reads: copy, gid, (4, 3) block
     ident = np.eye(3)
     for w, lid in zip(sk.walls.patches, sk.walls.local):
         pd = np.empty_like(w.pu)
@@ -1026,93 +1184,132 @@ def _wall_jacobian(sk, rd_in, centre):
             pu_s[:, s] = np.where((g >= 0)[:, None], pu_p[a2, b2], 0.0)
             pd_s[:, s] = np.where((g >= 0)[:, None], pd_p[a2, b2], 0.0)
         ok = gids >= 0
-        qc = _wall_q_copy(pd_s.reshape(-1, 15).astype(np.complex128), pu_s, ok, e, curve).real
-        Jc = cs_jacobian(_wall_q_copy, pd_s.reshape(-1, 15), pu_s, ok, e, curve)
+        qc = np.empty((I.size, 4))
+        Jc = np.empty((I.size, 4, 15))
+        good = np.empty(I.size, dtype=np.bool_)
+        wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good)
         # defined normals; the others the step fills from their neighbours (below)
-        good = np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
-        rows = [None] * I.size
-        for m in np.flatnonzero(good):
-            row = {}
-            for k in range(5):
-                g = gids[m, k]
-                if g < 0:
-                    continue
-                blk = Jc[m, :, 3 * k:3 * k + 3]
-                p = mirr[m, k]
-                if p >= 0:
-                    nn = pts.plane_n[p]
-                    blk = blk @ (ident - 2.0 * np.outer(nn, nn))
-                row[g] = row.get(g, 0.0) + blk
-            rows[m] = row
+        good &= np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
+        Jb = Jc.reshape(-1, 4, 5, 3)
+        mm = mirr >= 0
+        if mm.any():                         # mirrored halo points: X -> (I - 2 n n^T) X
+            M = np.broadcast_to(ident, (I.size, 5, 3, 3)).copy()
+            nn = pts.plane_n[mirr[mm]]
+            M[mm] = ident - 2.0 * nn[:, :, None] * nn[:, None, :]
+            Jb = np.einsum("nakc,nkcd->nakd", Jb, M)
         qcur = np.where(good[:, None], qc, np.nan)
+        rows = _Rows(gids, Jb)
         _fill_rows(qcur, rows, good, na, nb)
-        for m in range(I.size):
-            sg = -1.0 if qcur[m] @ qf[m] < 0.0 else 1.0
-            copies[lid[m]].append((qf[m], {g: sg * blk for g, blk in rows[m].items()}))
-    kmax = max((len({g for _, r in cl for g in r}) for cl in copies), default=1)
+        sg = np.where(np.sum(qcur * qf, axis=1) < 0.0, -1.0, 1.0)
+        n0 = len(seq_w)
+        seq_w.extend(lid.tolist())
+        seq_q.append(qf)
+        dense = good[:, None] & (gids >= 0)
+        r_w.append(np.broadcast_to((n0 + np.arange(I.size))[:, None], gids.shape)[dense])
+        r_g.append(gids[dense])
+        r_b.append((sg[:, None, None, None] * np.moveaxis(Jb, 2, 1))[dense])
+        for m in np.flatnonzero(~good):
+            if rows[m]:
+                gl = sorted(rows[m])
+                r_w.append(np.full(len(gl), n0 + m))
+                r_g.append(np.array(gl, dtype=np.int64))
+                r_b.append(sg[m] * np.array([rows[m][g] for g in gl]))
+    # the hemisphere-aligned merge of the copies of each wall point, in the step's order
+    cw = np.array(seq_w, dtype=np.int64)
+    cq = np.concatenate(seq_q) if seq_q else np.zeros((0, 4))
+    order = np.argsort(cw, kind="stable")
+    first = np.r_[True, cw[order][1:] != cw[order][:-1]]
+    rank = np.empty(cw.size, dtype=np.int64)
+    start = np.maximum.accumulate(np.where(first, np.arange(cw.size), 0))
+    rank[order] = np.arange(cw.size) - start
+    acc = np.zeros((nw, 4))
+    csg = np.ones(cw.size)
+    for r in range(int(rank.max(initial=-1)) + 1):
+        sel = np.flatnonzero(rank == r)
+        w_ = cw[sel]
+        if r:
+            csg[sel] = np.where(np.sum(acc[w_] * cq[sel], axis=1) >= 0.0, 1.0, -1.0)
+        acc[w_] += csg[sel, None] * cq[sel]
+    nrm = np.linalg.norm(acc, axis=1)
+    qn = acc / nrm[:, None]
+    Pm = (np.eye(4)[None] - qn[:, :, None] * qn[:, None, :]) / nrm[:, None, None]
+    # the reads of every wall point: (wall point, gid) summed over copies
+    rc = np.concatenate(r_w) if r_w else np.zeros(0, np.int64)
+    rg = np.concatenate(r_g) if r_g else np.zeros(0, np.int64)
+    rb = np.concatenate(r_b) if r_b else np.zeros((0, 4, 3))
+    rw = cw[rc]
+    rb = np.einsum("nab,nbc->nac", Pm[rw], rb * csg[rc, None, None])
+    key, inv = np.unique(rw * (pts.n_global + 1) + rg, return_inverse=True)
+    blocks = np.zeros((key.size, 4, 3))
+    np.add.at(blocks, inv, rb)
+    kw = key // (pts.n_global + 1)
+    kg = key % (pts.n_global + 1)
+    firstk = np.r_[True, kw[1:] != kw[:-1]]
+    slot = np.arange(key.size) - np.maximum.accumulate(np.where(firstk, np.arange(key.size), 0))
+    kmax = int(slot.max(initial=0)) + 1
     idx = np.full((nw, kmax), -1, dtype=np.int64)
-    Jw = np.zeros((nw, 4, 3 * kmax))
-    for v, cl in enumerate(copies):
-        acc = np.zeros(4)
-        sg = []
-        for q, _ in cl:
-            s = 1.0 if (not sg or acc @ q >= 0.0) else -1.0
-            sg.append(s)
-            acc = acc + s * q
-        nrm = np.linalg.norm(acc)
-        qn = acc / nrm
-        Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
-        tot = {}
-        for s_, (_, row) in zip(sg, cl):
-            for g, blk in row.items():
-                tot[g] = tot.get(g, 0.0) + s_ * blk
-        for k, (g, blk) in enumerate(sorted(tot.items())):
-            idx[v, k] = g
-            Jw[v, :, 3 * k:3 * k + 3] = Pm @ blk
-    return idx, Jw
+    Jw = np.zeros((nw, kmax, 4, 3))
+    idx[kw, slot] = kg
+    Jw[kw, slot] = blocks
+    return idx, np.ascontiguousarray(np.moveaxis(Jw, 1, 2).reshape(nw, 4, 3 * kmax))
+
+
+class _Rows(dict):
+    """Sparse Jacobian rows of the wall point copies of a patch (gid -> (4, 3)), made on
+    demand from the dense stencil blocks of the defined copies."""
+
+    def __init__(self, gids, Jb):
+        super().__init__()
+        self.gids = gids
+        self.Jb = Jb
+
+    def __missing__(self, m):
+        row = {}
+        for k in range(5):
+            g = int(self.gids[m, k])
+            if g >= 0:
+                row[g] = row.get(g, 0.0) + self.Jb[m, :, k]
+        self[m] = row
+        return row
 
 
 def _fill_rows(q, rows, ok, na, nb):
     """The forward's filling of undefined wall points (boundary._fill_degenerate: sweeps, each
     undefined point the normalised hemisphere-aligned sum of its defined 8-neighbours) on the
-    values ``q`` (n, 4) and the sparse Jacobian rows ``rows`` (dicts gid -> (4, 3)), in place.
-    Points with no defined point anywhere keep a zero row."""
+    values ``q`` (n, 4) and the sparse Jacobian rows ``rows`` (gid -> (4, 3)), in place.
+    Points with no defined point anywhere get an empty row."""
     okm = ok.copy()
-    while True:
+    while not okm.all():
         cur = okm.copy()
         filled = left = 0
-        for i in range(na):
-            for j in range(nb):
-                m = i * nb + j
-                if okm[m]:
-                    continue
-                nbrs = [(a * nb + b) for a in range(i - 1, i + 2) for b in range(j - 1, j + 2)
-                        if (a, b) != (i, j) and 0 <= a < na and 0 <= b < nb and okm[a * nb + b]]
-                if not nbrs:
-                    left += 1
-                    continue
-                ref = q[nbrs[0]]
-                acc = np.zeros(4)
-                row = {}
-                for k in nbrs:
-                    s = -1.0 if q[k] @ ref < 0.0 else 1.0
-                    acc += s * q[k]
-                    for g, blk in rows[k].items():
-                        row[g] = row.get(g, 0.0) + s * blk
-                nrm = np.linalg.norm(acc)
-                qn = acc / nrm
-                Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
-                q[m] = qn
-                rows[m] = {g: Pm @ blk for g, blk in row.items()}
-                cur[m] = True
-                filled += 1
+        for m in np.flatnonzero(~okm):
+            i, j = divmod(int(m), nb)
+            nbrs = [(a * nb + b) for a in range(i - 1, i + 2) for b in range(j - 1, j + 2)
+                    if (a, b) != (i, j) and 0 <= a < na and 0 <= b < nb and okm[a * nb + b]]
+            if not nbrs:
+                left += 1
+                continue
+            ref = q[nbrs[0]]
+            acc = np.zeros(4)
+            row = {}
+            for k in nbrs:
+                s = -1.0 if q[k] @ ref < 0.0 else 1.0
+                acc += s * q[k]
+                for g, blk in rows[k].items():
+                    row[g] = row.get(g, 0.0) + s * blk
+            nrm = np.linalg.norm(acc)
+            qn = acc / nrm
+            Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
+            q[m] = qn
+            rows[m] = {g: Pm @ blk for g, blk in row.items()}
+            cur[m] = True
+            filled += 1
         okm[:] = cur
         if left == 0 or filled == 0:
             break
-    for m in range(q.shape[0]):
-        if rows[m] is None:
-            rows[m] = {}
-            q[m] = (1.0, 0.0, 0.0, 0.0)
+    for m in np.flatnonzero(~okm):
+        rows[m] = {}
+        q[m] = (1.0, 0.0, 0.0, 0.0)
 
 
 def _vertex_ops(sk, Qcur, dcol, qcol, two):
@@ -1253,18 +1450,11 @@ def _symmetry_op(sk, F, Q, X, carm, dcol, use_q):
         J = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
         return [Op(g, dcol, 3, _self(g), dcol, 3, J)]
 
-    def f(Y, arm, point, nrm):
-        Fv, q = Y[:, :3], Y[:, 3:]
-        pos = carm + Fv + _rot(q, arm)
-        d = _dot(pos - point, nrm)
-        pos = pos - d[:, None] * nrm
-        u = _dot(q[:, 1:], nrm)
-        tw = np.concatenate([q[:, :1], u[:, None] * nrm], axis=1)
-        tw = _normalize(tw)
-        return np.concatenate([pos - carm - _rot(tw, arm), tw], axis=1)
-
-    Y = np.concatenate([F[g], Q[g]], axis=1)
-    return [Op(g, dcol, 7, _self(g), dcol, 7, cs_jacobian(f, Y, X[g] - carm, sym.point, n))]
+    Y = np.ascontiguousarray(np.concatenate([F[g], Q[g]], axis=1))
+    J = np.empty((g.size, 7, 7))
+    symmetry_cs(Y, np.ascontiguousarray(X[g] - carm), np.asarray(carm, dtype=np.float64),
+                sym.point, n, J)
+    return [Op(g, dcol, 7, _self(g), dcol, 7, J)]
 
 
 def _project_op(sk, col=POS):
@@ -1338,17 +1528,20 @@ def _build(deformer, rd):
         bwall[pos_w[body.gids]] = b
 
     def fy(X):
-        qt, r = X[:, :7], X[:, 20 + RD:20 + RD + 3]
-        qc = qt[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
-        return _rot(qc, r - qt[:, 4:7])
+        qc = X[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
+        return _rot(qc, X[:, 7:10] - X[:, 4:7])
 
-    Xy = np.zeros((wall.size, 40))
+    Xy = np.zeros((wall.size, 10))
     for b, (q, t) in enumerate(fits):
         sel = bwall == b
         Xy[sel, :4] = q
         Xy[sel, 4:7] = t
-    Xy[:, 20 + RD:20 + RD + 3] = rd[wall]
-    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, cs_jacobian(fy, Xy)))
+    Xy[:, 7:10] = rd[wall]
+    Jy = cs_jacobian(fy, Xy)
+    Jfull = np.zeros((wall.size, 3, 40))
+    Jfull[:, :, :7] = Jy[:, :, :7]
+    Jfull[:, :, 20 + RD:20 + RD + 3] = Jy[:, :, 7:10]
+    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, Jfull))
     # residual pass
     idx, Jw = wall_jacobian(sk, y, c)
     ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
