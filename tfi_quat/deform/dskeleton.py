@@ -50,7 +50,7 @@ from .. import tfi
 from .._jit import jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp", "chain_forward", "chain_backward", "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp", "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
 
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
@@ -423,14 +423,14 @@ _DREAD = (1, 2, 3, 4, 5, 6, 7, 8)
 
 
 @jit
-def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
+def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     """Tangents of the derived patches' points, in place: Δ/K (8 weights), Q (the normalised
     Soni blend, faded for two-level), the two-level re-basing ``K += rot(Q, shift)``.
 
     ``ii`` (n, 9): the point and its reads (line ends g0m, g1m; side-0 line ends, side
     point; side-1 line ends, side point); ``ff`` (n, 8): t, sm, t0, t1, the line first-end
-    signs (line m, side 0, side 1), the fade; ``Q`` the quaternions the patches read,
-    ``qfin`` (n, 4) the points' own final Q."""
+    signs (line m, side 0, side 1), the fade; ``Q`` the quaternions the patches read and
+    write (the points' own final Q for the re-basing), ``shift`` (G, 3) the re-basing shifts."""
     one = np.zeros(4)
     one[0] = 1.0
     zero = np.zeros(4)
@@ -495,7 +495,7 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
                 line_tan(one, q, zero, dq, f, dU, wf)
                 for c in range(4):
                     dq[c] = dU[c]
-            a, b, c3 = rot_dq(qfin[m], shift[m], dq[0], dq[1], dq[2], dq[3])
+            a, b, c3 = rot_dq(Q[g], shift[g], dq[0], dq[1], dq[2], dq[3])
             Z[g, d0] += a
             Z[g, d0 + 1] += b
             Z[g, d0 + 2] += c3
@@ -504,7 +504,7 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
 
 
 @jit
-def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
+def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     """The transpose of :func:`patch_forward` on the adjoints ``Zb`` in place."""
     one = np.zeros(4)
     one[0] = 1.0
@@ -551,7 +551,7 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
                 for c in range(4):
                     e[c] = 0.0
                 e[j] = 1.0
-                a, b, c3 = rot_dq(qfin[m], shift[m], e[0], e[1], e[2], e[3])
+                a, b, c3 = rot_dq(Q[g], shift[g], e[0], e[1], e[2], e[3])
                 qb_[j] += a * Kb[0] + b * Kb[1] + c3 * Kb[2]
             f = ff[m, 7]
             if f <= 0.0:
@@ -594,26 +594,78 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, qfin, shift, qmin):
 
 class PatchOp:
     """The derived patches (:func:`patch_forward`): 9 indices and 8 numbers per point, the
-    derivatives computed on the fly from the quaternions ``Q`` the patches read."""
+    derivatives computed on the fly from the quaternions ``Q`` (G, 4) the patches read."""
 
-    __slots__ = ("d0", "q0", "use_q", "two", "ii", "ff", "Q", "qfin", "shift")
+    __slots__ = ("d0", "q0", "use_q", "two", "ii", "ff", "Q", "shift")
     diag = False
 
-    def __init__(self, d0, q0, use_q, two, ii, ff, Q, qfin, shift):
+    def __init__(self, d0, q0, use_q, two, ii, ff, Q, shift):
         self.d0, self.q0, self.use_q, self.two = int(d0), int(q0), bool(use_q), bool(two)
-        self.ii = np.ascontiguousarray(ii, dtype=np.int64)
+        self.ii = np.ascontiguousarray(ii, dtype=np.int32)
         self.ff = np.ascontiguousarray(ff, dtype=np.float64)
         self.Q = np.ascontiguousarray(Q, dtype=np.float64)
-        self.qfin = np.ascontiguousarray(qfin, dtype=np.float64)
         self.shift = np.ascontiguousarray(shift, dtype=np.float64)
 
     @property
     def nbytes(self):
-        return sum(getattr(self, k).nbytes for k in ("ii", "ff", "Q", "qfin", "shift"))
+        return self.ii.nbytes + self.ff.nbytes + self.Q.nbytes
 
     def args(self):
-        return (self.d0, self.q0, self.use_q, self.two, self.ii, self.ff, self.Q, self.qfin,
-                self.shift, tfi.QNORM_MIN)
+        return (self.d0, self.q0, self.use_q, self.two, self.ii, self.ff, self.Q, self.shift,
+                tfi.QNORM_MIN)
+
+
+@jit
+def exp_forward(Z, rows, i0, o0, v):
+    """Tangent of ``Q = [cos(|v|/2), sin(|v|/2) v / |v|]`` (the rigid blend) on rows ``rows``:
+    from columns ``i0`` (dv) into ``o0`` (dQ), ``v`` (n, 3) stored."""
+    for m in range(rows.shape[0]):
+        r = rows[m]
+        h2 = 0.25 * (v[m, 0] * v[m, 0] + v[m, 1] * v[m, 1] + v[m, 2] * v[m, 2])
+        S = sinc_x2(h2)
+        Sd = sinc_x2_d(h2)
+        vd = v[m, 0] * Z[r, i0] + v[m, 1] * Z[r, i0 + 1] + v[m, 2] * Z[r, i0 + 2]
+        Z[r, o0] = -0.25 * S * vd
+        for c in range(3):
+            Z[r, o0 + 1 + c] = 0.5 * S * Z[r, i0 + c] + 0.25 * Sd * vd * v[m, c]
+
+
+@jit
+def exp_backward(Zb, rows, i0, o0, v):
+    """The transpose of :func:`exp_forward`."""
+    for m in range(rows.shape[0] - 1, -1, -1):
+        r = rows[m]
+        h2 = 0.25 * (v[m, 0] * v[m, 0] + v[m, 1] * v[m, 1] + v[m, 2] * v[m, 2])
+        S = sinc_x2(h2)
+        Sd = sinc_x2_d(h2)
+        b0 = Zb[r, o0]
+        b1, b2, b3 = Zb[r, o0 + 1], Zb[r, o0 + 2], Zb[r, o0 + 3]
+        for c in range(4):
+            Zb[r, o0 + c] = 0.0
+        vb = v[m, 0] * b1 + v[m, 1] * b2 + v[m, 2] * b3
+        g = -0.25 * S * b0 + 0.25 * Sd * vb
+        Zb[r, i0] += 0.5 * S * b1 + g * v[m, 0]
+        Zb[r, i0 + 1] += 0.5 * S * b2 + g * v[m, 1]
+        Zb[r, i0 + 2] += 0.5 * S * b3 + g * v[m, 2]
+
+
+class ExpOp:
+    """The rigid blend's ``Q = exp(v)`` (3 numbers per point, hand-derived kernels)."""
+
+    __slots__ = ("rows", "i0", "o0", "v")
+    diag = False
+
+    def __init__(self, rows, i0, o0, v):
+        self.rows = np.ascontiguousarray(rows, dtype=np.int64)
+        self.i0, self.o0 = int(i0), int(o0)
+        self.v = np.ascontiguousarray(v, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return self.rows.nbytes + self.v.nbytes
+
+    def args(self):
+        return self.rows, self.i0, self.o0, self.v
 
 
 def chain_forward(ops, Z):
@@ -623,6 +675,10 @@ def chain_forward(ops, Z):
             rot_forward(Z, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
         elif isinstance(op, PatchOp):
             patch_forward(Z, *op.args())
+        elif isinstance(op, SymOp):
+            sym_forward(Z, *op.args())
+        elif isinstance(op, ExpOp):
+            exp_forward(Z, *op.args())
         elif op.diag:
             op_forward_diag(Z, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -636,6 +692,10 @@ def chain_backward(ops, Zb):
             rot_backward(Zb, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
         elif isinstance(op, PatchOp):
             patch_backward(Zb, *op.args())
+        elif isinstance(op, SymOp):
+            sym_backward(Zb, *op.args())
+        elif isinstance(op, ExpOp):
+            exp_backward(Zb, *op.args())
         elif op.diag:
             op_backward_diag(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -781,17 +841,6 @@ def cs_log(q):
     f_gen = 2.0 * _atan2(nn, w) / nn
     f = np.where(np.real(w) > 0.5, f_pos, np.where(small, 2.0 / ww, f_gen))
     return v * f[..., None]
-
-
-def cs_exp_half(v):
-    """rigid_blend's quaternion of the rotation vector v: [cos(|v|/2), sin(|v|/2) v / |v|]."""
-    th2 = _dot(v, v)
-    h2 = th2 / 4.0
-    small = np.abs(np.real(th2)) < 1e-12
-    hs = np.sqrt(np.where(small, 1.0, h2))
-    c = np.where(small, 1.0 - h2 / 2.0 + h2 * h2 / 24.0, np.cos(hs))
-    f = 0.5 * _sinc_sq(h2)
-    return np.concatenate([c[..., None], f[..., None] * v], axis=-1)
 
 
 # ----------------------------------------------------------------------------- the fits
@@ -1098,41 +1147,96 @@ def _crot(w, x, y, z, vx, vy, vz):
             vz + w * tz + (x * ty - y * tx))
 
 
+@jit(inline="always")
+def sym_eval(y, arm, carm, point, nrm, out):
+    """The symmetry fix (stages.symmetry_fix with Q) of one point on complex ``y`` = (F, Q)."""
+    nx, ny, nz = nrm[0], nrm[1], nrm[2]
+    rx, ry, rz = _crot(y[3], y[4], y[5], y[6], arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
+    px = carm[0] + y[0] + rx
+    py = carm[1] + y[1] + ry
+    pz = carm[2] + y[2] + rz
+    dd = (px - point[0]) * nx + (py - point[1]) * ny + (pz - point[2]) * nz
+    px -= dd * nx
+    py -= dd * ny
+    pz -= dd * nz
+    u = y[4] * nx + y[5] * ny + y[6] * nz
+    t0, t1, t2, t3 = y[3], u * nx, u * ny, u * nz
+    nn = cmath.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+    if nn.real == 0.0:
+        t0, t1, t2, t3 = 1.0 + 0j, 0j, 0j, 0j
+    else:
+        t0, t1, t2, t3 = t0 / nn, t1 / nn, t2 / nn, t3 / nn
+    sx, sy, sz = _crot(t0, t1, t2, t3, arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
+    out[0] = px - carm[0] - sx
+    out[1] = py - carm[1] - sy
+    out[2] = pz - carm[2] - sz
+    out[3] = t0
+    out[4] = t1
+    out[5] = t2
+    out[6] = t3
+
+
 @jit
-def symmetry_cs(Y, arm, carm, point, normal, J):
-    """The complex-step Jacobians ``J`` (n, 7, 7) of the symmetry fix (stages.symmetry_fix,
-    with Q) in ``(F, Q)`` = ``Y`` (n, 7), arms ``arm`` (n, 3) from ``carm``."""
+def sym_forward(Z, rows, c0, Y, arm, carm, point, normal):
+    """Tangent of the symmetry fix on rows ``rows`` (columns ``c0:c0+7``), by one complex
+    step along the tangent per point (exact), from the stored inputs ``Y`` (n, 7)."""
     y = np.empty(7, dtype=np.complex128)
+    out = np.empty(7, dtype=np.complex128)
     h = 1e-30
-    for m in range(Y.shape[0]):
-        nx, ny, nz = normal[m, 0], normal[m, 1], normal[m, 2]
+    for m in range(rows.shape[0]):
+        r = rows[m]
+        for c in range(7):
+            y[c] = Y[m, c] + 1j * h * Z[r, c0 + c]
+        sym_eval(y, arm[m], carm, point[m], normal[m], out)
+        for c in range(7):
+            Z[r, c0 + c] = out[c].imag / h
+
+
+@jit
+def sym_backward(Zb, rows, c0, Y, arm, carm, point, normal):
+    """The transpose of :func:`sym_forward` (its Jacobian's columns by complex steps)."""
+    y = np.empty(7, dtype=np.complex128)
+    out = np.empty(7, dtype=np.complex128)
+    b = np.empty(7)
+    h = 1e-30
+    for m in range(rows.shape[0] - 1, -1, -1):
+        r = rows[m]
+        for c in range(7):
+            b[c] = Zb[r, c0 + c]
+            Zb[r, c0 + c] = 0.0
         for j in range(7):
             for c in range(7):
                 y[c] = Y[m, c]
             y[j] += 1j * h
-            rx, ry, rz = _crot(y[3], y[4], y[5], y[6], arm[m, 0] + 0j, arm[m, 1] + 0j, arm[m, 2] + 0j)
-            px = carm[0] + y[0] + rx
-            py = carm[1] + y[1] + ry
-            pz = carm[2] + y[2] + rz
-            dd = (px - point[m, 0]) * nx + (py - point[m, 1]) * ny + (pz - point[m, 2]) * nz
-            px -= dd * nx
-            py -= dd * ny
-            pz -= dd * nz
-            u = y[4] * nx + y[5] * ny + y[6] * nz
-            t0, t1, t2, t3 = y[3], u * nx, u * ny, u * nz
-            nn = cmath.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
-            if nn.real == 0.0:
-                t0, t1, t2, t3 = 1.0 + 0j, 0j, 0j, 0j
-            else:
-                t0, t1, t2, t3 = t0 / nn, t1 / nn, t2 / nn, t3 / nn
-            sx, sy, sz = _crot(t0, t1, t2, t3, arm[m, 0] + 0j, arm[m, 1] + 0j, arm[m, 2] + 0j)
-            J[m, 0, j] = (px - carm[0] - sx).imag / h
-            J[m, 1, j] = (py - carm[1] - sy).imag / h
-            J[m, 2, j] = (pz - carm[2] - sz).imag / h
-            J[m, 3, j] = t0.imag / h
-            J[m, 4, j] = t1.imag / h
-            J[m, 5, j] = t2.imag / h
-            J[m, 6, j] = t3.imag / h
+            sym_eval(y, arm[m], carm, point[m], normal[m], out)
+            s = 0.0
+            for c in range(7):
+                s += out[c].imag / h * b[c]
+            Zb[r, c0 + j] += s
+
+
+class SymOp:
+    """The symmetry fix with Q: 7 + 3 numbers per point (its inputs and arm), the Jacobian
+    by complex steps on the fly (:func:`sym_forward`, :func:`sym_backward`)."""
+
+    __slots__ = ("rows", "c0", "Y", "arm", "carm", "point", "normal")
+    diag = False
+
+    def __init__(self, rows, c0, Y, arm, carm, point, normal):
+        self.rows = np.ascontiguousarray(rows, dtype=np.int64)
+        self.c0 = int(c0)
+        self.Y = np.ascontiguousarray(Y, dtype=np.float64)
+        self.arm = np.ascontiguousarray(arm, dtype=np.float64)
+        self.carm = np.ascontiguousarray(carm, dtype=np.float64)
+        self.point = point
+        self.normal = normal
+
+    @property
+    def nbytes(self):
+        return self.rows.nbytes + self.Y.nbytes + self.arm.nbytes
+
+    def args(self):
+        return self.rows, self.c0, self.Y, self.arm, self.carm, self.point, self.normal
 
 
 def wall_jacobian(sk, rd_in, centre):
@@ -1434,9 +1538,8 @@ def patch_ops(sk, Qcur, dcol, qcol, two):
     ff = np.concatenate([cst, damp[:, None]], axis=1)
     use_q = qcol is not None
     Q = Qcur if use_q else np.zeros((1, 4))
-    qfin = Qcur[rows] if use_q else np.zeros((rows.size, 4))
-    shift = two.shift[rows] if two is not None else np.zeros((rows.size, 3))
-    return [PatchOp(dcol, qcol if use_q else 0, use_q, two is not None, ii, ff, Q, qfin, shift)]
+    shift = two.shift if two is not None else np.zeros((1, 3))
+    return [PatchOp(dcol, qcol if use_q else 0, use_q, two is not None, ii, ff, Q, shift)]
 
 
 def _symmetry_op(sk, F, Q, X, carm, dcol, use_q):
@@ -1450,11 +1553,8 @@ def _symmetry_op(sk, F, Q, X, carm, dcol, use_q):
         J = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
         return [Op(g, dcol, 3, _self(g), dcol, 3, J)]
 
-    Y = np.ascontiguousarray(np.concatenate([F[g], Q[g]], axis=1))
-    J = np.empty((g.size, 7, 7))
-    symmetry_cs(Y, np.ascontiguousarray(X[g] - carm), np.asarray(carm, dtype=np.float64),
-                sym.point, n, J)
-    return [Op(g, dcol, 7, _self(g), dcol, 7, J)]
+    Y = np.concatenate([F[g], Q[g]], axis=1)
+    return [SymOp(g, dcol, Y, X[g] - carm, carm, sym.point, n)]
 
 
 def _project_op(sk, col=POS):
@@ -1571,11 +1671,7 @@ def _build(deformer, rd):
         reads = np.broadcast_to(brow, (der.size, nb))
         ops.append(Op(der, D0, 3, reads, 7, 3, phi, diag=True))
         ops.append(Op(der, T0, 3, reads, 14, 3, phi, diag=True))
-        v = phi @ bq[:, 7:10]
-
-        def fx(X):
-            return cs_exp_half(X)
-        ops.append(Op(der, P0, 4, _self(der), T0, 3, cs_jacobian(fx, v)))
+        ops.append(ExpOp(der, T0, P0, phi @ bq[:, 7:10]))
     ops += _symmetry_op(sk, *rec["rigid_pre"], P, c, D0, True)
 
     ops.append(RotOp(der, POS, D0, P0, POS, 1.0, qg[der], rec["posl"][der] - c))
