@@ -310,7 +310,7 @@ class Deformer:
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
         #: the global wall targets (G, 3) of the last :meth:`deform` (the reference before
-        #: any): the point its derivatives are linearised at (O(surface))
+        #: any): the point its derivatives are linearised at (O(surface); updated in place)
         self.last_targets = pts.P.copy()
         self._linear = None
 
@@ -475,7 +475,7 @@ class Deformer:
                     raise DeformationError("ids= and displacement= go with an array of wall points "
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
                 rd = other_targets(self.skeleton, self.grid, moved, self._work.rd)
-            self.last_targets = rd.copy()
+            np.copyto(self.last_targets, rd)      # in place: a step allocates nothing
             self._linear = None
             if self.two_level is not None:
                 passes, ts, t1, t3 = self._two_level_fields(rd)

@@ -41,13 +41,16 @@ whose normal matrix is singular (degenerate body) gets the least-squares
 
 from __future__ import annotations
 
+import cmath
+import math
+
 import numpy as np
 
 from .. import tfi
 from .._jit import jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "chain_forward", "chain_backward", "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp", "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
 
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
@@ -63,6 +66,10 @@ class Op:
     every column (``diag``, ``ni == no``) or (n, no, k * ni) blocks (full)."""
 
     __slots__ = ("out", "o0", "no", "idx", "i0", "ni", "J", "diag")
+
+    @property
+    def nbytes(self):
+        return self.out.nbytes + self.idx.nbytes + self.J.nbytes
 
     def __init__(self, out, o0, no, idx, i0, ni, J, diag=False):
         self.out = np.ascontiguousarray(out, dtype=np.int64)
@@ -148,10 +155,531 @@ def op_backward_full(Zb, out, o0, no, idx, i0, ni, J):
                     Zb[r, i0 + b] += s
 
 
+class RotOp:
+    """The tangent of ``out = F + sr rot(q, v)`` on rows ``out`` (reading the same rows):
+    ``dF + sr (∂_q rot(q, v) dq + rot(q, dv))`` from columns ``f0`` (F), ``q0`` (q) and
+    ``v0`` (v; -1: v constant), with ``q`` (n, 4) and ``v`` (n, 3) stored at the
+    linearisation point: the rotation's derivative is computed on the fly (7 numbers per
+    point instead of a 3 x 10 block)."""
+
+    __slots__ = ("out", "o0", "f0", "q0", "v0", "sr", "q", "v")
+    diag = False
+
+    def __init__(self, out, o0, f0, q0, v0, sr, q, v):
+        self.out = np.ascontiguousarray(out, dtype=np.int64)
+        self.o0, self.f0, self.q0, self.v0, self.sr = int(o0), int(f0), int(q0), int(v0), float(sr)
+        self.q = np.ascontiguousarray(q, dtype=np.float64)
+        self.v = np.ascontiguousarray(v, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return self.out.nbytes + self.q.nbytes + self.v.nbytes
+
+
+@jit(inline="always")
+def rot_dq(q, v, d0, d1, d2, d3):
+    """The derivative of ``rot(q, v) = v + 2w (u x v) + 2 u x (u x v)`` in q along d."""
+    ux, uy, uz = q[1], q[2], q[3]
+    tx = uy * v[2] - uz * v[1]
+    ty = uz * v[0] - ux * v[2]
+    tz = ux * v[1] - uy * v[0]
+    sx = d2 * v[2] - d3 * v[1]
+    sy = d3 * v[0] - d1 * v[2]
+    sz = d1 * v[1] - d2 * v[0]
+    return (2.0 * (d0 * tx + q[0] * sx + (d2 * tz - d3 * ty) + (uy * sz - uz * sy)),
+            2.0 * (d0 * ty + q[0] * sy + (d3 * tx - d1 * tz) + (uz * sx - ux * sz)),
+            2.0 * (d0 * tz + q[0] * sz + (d1 * ty - d2 * tx) + (ux * sy - uy * sx)))
+
+
+@jit(inline="always")
+def rot_sv(w, ux, uy, uz, vx, vy, vz):
+    """``v + 2w (u x v) + 2 u x (u x v)`` (its transpose in v: u -> -u)."""
+    tx = 2.0 * (uy * vz - uz * vy)
+    ty = 2.0 * (uz * vx - ux * vz)
+    tz = 2.0 * (ux * vy - uy * vx)
+    return (vx + w * tx + (uy * tz - uz * ty), vy + w * ty + (uz * tx - ux * tz),
+            vz + w * tz + (ux * ty - uy * tx))
+
+
+@jit
+def rot_forward(Z, out, o0, f0, q0, v0, sr, q, v):
+    """Apply a :class:`RotOp` to the tangents ``Z`` in place."""
+    for m in range(out.shape[0]):
+        o = out[m]
+        a, b, c = rot_dq(q[m], v[m], Z[o, q0], Z[o, q0 + 1], Z[o, q0 + 2], Z[o, q0 + 3])
+        if v0 >= 0:
+            x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, v0], Z[o, v0 + 1], Z[o, v0 + 2])
+            a += x
+            b += y
+            c += z
+        fa, fb, fc = Z[o, f0], Z[o, f0 + 1], Z[o, f0 + 2]
+        Z[o, o0] = fa + sr * a
+        Z[o, o0 + 1] = fb + sr * b
+        Z[o, o0 + 2] = fc + sr * c
+
+
+@jit
+def rot_backward(Zb, out, o0, f0, q0, v0, sr, q, v):
+    """The transpose of :func:`rot_forward` in place (items reversed)."""
+    for m in range(out.shape[0] - 1, -1, -1):
+        o = out[m]
+        bx, by, bz = Zb[o, o0], Zb[o, o0 + 1], Zb[o, o0 + 2]
+        Zb[o, o0] = 0.0
+        Zb[o, o0 + 1] = 0.0
+        Zb[o, o0 + 2] = 0.0
+        Zb[o, f0] += bx
+        Zb[o, f0 + 1] += by
+        Zb[o, f0 + 2] += bz
+        for j in range(4):
+            e0 = 1.0 if j == 0 else 0.0
+            e1 = 1.0 if j == 1 else 0.0
+            e2 = 1.0 if j == 2 else 0.0
+            e3 = 1.0 if j == 3 else 0.0
+            a, b, c = rot_dq(q[m], v[m], e0, e1, e2, e3)
+            Zb[o, q0 + j] += sr * (a * bx + b * by + c * bz)
+        if v0 >= 0:
+            x, y, z = rot_sv(q[m, 0], -q[m, 1], -q[m, 2], -q[m, 3], bx, by, bz)
+            Zb[o, v0] += sr * x
+            Zb[o, v0 + 1] += sr * y
+            Zb[o, v0 + 2] += sr * z
+
+
+# ----------------------------------------------------------------------------- patches, compiled
+@jit(inline="always")
+def sinc_x2(x2):
+    """sin(x) / x as a function of x2 = x^2."""
+    if x2 < 1e-6:
+        return 1.0 - x2 / 6.0 + x2 * x2 / 120.0
+    x = math.sqrt(x2)
+    return math.sin(x) / x
+
+
+@jit(inline="always")
+def sinc_x2_d(x2):
+    """d/dx2 of :func:`sinc_x2`."""
+    if x2 < 1e-3:
+        return -1.0 / 6.0 + x2 / 60.0 - x2 * x2 / 2520.0 + x2 * x2 * x2 / 181440.0
+    x = math.sqrt(x2)
+    return (math.cos(x) - math.sin(x) / x) / (2.0 * x2)
+
+
+@jit(inline="always")
+def atan_over(r2):
+    """atan(sqrt(r2)) / sqrt(r2)."""
+    if r2 < 1e-8:
+        return 1.0 - r2 / 3.0 + r2 * r2 / 5.0
+    r = math.sqrt(r2)
+    return math.atan(r) / r
+
+
+@jit(inline="always")
+def line_terms(a, b, t, ga, gb, h):
+    """The slerp of the volume kernels (weights from the angle, not normalised) between unit
+    ``a`` and aligned ``b`` at ``t``: returns ``(wa, wb, ga (4), gb (4))`` with the output
+    ``wa a + wb b`` and its derivative ``wa da + wb db + (ga . da + gb . db)(wa' a + wb' b)``
+    through the angle; ``ga``, ``gb`` are ``∂ω²/∂a``, ``∂ω²/∂b`` and the last vector is
+    returned as ``h`` (4) in the tuple ``(wa, wb, ga, gb, h)``."""
+    dn2 = 0.0
+    pn2 = 0.0
+    for c in range(4):
+        dn2 += (a[c] - b[c]) * (a[c] - b[c])
+        pn2 += (a[c] + b[c]) * (a[c] + b[c])
+    r2 = dn2 / pn2
+    A = atan_over(r2)
+    w2 = 4.0 * r2 * A * A
+    cw = 4.0 * A / (1.0 + r2)                  # dω²/dr²
+    u = 1.0 - t
+    S0 = sinc_x2(w2)
+    Su = sinc_x2(u * u * w2)
+    St = sinc_x2(t * t * w2)
+    D0 = sinc_x2_d(w2)
+    wa = u * Su / S0
+    wb = t * St / S0
+    wa_d = u * (u * u * sinc_x2_d(u * u * w2) * S0 - Su * D0) / (S0 * S0)
+    wb_d = t * (t * t * sinc_x2_d(t * t * w2) * S0 - St * D0) / (S0 * S0)
+    p4 = pn2 * pn2
+    for c in range(4):
+        dv = a[c] - b[c]
+        pv = a[c] + b[c]
+        ga[c] = cw * (2.0 * dv * pn2 - 2.0 * dn2 * pv) / p4
+        gb[c] = cw * (-2.0 * dv * pn2 - 2.0 * dn2 * pv) / p4
+        h[c] = wa_d * a[c] + wb_d * b[c]
+    return wa, wb
+
+
+@jit(inline="always")
+def _dot4(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+
+
+@jit(inline="always")
+def line_tan(a, b, da, db, t, dU, ws):
+    """``dU`` = the tangent of :func:`line_terms`' slerp; returns nothing, fills dU (4)
+    (``ws``: scratch (3, 4))."""
+    ga, gb, h = ws[0], ws[1], ws[2]
+    wa, wb = line_terms(a, b, t, ga, gb, h)
+    dw = _dot4(ga, da) + _dot4(gb, db)
+    for c in range(4):
+        dU[c] = wa * da[c] + wb * db[c] + dw * h[c]
+
+
+@jit(inline="always")
+def line_adj(a, b, t, Ub, ab, bb, ws):
+    """The adjoint of :func:`line_tan`: ``ab += ∂/∂a``, ``bb += ∂/∂b`` of ``Ub . U``."""
+    ga, gb, h = ws[0], ws[1], ws[2]
+    wa, wb = line_terms(a, b, t, ga, gb, h)
+    g = _dot4(h, Ub)
+    for c in range(4):
+        ab[c] += wa * Ub[c] + g * ga[c]
+        bb[c] += wb * Ub[c] + g * gb[c]
+
+
+@jit(inline="always")
+def _aligned(Q, g, s, out):
+    for c in range(4):
+        out[c] = s * Q[g, c]
+
+
+@jit(inline="always")
+def patch_state(Q, ii, ff, m, qa, qb, a0, b0, a1, b1, s):
+    """The aligned quaternions of patch point ``m`` and the signs (line m, side lines, the side
+    points): ``s`` = (sg_m, sg_0, sg_1, ss_0, ss_1)."""
+    _aligned(Q, ii[m, 1], ff[m, 4], qa)
+    s[0] = -1.0 if _dot4(qa, Q[ii[m, 2]]) < 0.0 else 1.0
+    _aligned(Q, ii[m, 2], s[0], qb)
+    _aligned(Q, ii[m, 3], ff[m, 5], a0)
+    s[1] = -1.0 if _dot4(a0, Q[ii[m, 4]]) < 0.0 else 1.0
+    _aligned(Q, ii[m, 4], s[1], b0)
+    _aligned(Q, ii[m, 6], ff[m, 6], a1)
+    s[2] = -1.0 if _dot4(a1, Q[ii[m, 7]]) < 0.0 else 1.0
+    _aligned(Q, ii[m, 7], s[2], b1)
+
+
+@jit(inline="always")
+def patch_value(Q, ii, ff, m, V, sc, s, ws, lt):
+    """V (not normalised) of patch point m into ``V``; ``sc`` (9, 4): the aligned quaternions
+    (qa, qb, a0, b0, a1, b1) and U, U0, U1; ``s`` (5,): the signs; ``ws`` (3, 3, 4) and ``lt``
+    (3, 2): the three lines' :func:`line_terms` (ga, gb, h; wa, wb)."""
+    patch_state(Q, ii, ff, m, sc[0], sc[1], sc[2], sc[3], sc[4], sc[5], s)
+    for k in range(3):
+        a = sc[2 * k]
+        b = sc[2 * k + 1]
+        t = ff[m, 0] if k == 0 else ff[m, 1 + k]
+        wa, wb = line_terms(a, b, t, ws[k, 0], ws[k, 1], ws[k, 2])
+        lt[k, 0] = wa
+        lt[k, 1] = wb
+        for c in range(4):
+            sc[6 + k, c] = wa * a[c] + wb * b[c]
+    U, U0, U1 = sc[6], sc[7], sc[8]
+    s[3] = -1.0 if _dot4(U0, Q[ii[m, 5]]) < 0.0 else 1.0
+    s[4] = -1.0 if _dot4(U1, Q[ii[m, 8]]) < 0.0 else 1.0
+    sm = ff[m, 1]
+    for c in range(4):
+        V[c] = U[c] + (1.0 - sm) * (s[3] * Q[ii[m, 5], c] - U0[c]) + sm * (s[4] * Q[ii[m, 8], c] - U1[c])
+
+
+@jit(inline="always")
+def lt_tan(k, da, db, dU, ws, lt):
+    """The tangent of line ``k`` of :func:`patch_value` from its stored terms."""
+    dw = _dot4(ws[k, 0], da) + _dot4(ws[k, 1], db)
+    for c in range(4):
+        dU[c] = lt[k, 0] * da[c] + lt[k, 1] * db[c] + dw * ws[k, 2, c]
+
+
+@jit(inline="always")
+def lt_adj(k, Ub, ab, bb, ws, lt):
+    """The adjoint of :func:`lt_tan` (accumulating into ``ab``, ``bb``)."""
+    g = _dot4(ws[k, 2], Ub)
+    for c in range(4):
+        ab[c] += lt[k, 0] * Ub[c] + g * ws[k, 0, c]
+        bb[c] += lt[k, 1] * Ub[c] + g * ws[k, 1, c]
+
+
+PATCH_W = 8
+
+
+@jit(inline="always")
+def patch_weight(ff, m, k):
+    t, sm, t0, t1 = ff[m, 0], ff[m, 1], ff[m, 2], ff[m, 3]
+    if k == 0:
+        return 1.0 - t
+    if k == 1:
+        return t
+    if k == 2:
+        return -(1.0 - sm) * (1.0 - t0)
+    if k == 3:
+        return -(1.0 - sm) * t0
+    if k == 4:
+        return 1.0 - sm
+    if k == 5:
+        return -sm * (1.0 - t1)
+    if k == 6:
+        return -sm * t1
+    return sm
+
+
+# the D reads in patch_weight's order: g0m, g1m, g00, g10, gs0, g0e, g1e, gs1 -> columns of ii
+_DREAD = (1, 2, 3, 4, 5, 6, 7, 8)
+
+
+@jit
+def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+    """Tangents of the derived patches' points, in place: Δ/K (8 weights), Q (the normalised
+    Soni blend, faded for two-level), the two-level re-basing ``K += rot(Q, shift)``.
+
+    ``ii`` (n, 9): the point and its reads (line ends g0m, g1m; side-0 line ends, side
+    point; side-1 line ends, side point); ``ff`` (n, 8): t, sm, t0, t1, the line first-end
+    signs (line m, side 0, side 1), the fade; ``Q`` the quaternions the patches read and
+    write (the points' own final Q for the re-basing), ``shift`` (G, 3) the re-basing shifts."""
+    one = np.zeros(4)
+    one[0] = 1.0
+    zero = np.zeros(4)
+    da = np.empty(4)
+    db = np.empty(4)
+    dU = np.empty(4)
+    dV = np.empty(4)
+    V = np.empty(4)
+    q = np.empty(4)
+    dq = np.empty(4)
+    sc = np.empty((9, 4))
+    sg = np.empty(5)
+    ws = np.empty((3, 3, 4))
+    lt = np.empty((3, 2))
+    wf = np.empty((3, 4))
+    for m in range(ii.shape[0]):
+        g = ii[m, 0]
+        for c in range(3):
+            s = 0.0
+            for k in range(8):
+                s += patch_weight(ff, m, k) * Z[ii[m, 1 + k], d0 + c]
+            Z[g, d0 + c] = s
+        if not use_q:
+            continue
+        patch_value(Q, ii, ff, m, V, sc, sg, ws, lt)
+        nv = math.sqrt(_dot4(V, V))
+        if nv < qmin:
+            for c in range(4):
+                Z[g, q0 + c] = 0.0
+            continue
+        sm = ff[m, 1]
+        for c in range(4):
+            da[c] = ff[m, 4] * Z[ii[m, 1], q0 + c]
+            db[c] = sg[0] * Z[ii[m, 2], q0 + c]
+        lt_tan(0, da, db, dU, ws, lt)
+        for c in range(4):
+            dV[c] = dU[c]
+        for side in range(2):
+            o = 3 * side
+            for c in range(4):
+                da[c] = ff[m, 5 + side] * Z[ii[m, 3 + o], q0 + c]
+                db[c] = sg[1 + side] * Z[ii[m, 4 + o], q0 + c]
+            lt_tan(1 + side, da, db, dU, ws, lt)
+            w = (1.0 - sm) if side == 0 else sm
+            for c in range(4):
+                dV[c] += w * (sg[3 + side] * Z[ii[m, 5 + o], q0 + c] - dU[c])
+        for c in range(4):
+            q[c] = V[c] / nv
+        p = _dot4(q, dV)
+        for c in range(4):
+            dq[c] = (dV[c] - q[c] * p) / nv
+        if two:
+            f = ff[m, 7]
+            if f <= 0.0:
+                for c in range(4):
+                    dq[c] = 0.0
+            elif f < 1.0:
+                sq = -1.0 if q[0] < 0.0 else 1.0
+                for c in range(4):
+                    q[c] *= sq
+                    dq[c] *= sq
+                line_tan(one, q, zero, dq, f, dU, wf)
+                for c in range(4):
+                    dq[c] = dU[c]
+            a, b, c3 = rot_dq(Q[g], shift[g], dq[0], dq[1], dq[2], dq[3])
+            Z[g, d0] += a
+            Z[g, d0 + 1] += b
+            Z[g, d0 + 2] += c3
+        for c in range(4):
+            Z[g, q0 + c] = dq[c]
+
+
+@jit
+def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+    """The transpose of :func:`patch_forward` on the adjoints ``Zb`` in place."""
+    one = np.zeros(4)
+    one[0] = 1.0
+    V = np.empty(4)
+    Kb = np.empty(3)
+    qb_ = np.empty(4)
+    ab = np.empty(4)
+    bb = np.empty(4)
+    junk = np.empty(4)
+    q = np.empty(4)
+    Vb = np.empty(4)
+    Ub = np.empty(4)
+    e = np.empty(4)
+    sc = np.empty((9, 4))
+    sg = np.empty(5)
+    ws = np.empty((3, 3, 4))
+    lt = np.empty((3, 2))
+    wf = np.empty((3, 4))
+    for m in range(ii.shape[0] - 1, -1, -1):
+        g = ii[m, 0]
+        for c in range(3):
+            Kb[c] = Zb[g, d0 + c]
+            Zb[g, d0 + c] = 0.0
+        for c in range(4):
+            qb_[c] = Zb[g, q0 + c] if use_q else 0.0
+            if use_q:
+                Zb[g, q0 + c] = 0.0
+        for k in range(8):
+            w = patch_weight(ff, m, k)
+            r = ii[m, 1 + k]
+            for c in range(3):
+                Zb[r, d0 + c] += w * Kb[c]
+        if not use_q:
+            continue
+        patch_value(Q, ii, ff, m, V, sc, sg, ws, lt)
+        nv = math.sqrt(_dot4(V, V))
+        if nv < qmin:
+            continue
+        for c in range(4):
+            q[c] = V[c] / nv
+        if two:
+            # K += rot(qfin, shift): the faded Q's adjoint gets rot_dq^T Kb
+            for j in range(4):
+                for c in range(4):
+                    e[c] = 0.0
+                e[j] = 1.0
+                a, b, c3 = rot_dq(Q[g], shift[g], e[0], e[1], e[2], e[3])
+                qb_[j] += a * Kb[0] + b * Kb[1] + c3 * Kb[2]
+            f = ff[m, 7]
+            if f <= 0.0:
+                for c in range(4):
+                    qb_[c] = 0.0
+            elif f < 1.0:
+                sq = -1.0 if q[0] < 0.0 else 1.0
+                for c in range(4):
+                    q[c] *= sq
+                    bb[c] = 0.0
+                    junk[c] = 0.0
+                line_adj(one, q, f, qb_, junk, bb, wf)
+                for c in range(4):
+                    qb_[c] = sq * bb[c]
+                    q[c] *= sq
+        p = _dot4(q, qb_)
+        for c in range(4):
+            Vb[c] = (qb_[c] - q[c] * p) / nv
+        sm = ff[m, 1]
+        for c in range(4):
+            ab[c] = 0.0
+            bb[c] = 0.0
+        lt_adj(0, Vb, ab, bb, ws, lt)
+        for c in range(4):
+            Zb[ii[m, 1], q0 + c] += ff[m, 4] * ab[c]
+            Zb[ii[m, 2], q0 + c] += sg[0] * bb[c]
+        for side in range(2):
+            o = 3 * side
+            w = (1.0 - sm) if side == 0 else sm
+            for c in range(4):
+                Zb[ii[m, 5 + o], q0 + c] += w * sg[3 + side] * Vb[c]
+                Ub[c] = -w * Vb[c]
+                ab[c] = 0.0
+                bb[c] = 0.0
+            lt_adj(1 + side, Ub, ab, bb, ws, lt)
+            for c in range(4):
+                Zb[ii[m, 3 + o], q0 + c] += ff[m, 5 + side] * ab[c]
+                Zb[ii[m, 4 + o], q0 + c] += sg[1 + side] * bb[c]
+
+
+class PatchOp:
+    """The derived patches (:func:`patch_forward`): 9 indices and 8 numbers per point, the
+    derivatives computed on the fly from the quaternions ``Q`` (G, 4) the patches read."""
+
+    __slots__ = ("d0", "q0", "use_q", "two", "ii", "ff", "Q", "shift")
+    diag = False
+
+    def __init__(self, d0, q0, use_q, two, ii, ff, Q, shift):
+        self.d0, self.q0, self.use_q, self.two = int(d0), int(q0), bool(use_q), bool(two)
+        self.ii = np.ascontiguousarray(ii, dtype=np.int32)
+        self.ff = np.ascontiguousarray(ff, dtype=np.float64)
+        self.Q = np.ascontiguousarray(Q, dtype=np.float64)
+        self.shift = np.ascontiguousarray(shift, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return self.ii.nbytes + self.ff.nbytes + self.Q.nbytes
+
+    def args(self):
+        return (self.d0, self.q0, self.use_q, self.two, self.ii, self.ff, self.Q, self.shift,
+                tfi.QNORM_MIN)
+
+
+@jit
+def exp_forward(Z, rows, i0, o0, v):
+    """Tangent of ``Q = [cos(|v|/2), sin(|v|/2) v / |v|]`` (the rigid blend) on rows ``rows``:
+    from columns ``i0`` (dv) into ``o0`` (dQ), ``v`` (n, 3) stored."""
+    for m in range(rows.shape[0]):
+        r = rows[m]
+        h2 = 0.25 * (v[m, 0] * v[m, 0] + v[m, 1] * v[m, 1] + v[m, 2] * v[m, 2])
+        S = sinc_x2(h2)
+        Sd = sinc_x2_d(h2)
+        vd = v[m, 0] * Z[r, i0] + v[m, 1] * Z[r, i0 + 1] + v[m, 2] * Z[r, i0 + 2]
+        Z[r, o0] = -0.25 * S * vd
+        for c in range(3):
+            Z[r, o0 + 1 + c] = 0.5 * S * Z[r, i0 + c] + 0.25 * Sd * vd * v[m, c]
+
+
+@jit
+def exp_backward(Zb, rows, i0, o0, v):
+    """The transpose of :func:`exp_forward`."""
+    for m in range(rows.shape[0] - 1, -1, -1):
+        r = rows[m]
+        h2 = 0.25 * (v[m, 0] * v[m, 0] + v[m, 1] * v[m, 1] + v[m, 2] * v[m, 2])
+        S = sinc_x2(h2)
+        Sd = sinc_x2_d(h2)
+        b0 = Zb[r, o0]
+        b1, b2, b3 = Zb[r, o0 + 1], Zb[r, o0 + 2], Zb[r, o0 + 3]
+        for c in range(4):
+            Zb[r, o0 + c] = 0.0
+        vb = v[m, 0] * b1 + v[m, 1] * b2 + v[m, 2] * b3
+        g = -0.25 * S * b0 + 0.25 * Sd * vb
+        Zb[r, i0] += 0.5 * S * b1 + g * v[m, 0]
+        Zb[r, i0 + 1] += 0.5 * S * b2 + g * v[m, 1]
+        Zb[r, i0 + 2] += 0.5 * S * b3 + g * v[m, 2]
+
+
+class ExpOp:
+    """The rigid blend's ``Q = exp(v)`` (3 numbers per point, hand-derived kernels)."""
+
+    __slots__ = ("rows", "i0", "o0", "v")
+    diag = False
+
+    def __init__(self, rows, i0, o0, v):
+        self.rows = np.ascontiguousarray(rows, dtype=np.int64)
+        self.i0, self.o0 = int(i0), int(o0)
+        self.v = np.ascontiguousarray(v, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return self.rows.nbytes + self.v.nbytes
+
+    def args(self):
+        return self.rows, self.i0, self.o0, self.v
+
+
 def chain_forward(ops, Z):
     """Run the ops on the tangent state ``Z`` in place."""
     for op in ops:
-        if op.diag:
+        if isinstance(op, RotOp):
+            rot_forward(Z, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
+        elif isinstance(op, PatchOp):
+            patch_forward(Z, *op.args())
+        elif isinstance(op, SymOp):
+            sym_forward(Z, *op.args())
+        elif isinstance(op, ExpOp):
+            exp_forward(Z, *op.args())
+        elif op.diag:
             op_forward_diag(Z, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
             op_forward_full(Z, op.out, op.o0, op.no, op.idx, op.i0, op.ni, op.J)
@@ -160,7 +688,15 @@ def chain_forward(ops, Z):
 def chain_backward(ops, Zb):
     """Run the transposed ops backward on the adjoint state ``Zb`` in place."""
     for op in reversed(ops):
-        if op.diag:
+        if isinstance(op, RotOp):
+            rot_backward(Zb, op.out, op.o0, op.f0, op.q0, op.v0, op.sr, op.q, op.v)
+        elif isinstance(op, PatchOp):
+            patch_backward(Zb, *op.args())
+        elif isinstance(op, SymOp):
+            sym_backward(Zb, *op.args())
+        elif isinstance(op, ExpOp):
+            exp_backward(Zb, *op.args())
+        elif op.diag:
             op_backward_diag(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
             op_backward_full(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.ni, op.J)
@@ -178,18 +714,23 @@ def _copy_op(rows, o0, i0, n):
 # ----------------------------------------------------------------------------- complex step
 def cs_jacobian(f, X, *args):
     """Jacobian ``(n, m, k)`` of a row-wise function ``f(X (n, k) complex, *args) -> (n, m)``
-    by the complex step (exact to round-off: no difference is taken)."""
+    by the complex step (exact to round-off: no difference is taken).  The k probes run as
+    one call on k n rows (array arguments with n rows are tiled)."""
     X = np.asarray(X, dtype=np.float64)
     n, k = X.shape
-    cols = []
-    for j in range(k):
-        Xc = X.astype(np.complex128)
-        Xc[:, j] += 1j * _H
-        cols.append(np.asarray(f(Xc, *args)).imag / _H)
     if n == 0:
-        m = np.asarray(f(X.astype(np.complex128), *args)).shape[1] if n else 0
+        m = np.asarray(f(X.astype(np.complex128), *args)).shape[-1]
         return np.zeros((0, m, k))
-    return np.stack(cols, axis=2)
+    Xc = np.tile(X.astype(np.complex128), (k, 1))
+    Xc[np.arange(k * n), np.repeat(np.arange(k), n)] += 1j * _H
+    out = np.asarray(f(Xc, *[_tile(a, n, k) for a in args])).imag / _H
+    return np.moveaxis(out.reshape(k, n, -1), 0, 2)
+
+
+def _tile(a, n, k):
+    if isinstance(a, np.ndarray) and a.ndim >= 1 and a.shape[0] == n:
+        return np.tile(a, (k,) + (1,) * (a.ndim - 1))
+    return a
 
 
 def _dot(a, b):
@@ -300,17 +841,6 @@ def cs_log(q):
     f_gen = 2.0 * _atan2(nn, w) / nn
     f = np.where(np.real(w) > 0.5, f_pos, np.where(small, 2.0 / ww, f_gen))
     return v * f[..., None]
-
-
-def cs_exp_half(v):
-    """rigid_blend's quaternion of the rotation vector v: [cos(|v|/2), sin(|v|/2) v / |v|]."""
-    th2 = _dot(v, v)
-    h2 = th2 / 4.0
-    small = np.abs(np.real(th2)) < 1e-12
-    hs = np.sqrt(np.where(small, 1.0, h2))
-    c = np.where(small, 1.0 - h2 / 2.0 + h2 * h2 / 24.0, np.cos(hs))
-    f = 0.5 * _sinc_sq(h2)
-    return np.concatenate([c[..., None], f[..., None] * v], axis=-1)
 
 
 # ----------------------------------------------------------------------------- the fits
@@ -444,68 +974,279 @@ def fields_vjp(deformer, pass_bars, pos_bar):
 
 
 # ----------------------------------------------------------------------------- stages
-def _wall_q_copy(X, pu, ok, e, curve):
-    """The quaternion of one wall point copy (boundary._point_quaternion) from its deformed
-    stencil ``X`` (n, 15) complex: centre, +a, -a, +b, -b; ``pu`` (n, 5, 3), ``ok`` (n, 5)."""
-    n = X.shape[0]
-    pd = X.reshape(n, 5, 3)
-    E = pu[:, 1:] - pu[:, :1]
-    F = pd[:, 1:] - pd[:, :1]
-    E = np.where(ok[:, 1:, None], E, 0.0)
-    F = np.where(ok[:, 1:, None], F, 0.0)
+# ----------------------------------------------------------------------------- wall copies, compiled
+@jit(inline="always")
+def _c3(ax, ay, az, bx, by, bz):
+    return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
-    def diff(p, pok, m, mok):
-        both = (pok & mok)[:, None]
-        return np.where(both, p - m, np.where(pok[:, None], p, np.where(mok[:, None], -m, 0.0)))
 
-    au = diff(E[:, 0], ok[:, 1], E[:, 1], ok[:, 2])
-    ad = diff(F[:, 0], ok[:, 1], F[:, 1], ok[:, 2])
-    if curve:
-        bu = np.broadcast_to(e, au.shape).astype(au.dtype)
-        bd = bu
-    else:
-        bu = diff(E[:, 2], ok[:, 3], E[:, 3], ok[:, 4])
-        bd = diff(F[:, 2], ok[:, 3], F[:, 3], ok[:, 4])
-    u = _normalize(_cross(au, bu))
-    d = _normalize(_cross(ad, bd))
-    if curve:
-        h = 0.5 * _atan2(_dot(np.broadcast_to(e, u.shape), _cross(u, d)), _dot(u, d))
-        Q1 = np.concatenate([np.cos(h)[:, None], np.sin(h)[:, None] * e[None, :]], axis=1)
-    else:
-        c = _dot(u, d)
-        Q1 = _normalize(np.concatenate([(1.0 + c)[:, None], _cross(u, d)], axis=1))
-    t1 = _normalize(au)
-    t2 = _cross(u, t1)
-    T1 = _rot(Q1, t1)
-    T2 = _cross(d, T1)
-    ss = 0.0
-    cc = 0.0
+@jit(inline="always")
+def _cunit(x, y, z):
+    n = cmath.sqrt(x * x + y * y + z * z)
+    return x / n, y / n, z / n
+
+
+@jit(inline="always")
+def _catan2(y, x):
+    yr, xr = y.real, x.real
+    d = xr * xr + yr * yr
+    if d == 0.0:
+        d = 1.0
+    return math.atan2(yr, xr) + 1j * ((xr * y.imag - yr * x.imag) / d)
+
+
+@jit
+def wall_q_cs(pu, pd, ok, e, curve, out):
+    """The quaternion of one wall point copy (boundary._point_quaternion) on its complex ``pd`` (5, 3): the quaternion
+    into ``out`` (4, complex); returns False where a normal is undefined."""
+    E = np.zeros((4, 3))
+    F = np.zeros((4, 3), dtype=np.complex128)
     for k in range(4):
-        ek, fk = E[:, k], F[:, k]
-        a1, a2 = _dot(ek, t1), _dot(ek, t2)
-        b1, b2 = _dot(fk, T1), _dot(fk, T2)
-        la2, lb2 = a1 * a1 + a2 * a2, b1 * b1 + b2 * b2
-        d2 = 1e-20
-        good = ok[:, 1 + k] & (np.real(la2) > d2 * np.real(_dot(ek, ek))) & \
-            (np.real(lb2) > d2 * np.real(_dot(fk, fk)))
-        inv = 1.0 / np.sqrt(np.where(good, la2 * lb2, 1.0))
-        ss = ss + np.where(good, (a1 * b2 - a2 * b1) * inv, 0.0)
-        cc = cc + np.where(good, (a1 * b1 + a2 * b2) * inv, 0.0)
-    r = np.sqrt(ss * ss + cc * cc)
-    pos = np.real(cc) >= 0.0
-    hw = np.where(pos, r + cc, ss)
-    hs = np.where(pos, ss, r - cc)
-    flip = (~pos) & (np.real(hw) < 0.0)
-    hw = np.where(flip, -hw, hw)
-    hs = np.where(flip, -hs, hs)
-    hn = np.sqrt(hw * hw + hs * hs)
-    Q2 = np.concatenate([(hw / hn)[:, None], d * (hs / hn)[:, None]], axis=1)
-    return _qmul(Q2, Q1)
+        if ok[1 + k]:
+            for c in range(3):
+                E[k, c] = pu[1 + k, c] - pu[0, c]
+                F[k, c] = pd[1 + k, c] - pd[0, c]
+    au = np.zeros(3)
+    ad = np.zeros(3, dtype=np.complex128)
+    bu = np.zeros(3)
+    bd = np.zeros(3, dtype=np.complex128)
+    for c in range(3):
+        if ok[1] and ok[2]:
+            au[c] = E[0, c] - E[1, c]
+            ad[c] = F[0, c] - F[1, c]
+        elif ok[1]:
+            au[c] = E[0, c]
+            ad[c] = F[0, c]
+        elif ok[2]:
+            au[c] = -E[1, c]
+            ad[c] = -F[1, c]
+        if curve:
+            bu[c] = e[c]
+            bd[c] = e[c]
+        elif ok[3] and ok[4]:
+            bu[c] = E[2, c] - E[3, c]
+            bd[c] = F[2, c] - F[3, c]
+        elif ok[3]:
+            bu[c] = E[2, c]
+            bd[c] = F[2, c]
+        elif ok[4]:
+            bu[c] = -E[3, c]
+            bd[c] = -F[3, c]
+    nx, ny, nz = _c3(au[0], au[1], au[2], bu[0], bu[1], bu[2])
+    nn = nx * nx + ny * ny + nz * nz
+    mx, my, mz = _c3(ad[0], ad[1], ad[2], bd[0], bd[1], bd[2])
+    mn = mx * mx + my * my + mz * mz
+    la = au[0] * au[0] + au[1] * au[1] + au[2] * au[2]
+    lb = bu[0] * bu[0] + bu[1] * bu[1] + bu[2] * bu[2]
+    ma = (ad[0] * ad[0] + ad[1] * ad[1] + ad[2] * ad[2]).real
+    mb = (bd[0] * bd[0] + bd[1] * bd[1] + bd[2] * bd[2]).real
+    d2 = 1e-20
+    if not (la > 0.0 and lb > 0.0 and nn > d2 * la * lb and ma > 0.0 and mb > 0.0
+            and mn.real > d2 * ma * mb):
+        return False
+    if not curve and (la <= d2 * lb or lb <= d2 * la or ma <= d2 * mb or mb <= d2 * ma):
+        return False
+    ux, uy, uz = _cunit(nx + 0j, ny + 0j, nz + 0j)
+    dx, dy, dz = _cunit(mx, my, mz)
+    if curve:
+        cx, cy, cz = _c3(ux, uy, uz, dx, dy, dz)
+        h = 0.5 * _catan2(e[0] * cx + e[1] * cy + e[2] * cz, ux * dx + uy * dy + uz * dz)
+        sh = cmath.sin(h)
+        a0, a1, a2, a3 = cmath.cos(h), e[0] * sh, e[1] * sh, e[2] * sh
+    else:
+        cc_ = ux * dx + uy * dy + uz * dz
+        vx, vy, vz = _c3(ux, uy, uz, dx, dy, dz)
+        w = 1.0 + cc_
+        n = cmath.sqrt(w * w + vx * vx + vy * vy + vz * vz)
+        a0, a1, a2, a3 = w / n, vx / n, vy / n, vz / n
+    t1x, t1y, t1z = _cunit(au[0] + 0j, au[1] + 0j, au[2] + 0j)
+    t2x, t2y, t2z = _c3(ux, uy, uz, t1x, t1y, t1z)
+    # T1 = rot(Q1, t1)
+    qx, qy, qz = 2.0 * (a2 * t1z - a3 * t1y), 2.0 * (a3 * t1x - a1 * t1z), 2.0 * (a1 * t1y - a2 * t1x)
+    T1x = t1x + a0 * qx + (a2 * qz - a3 * qy)
+    T1y = t1y + a0 * qy + (a3 * qx - a1 * qz)
+    T1z = t1z + a0 * qz + (a1 * qy - a2 * qx)
+    T2x, T2y, T2z = _c3(dx, dy, dz, T1x, T1y, T1z)
+    ss = 0j
+    cc = 0j
+    for k in range(4):
+        if not ok[1 + k]:
+            continue
+        ex, ey, ez = E[k, 0], E[k, 1], E[k, 2]
+        fx, fy, fz = F[k, 0], F[k, 1], F[k, 2]
+        a1_ = ex * t1x + ey * t1y + ez * t1z
+        a2_ = ex * t2x + ey * t2y + ez * t2z
+        b1 = fx * T1x + fy * T1y + fz * T1z
+        b2 = fx * T2x + fy * T2y + fz * T2z
+        la2 = a1_ * a1_ + a2_ * a2_
+        lb2 = b1 * b1 + b2 * b2
+        if not (la2.real > d2 * (ex * ex + ey * ey + ez * ez) and
+                lb2.real > d2 * (fx * fx + fy * fy + fz * fz).real):
+            continue
+        inv = 1.0 / cmath.sqrt(la2 * lb2)
+        ss += (a1_ * b2 - a2_ * b1) * inv
+        cc += (a1_ * b1 + a2_ * b2) * inv
+    r = cmath.sqrt(ss * ss + cc * cc)
+    if cc.real >= 0.0:
+        hw = r + cc
+        hs = ss
+    else:
+        hw = ss
+        hs = r - cc
+        if hw.real < 0.0:
+            hw = -hw
+            hs = -hs
+    hn = cmath.sqrt(hw * hw + hs * hs)
+    hw = hw / hn
+    hs = hs / hn
+    b0, b1_, b2_, b3 = hw, dx * hs, dy * hs, dz * hs
+    out[0] = b0 * a0 - b1_ * a1 - b2_ * a2 - b3 * a3
+    out[1] = b0 * a1 + b1_ * a0 + b2_ * a3 - b3 * a2
+    out[2] = b0 * a2 - b1_ * a3 + b2_ * a0 + b3 * a1
+    out[3] = b0 * a3 + b1_ * a2 - b2_ * a1 + b3 * a0
+    return True
 
 
-def _wall_op(sk, rd_in, centre, col):
-    """The merged wall quaternions of the targets ``rd_in`` (G, 3) read from column ``col``:
-    an op writing Q (columns Q0 or P0 chosen by the caller) of the wall points."""
+@jit
+def wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good):
+    """Every copy of a wall patch: the quaternion ``qc`` (n, 4), its complex-step Jacobian
+    ``Jc`` (n, 4, 15) in the deformed stencil and the defined flag ``good``."""
+    pd = np.empty((5, 3), dtype=np.complex128)
+    out = np.empty(4, dtype=np.complex128)
+    h = 1e-30
+    for m in range(pu_s.shape[0]):
+        for s in range(5):
+            for c in range(3):
+                pd[s, c] = pd_s[m, s, c]
+        good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+        for c in range(4):
+            qc[m, c] = out[c].real if good[m] else np.nan
+        for j in range(15):
+            if not good[m]:
+                for c in range(4):
+                    Jc[m, c, j] = 0.0
+                continue
+            s, c0 = j // 3, j % 3
+            if not ok[m, s]:
+                for c in range(4):
+                    Jc[m, c, j] = 0.0
+                continue
+            pd[s, c0] = pd_s[m, s, c0] + 1j * h
+            wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+            pd[s, c0] = pd_s[m, s, c0]
+            for c in range(4):
+                Jc[m, c, j] = out[c].imag / h
+
+
+@jit(inline="always")
+def _crot(w, x, y, z, vx, vy, vz):
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return (vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz),
+            vz + w * tz + (x * ty - y * tx))
+
+
+@jit(inline="always")
+def sym_eval(y, arm, carm, point, nrm, out):
+    """The symmetry fix (stages.symmetry_fix with Q) of one point on complex ``y`` = (F, Q)."""
+    nx, ny, nz = nrm[0], nrm[1], nrm[2]
+    rx, ry, rz = _crot(y[3], y[4], y[5], y[6], arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
+    px = carm[0] + y[0] + rx
+    py = carm[1] + y[1] + ry
+    pz = carm[2] + y[2] + rz
+    dd = (px - point[0]) * nx + (py - point[1]) * ny + (pz - point[2]) * nz
+    px -= dd * nx
+    py -= dd * ny
+    pz -= dd * nz
+    u = y[4] * nx + y[5] * ny + y[6] * nz
+    t0, t1, t2, t3 = y[3], u * nx, u * ny, u * nz
+    nn = cmath.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
+    if nn.real == 0.0:
+        t0, t1, t2, t3 = 1.0 + 0j, 0j, 0j, 0j
+    else:
+        t0, t1, t2, t3 = t0 / nn, t1 / nn, t2 / nn, t3 / nn
+    sx, sy, sz = _crot(t0, t1, t2, t3, arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
+    out[0] = px - carm[0] - sx
+    out[1] = py - carm[1] - sy
+    out[2] = pz - carm[2] - sz
+    out[3] = t0
+    out[4] = t1
+    out[5] = t2
+    out[6] = t3
+
+
+@jit
+def sym_forward(Z, rows, c0, Y, arm, carm, point, normal):
+    """Tangent of the symmetry fix on rows ``rows`` (columns ``c0:c0+7``), by one complex
+    step along the tangent per point (exact), from the stored inputs ``Y`` (n, 7)."""
+    y = np.empty(7, dtype=np.complex128)
+    out = np.empty(7, dtype=np.complex128)
+    h = 1e-30
+    for m in range(rows.shape[0]):
+        r = rows[m]
+        for c in range(7):
+            y[c] = Y[m, c] + 1j * h * Z[r, c0 + c]
+        sym_eval(y, arm[m], carm, point[m], normal[m], out)
+        for c in range(7):
+            Z[r, c0 + c] = out[c].imag / h
+
+
+@jit
+def sym_backward(Zb, rows, c0, Y, arm, carm, point, normal):
+    """The transpose of :func:`sym_forward` (its Jacobian's columns by complex steps)."""
+    y = np.empty(7, dtype=np.complex128)
+    out = np.empty(7, dtype=np.complex128)
+    b = np.empty(7)
+    h = 1e-30
+    for m in range(rows.shape[0] - 1, -1, -1):
+        r = rows[m]
+        for c in range(7):
+            b[c] = Zb[r, c0 + c]
+            Zb[r, c0 + c] = 0.0
+        for j in range(7):
+            for c in range(7):
+                y[c] = Y[m, c]
+            y[j] += 1j * h
+            sym_eval(y, arm[m], carm, point[m], normal[m], out)
+            s = 0.0
+            for c in range(7):
+                s += out[c].imag / h * b[c]
+            Zb[r, c0 + j] += s
+
+
+class SymOp:
+    """The symmetry fix with Q: 7 + 3 numbers per point (its inputs and arm), the Jacobian
+    by complex steps on the fly (:func:`sym_forward`, :func:`sym_backward`)."""
+
+    __slots__ = ("rows", "c0", "Y", "arm", "carm", "point", "normal")
+    diag = False
+
+    def __init__(self, rows, c0, Y, arm, carm, point, normal):
+        self.rows = np.ascontiguousarray(rows, dtype=np.int64)
+        self.c0 = int(c0)
+        self.Y = np.ascontiguousarray(Y, dtype=np.float64)
+        self.arm = np.ascontiguousarray(arm, dtype=np.float64)
+        self.carm = np.ascontiguousarray(carm, dtype=np.float64)
+        self.point = point
+        self.normal = normal
+
+    @property
+    def nbytes(self):
+        return self.rows.nbytes + self.Y.nbytes + self.arm.nbytes
+
+    def args(self):
+        return self.rows, self.c0, self.Y, self.arm, self.carm, self.point, self.normal
+
+
+def wall_jacobian(sk, rd_in, centre):
+    """The Jacobian of the merged wall quaternions (:func:`stages.wall_quaternions`) in the
+    targets ``rd_in`` (G, 3): ``(idx (n_wall, k), J (n_wall, 4, 3 k))``, -1 for no read."""
+    with np.errstate(all="ignore"):         # undefined normals: NaN, then filled
+        return _wall_jacobian(sk, rd_in, centre)
+
+
+def _wall_jacobian(sk, rd_in, centre):
     from ..boundary import motion_padded
     from .stages import halo_points
     pts = sk.points
@@ -513,7 +1254,8 @@ def _wall_op(sk, rd_in, centre, col):
     nw = wall.size
     curve = sk.ndim == 2
     e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
-    copies = [[] for _ in range(nw)]          # per wall point: (q_copy, J_copy (4, 15), gids, mats)
+    seq_w, seq_q = [], []                     # the copies, in the step's merge order
+    r_w, r_g, r_b = [], [], []                # their reads: copy, gid, (4, 3) block
     ident = np.eye(3)
     for w, lid in zip(sk.walls.patches, sk.walls.local):
         pd = np.empty_like(w.pu)
@@ -546,41 +1288,132 @@ def _wall_op(sk, rd_in, centre, col):
             pu_s[:, s] = np.where((g >= 0)[:, None], pu_p[a2, b2], 0.0)
             pd_s[:, s] = np.where((g >= 0)[:, None], pd_p[a2, b2], 0.0)
         ok = gids >= 0
-        # defined normals (else the forward step filled the point: zero tangent)
-        qc = _wall_q_copy(pd_s.reshape(-1, 15).astype(np.complex128), pu_s, ok, e, curve).real
-        Jc = cs_jacobian(_wall_q_copy, pd_s.reshape(-1, 15), pu_s, ok, e, curve)
-        good = np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
-        sgn = np.where(np.sum(qc * qf, axis=1) < 0.0, -1.0, 1.0)
-        Jc = np.where(good[:, None, None], Jc * sgn[:, None, None], 0.0)
-        for m in range(I.size):
-            mats = []
-            for s in range(5):
-                p = mirr[m, s]
-                if p >= 0:
-                    nn = pts.plane_n[p]
-                    mats.append(ident - 2.0 * np.outer(nn, nn))
-                else:
-                    mats.append(ident)
-            copies[lid[m]].append((qf[m], Jc[m], gids[m], mats))
-    kmax = 5 * max((len(c) for c in copies), default=1)
+        qc = np.empty((I.size, 4))
+        Jc = np.empty((I.size, 4, 15))
+        good = np.empty(I.size, dtype=np.bool_)
+        wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good)
+        # defined normals; the others the step fills from their neighbours (below)
+        good &= np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
+        Jb = Jc.reshape(-1, 4, 5, 3)
+        mm = mirr >= 0
+        if mm.any():                         # mirrored halo points: X -> (I - 2 n n^T) X
+            M = np.broadcast_to(ident, (I.size, 5, 3, 3)).copy()
+            nn = pts.plane_n[mirr[mm]]
+            M[mm] = ident - 2.0 * nn[:, :, None] * nn[:, None, :]
+            Jb = np.einsum("nakc,nkcd->nakd", Jb, M)
+        qcur = np.where(good[:, None], qc, np.nan)
+        rows = _Rows(gids, Jb)
+        _fill_rows(qcur, rows, good, na, nb)
+        sg = np.where(np.sum(qcur * qf, axis=1) < 0.0, -1.0, 1.0)
+        n0 = len(seq_w)
+        seq_w.extend(lid.tolist())
+        seq_q.append(qf)
+        dense = good[:, None] & (gids >= 0)
+        r_w.append(np.broadcast_to((n0 + np.arange(I.size))[:, None], gids.shape)[dense])
+        r_g.append(gids[dense])
+        r_b.append((sg[:, None, None, None] * np.moveaxis(Jb, 2, 1))[dense])
+        for m in np.flatnonzero(~good):
+            if rows[m]:
+                gl = sorted(rows[m])
+                r_w.append(np.full(len(gl), n0 + m))
+                r_g.append(np.array(gl, dtype=np.int64))
+                r_b.append(sg[m] * np.array([rows[m][g] for g in gl]))
+    # the hemisphere-aligned merge of the copies of each wall point, in the step's order
+    cw = np.array(seq_w, dtype=np.int64)
+    cq = np.concatenate(seq_q) if seq_q else np.zeros((0, 4))
+    order = np.argsort(cw, kind="stable")
+    first = np.r_[True, cw[order][1:] != cw[order][:-1]]
+    rank = np.empty(cw.size, dtype=np.int64)
+    start = np.maximum.accumulate(np.where(first, np.arange(cw.size), 0))
+    rank[order] = np.arange(cw.size) - start
+    acc = np.zeros((nw, 4))
+    csg = np.ones(cw.size)
+    for r in range(int(rank.max(initial=-1)) + 1):
+        sel = np.flatnonzero(rank == r)
+        w_ = cw[sel]
+        if r:
+            csg[sel] = np.where(np.sum(acc[w_] * cq[sel], axis=1) >= 0.0, 1.0, -1.0)
+        acc[w_] += csg[sel, None] * cq[sel]
+    nrm = np.linalg.norm(acc, axis=1)
+    qn = acc / nrm[:, None]
+    Pm = (np.eye(4)[None] - qn[:, :, None] * qn[:, None, :]) / nrm[:, None, None]
+    # the reads of every wall point: (wall point, gid) summed over copies
+    rc = np.concatenate(r_w) if r_w else np.zeros(0, np.int64)
+    rg = np.concatenate(r_g) if r_g else np.zeros(0, np.int64)
+    rb = np.concatenate(r_b) if r_b else np.zeros((0, 4, 3))
+    rw = cw[rc]
+    rb = np.einsum("nab,nbc->nac", Pm[rw], rb * csg[rc, None, None])
+    key, inv = np.unique(rw * (pts.n_global + 1) + rg, return_inverse=True)
+    blocks = np.zeros((key.size, 4, 3))
+    np.add.at(blocks, inv, rb)
+    kw = key // (pts.n_global + 1)
+    kg = key % (pts.n_global + 1)
+    firstk = np.r_[True, kw[1:] != kw[:-1]]
+    slot = np.arange(key.size) - np.maximum.accumulate(np.where(firstk, np.arange(key.size), 0))
+    kmax = int(slot.max(initial=0)) + 1
     idx = np.full((nw, kmax), -1, dtype=np.int64)
-    Jw = np.zeros((nw, 4, 3 * kmax))
-    for v, cl in enumerate(copies):
-        acc = np.zeros(4)
-        sg = []
-        for q, *_ in cl:
-            s = 1.0 if (not sg or acc @ q >= 0.0) else -1.0
-            sg.append(s)
-            acc = acc + s * q
-        nrm = np.linalg.norm(acc)
-        qn = acc / nrm
-        Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
-        for c, (q, Jc, g, mats) in enumerate(cl):
-            for s in range(5):
-                k = 5 * c + s
-                idx[v, k] = g[s]
-                Jw[v, :, 3 * k:3 * k + 3] = sg[c] * Pm @ Jc[:, 3 * s:3 * s + 3] @ mats[s]
-    return idx, Jw
+    Jw = np.zeros((nw, kmax, 4, 3))
+    idx[kw, slot] = kg
+    Jw[kw, slot] = blocks
+    return idx, np.ascontiguousarray(np.moveaxis(Jw, 1, 2).reshape(nw, 4, 3 * kmax))
+
+
+class _Rows(dict):
+    """Sparse Jacobian rows of the wall point copies of a patch (gid -> (4, 3)), made on
+    demand from the dense stencil blocks of the defined copies."""
+
+    def __init__(self, gids, Jb):
+        super().__init__()
+        self.gids = gids
+        self.Jb = Jb
+
+    def __missing__(self, m):
+        row = {}
+        for k in range(5):
+            g = int(self.gids[m, k])
+            if g >= 0:
+                row[g] = row.get(g, 0.0) + self.Jb[m, :, k]
+        self[m] = row
+        return row
+
+
+def _fill_rows(q, rows, ok, na, nb):
+    """The forward's filling of undefined wall points (boundary._fill_degenerate: sweeps, each
+    undefined point the normalised hemisphere-aligned sum of its defined 8-neighbours) on the
+    values ``q`` (n, 4) and the sparse Jacobian rows ``rows`` (gid -> (4, 3)), in place.
+    Points with no defined point anywhere get an empty row."""
+    okm = ok.copy()
+    while not okm.all():
+        cur = okm.copy()
+        filled = left = 0
+        for m in np.flatnonzero(~okm):
+            i, j = divmod(int(m), nb)
+            nbrs = [(a * nb + b) for a in range(i - 1, i + 2) for b in range(j - 1, j + 2)
+                    if (a, b) != (i, j) and 0 <= a < na and 0 <= b < nb and okm[a * nb + b]]
+            if not nbrs:
+                left += 1
+                continue
+            ref = q[nbrs[0]]
+            acc = np.zeros(4)
+            row = {}
+            for k in nbrs:
+                s = -1.0 if q[k] @ ref < 0.0 else 1.0
+                acc += s * q[k]
+                for g, blk in rows[k].items():
+                    row[g] = row.get(g, 0.0) + s * blk
+            nrm = np.linalg.norm(acc)
+            qn = acc / nrm
+            Pm = (np.eye(4) - np.outer(qn, qn)) / nrm
+            q[m] = qn
+            rows[m] = {g: Pm @ blk for g, blk in row.items()}
+            cur[m] = True
+            filled += 1
+        okm[:] = cur
+        if left == 0 or filled == 0:
+            break
+    for m in np.flatnonzero(~okm):
+        rows[m] = {}
+        q[m] = (1.0, 0.0, 0.0, 0.0)
 
 
 def _vertex_ops(sk, Qcur, dcol, qcol, two):
@@ -620,10 +1453,7 @@ def _vertex_ops(sk, Qcur, dcol, qcol, two):
 
 def _rebase_op(rows, Q, shift):
     """K[p] += rot(Q[p], shift[p]) (two-level re-basing), reading K and Q of the row."""
-    def f(X, s):
-        return X[:, :3] + _rot(X[:, 3:7], s)
-    X = np.concatenate([np.zeros((rows.size, 3)), Q[rows]], axis=1)
-    return Op(rows, K0, 3, _self(rows), K0, 7, cs_jacobian(f, X, shift[rows]))
+    return RotOp(rows, K0, K0, Q0, -1, 1.0, Q[rows], shift[rows])
 
 
 def _segment_ops(sk, Qcur, dcol, qcol, two):
@@ -662,7 +1492,7 @@ def _segment_ops(sk, Qcur, dcol, qcol, two):
     return ops
 
 
-def _patch_ops(sk, Qcur, dcol, qcol, two):
+def patch_ops(sk, Qcur, dcol, qcol, two):
     """The derived patches: Δ/K (diag, 8 reads), Q (the normalised Soni blend of 8 quaternions,
     faded for two-level), the re-basing."""
     rows, idx, wd, X, cst = [], [], [], [], []
@@ -702,41 +1532,14 @@ def _patch_ops(sk, Qcur, dcol, qcol, two):
     if not rows:
         return []
     rows = np.concatenate(rows)
-    idx = np.concatenate(idx)
-    ops = [Op(rows, dcol, 3, idx, dcol, 3, np.concatenate(wd), diag=True)]
-    if qcol is None:
-        return ops
+    ii = np.concatenate([rows[:, None], np.concatenate(idx)], axis=1)
     cst = np.concatenate(cst)
-    X = Qcur[idx].reshape(rows.size, 32)
-    damp = two.damp[rows] if two is not None else None
-
-    def line(a, b, s0, t):
-        a = s0[:, None] * a
-        b = _sign(_dot(a, b))[:, None] * b
-        wa, wb = _slerp_w(t, _omega2(a, b))
-        return wa[:, None] * a + wb[:, None] * b
-
-    def f(X, c, damp, fall=False):
-        q = [X[:, 4 * k:4 * k + 4] for k in range(8)]
-        t, sm, t0, t1, sm_, s00, s0e = (c[:, k] for k in range(7))
-        U = line(q[0], q[1], sm_, t)
-        U0 = line(q[2], q[3], s00, t0)
-        U1 = line(q[5], q[6], s0e, t1)
-        r0 = _sign(_dot(U0, q[4]))[:, None] * q[4] - U0
-        r1 = _sign(_dot(U1, q[7]))[:, None] * q[7] - U1
-        V = U + (1.0 - sm)[:, None] * r0 + sm[:, None] * r1
-        if fall:
-            return np.sqrt(_dot(V, V)).real
-        out = _normalize(V)
-        return out if damp is None else cs_fade(out, damp)
-
-    Jq = cs_jacobian(f, X, cst, damp)
-    fallback = f(X.astype(np.complex128), cst, damp, True) < tfi.QNORM_MIN
-    Jq[fallback] = 0.0
-    ops.append(Op(rows, qcol, 4, idx, qcol, 4, Jq))
-    if two is not None:
-        ops.append(_rebase_op(rows, Qcur, two.shift))
-    return ops
+    damp = two.damp[rows] if two is not None else np.zeros(rows.size)
+    ff = np.concatenate([cst, damp[:, None]], axis=1)
+    use_q = qcol is not None
+    Q = Qcur if use_q else np.zeros((1, 4))
+    shift = two.shift if two is not None else np.zeros((1, 3))
+    return [PatchOp(dcol, qcol if use_q else 0, use_q, two is not None, ii, ff, Q, shift)]
 
 
 def _symmetry_op(sk, F, Q, X, carm, dcol, use_q):
@@ -750,18 +1553,8 @@ def _symmetry_op(sk, F, Q, X, carm, dcol, use_q):
         J = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
         return [Op(g, dcol, 3, _self(g), dcol, 3, J)]
 
-    def f(Y, arm, point, nrm):
-        Fv, q = Y[:, :3], Y[:, 3:]
-        pos = carm + Fv + _rot(q, arm)
-        d = _dot(pos - point, nrm)
-        pos = pos - d[:, None] * nrm
-        u = _dot(q[:, 1:], nrm)
-        tw = np.concatenate([q[:, :1], u[:, None] * nrm], axis=1)
-        tw = _normalize(tw)
-        return np.concatenate([pos - carm - _rot(tw, arm), tw], axis=1)
-
     Y = np.concatenate([F[g], Q[g]], axis=1)
-    return [Op(g, dcol, 7, _self(g), dcol, 7, cs_jacobian(f, Y, X[g] - carm, sym.point, n))]
+    return [SymOp(g, dcol, Y, X[g] - carm, carm, sym.point, n)]
 
 
 def _project_op(sk, col=POS):
@@ -797,25 +1590,18 @@ def _build(deformer, rd):
         (gd, gq, _, _), = rec["passes"]
         Dpre, Qpre = rec["pre"]
         if use_q:
-            idx, Jw = _wall_op(sk, rd, c, RD)
+            idx, Jw = wall_jacobian(sk, rd, c)
             ops.append(Op(wall, P0, 4, idx, RD, 3, Jw))
-
-            def fw(Xw, arm):
-                return Xw[:, 7:10] - _rot(Xw[:, :4], arm)
-            Xw = np.concatenate([Qpre[wall], np.zeros((wall.size, 3)), rd[wall]], axis=1)
-            ops.append(Op(wall, D0, 3, _self(wall), P0, 10, cs_jacobian(fw, Xw, P[wall] - c)))
+            ops.append(RotOp(wall, D0, RD, P0, -1, -1.0, Qpre[wall], P[wall] - c))
         else:
             ops.append(_copy_op(wall, D0, RD, 3))
         qcol = P0 if use_q else None
         ops += _vertex_ops(sk, Qpre, D0, qcol, None)
         ops += _segment_ops(sk, Qpre, D0, qcol, None)
-        ops += _patch_ops(sk, Qpre, D0, qcol, None)
+        ops += patch_ops(sk, Qpre, D0, qcol, None)
         ops += _symmetry_op(sk, Dpre, Qpre, P, c, D0, use_q)
         if use_q:
-            def fp(Xp, arm):
-                return Xp[:, :3] + _rot(Xp[:, 3:7], arm)
-            Xp = np.concatenate([gd[der], gq[der]], axis=1)
-            ops.append(Op(der, POS, 3, _self(der), D0, 7, cs_jacobian(fp, Xp, P[der] - c)))
+            ops.append(RotOp(der, POS, D0, P0, -1, 1.0, gq[der], P[der] - c))
         else:
             ops.append(_copy_op(der, POS, D0, 3))
         ops += _project_op(sk)
@@ -842,32 +1628,32 @@ def _build(deformer, rd):
         bwall[pos_w[body.gids]] = b
 
     def fy(X):
-        qt, r = X[:, :7], X[:, 20 + RD:20 + RD + 3]
-        qc = qt[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
-        return _rot(qc, r - qt[:, 4:7])
+        qc = X[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
+        return _rot(qc, X[:, 7:10] - X[:, 4:7])
 
-    Xy = np.zeros((wall.size, 40))
+    Xy = np.zeros((wall.size, 10))
     for b, (q, t) in enumerate(fits):
         sel = bwall == b
         Xy[sel, :4] = q
         Xy[sel, 4:7] = t
-    Xy[:, 20 + RD:20 + RD + 3] = rd[wall]
-    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, cs_jacobian(fy, Xy)))
+    Xy[:, 7:10] = rd[wall]
+    Jy = cs_jacobian(fy, Xy)
+    Jfull = np.zeros((wall.size, 3, 40))
+    Jfull[:, :, :7] = Jy[:, :, :7]
+    Jfull[:, :, 20 + RD:20 + RD + 3] = Jy[:, :, 7:10]
+    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, Jfull))
     # residual pass
-    idx, Jw = _wall_op(sk, y, c, Y)
+    idx, Jw = wall_jacobian(sk, y, c)
     ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
     ops.append(_copy_op(wall, K0, Y, 3))
     ops += _vertex_ops(sk, qlpre, K0, Q0, two)
     if sk.vertices.idw is not None:
         ops.append(_rebase_op(sk.vertices.free, qlpre, two.shift))
     ops += _segment_ops(sk, qlpre, K0, Q0, two)
-    ops += _patch_ops(sk, qlpre, K0, Q0, two)
+    ops += patch_ops(sk, qlpre, K0, Q0, two)
     ops += _symmetry_op(sk, Kpre, qlpre, two.arm, np.zeros(3), K0, True)
 
-    def fl(Xp, arm):
-        return Xp[:, :3] + _rot(Xp[:, 3:7], arm)
-    ops.append(Op(der, POS, 3, _self(der), K0, 7,
-                  cs_jacobian(fl, np.concatenate([K[der], ql[der]], axis=1), two.arm[der])))
+    ops.append(RotOp(der, POS, K0, Q0, -1, 1.0, ql[der], two.arm[der]))
     ops.append(_copy_op(wall, POS, Y, 3))
     # rigid pass: body rows Δ_b, q_b, v_b from (q, t)
     qts = np.array([np.concatenate([q, t]) for q, t in fits]).reshape(nb, 7)
@@ -878,25 +1664,17 @@ def _build(deformer, rd):
         return np.concatenate([t + _rot(q, cc) - cc, q, cs_log(q)], axis=1)
     ops.append(Op(brow, 7, 10, _self(brow), 0, 7, cs_jacobian(fb, qts)))
     bq = fb(qts.astype(np.complex128)).real
-    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.broadcast_to(np.eye(7), (wall.size, 7, 7))))
+    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.ones((wall.size, 1)), diag=True))
     if der.size:
+        # Δ = Σ φ_b Δ_b, v = Σ φ_b v_b (into the scratch columns), Q = exp(v)
         phi = two.phi
-
-        def fr(X, phi):
-            Xb = X.reshape(X.shape[0], nb, 10)
-            D = np.einsum("nb,nbk->nk", phi, Xb[:, :, :3])
-            v = np.einsum("nb,nbk->nk", phi, Xb[:, :, 7:10])
-            return np.concatenate([D, cs_exp_half(v)], axis=1)
-        Xr = np.broadcast_to(bq.reshape(1, -1), (der.size, nb * 10))
-        ops.append(Op(der, D0, 7, np.broadcast_to(brow, (der.size, nb)), 7, 10,
-                      cs_jacobian(fr, Xr, phi)))
+        reads = np.broadcast_to(brow, (der.size, nb))
+        ops.append(Op(der, D0, 3, reads, 7, 3, phi, diag=True))
+        ops.append(Op(der, T0, 3, reads, 14, 3, phi, diag=True))
+        ops.append(ExpOp(der, T0, P0, phi @ bq[:, 7:10]))
     ops += _symmetry_op(sk, *rec["rigid_pre"], P, c, D0, True)
 
-    def fg(Xp, cc):
-        return cc + Xp[:, :3] + _rot(Xp[:, 3:7], Xp[:, 7:10] - cc)
-    Xg = np.concatenate([gd[der], qg[der], rec["posl"][der]], axis=1)
-    ops.append(Op(der, POS, 3, _self(der), D0, 10,
-                  cs_jacobian(fg, Xg, np.broadcast_to(c, (der.size, 3)))))
+    ops.append(RotOp(der, POS, D0, P0, POS, 1.0, qg[der], rec["posl"][der] - c))
     ops += _project_op(sk)
     ops.append(_copy_op(wall, POS, RD, 3))
     return Linearisation(ops, G, nb, [(K0, Q0), (D0, P0)], True, rec["passes"])
