@@ -109,22 +109,25 @@ def _du_q(lineQ, dlineQ, la, lb, t):
 
 
 @jit(inline="always")
-def _du_q_bar(lineQ, lbar, la, lb, t, bw, bx, by, bz):
+def _du_q_bar(lineQ, lbar, la, lb, t, bw, bx, by, bz, ba=-1, bb=-1):
     """Adjoint of :func:`_du_q`: ``(bw, bx, by, bz)``, the bar of ``U``, accumulated into the
-    line's bar (``q0``, ``q1``, ``ω²`` at 0:4, 4:8, 8)."""
+    line's bar (``q0``, ``q1``, ``ω²`` at 0:4, 4:8, 8) at ``(ba, bb)`` (default: ``(la, lb)``)."""
+    if ba < 0:
+        ba = la
+        bb = lb
     w2 = lineQ[la, lb, 8]
     sw = lineQ[la, lb, 9]
     wa, wb = slerp_weights(t, w2, sw)
     da, db = dslerp_weights(t, w2, sw)
-    lbar[la, lb, 0] += wa * bw
-    lbar[la, lb, 1] += wa * bx
-    lbar[la, lb, 2] += wa * by
-    lbar[la, lb, 3] += wa * bz
-    lbar[la, lb, 4] += wb * bw
-    lbar[la, lb, 5] += wb * bx
-    lbar[la, lb, 6] += wb * by
-    lbar[la, lb, 7] += wb * bz
-    lbar[la, lb, 8] += (da * (lineQ[la, lb, 0] * bw + lineQ[la, lb, 1] * bx + lineQ[la, lb, 2] * by +
+    lbar[ba, bb, 0] += wa * bw
+    lbar[ba, bb, 1] += wa * bx
+    lbar[ba, bb, 2] += wa * by
+    lbar[ba, bb, 3] += wa * bz
+    lbar[ba, bb, 4] += wb * bw
+    lbar[ba, bb, 5] += wb * bx
+    lbar[ba, bb, 6] += wb * by
+    lbar[ba, bb, 7] += wb * bz
+    lbar[ba, bb, 8] += (da * (lineQ[la, lb, 0] * bw + lineQ[la, lb, 1] * bx + lineQ[la, lb, 2] * by +
                               lineQ[la, lb, 3] * bz) +
                         db * (lineQ[la, lb, 4] * bw + lineQ[la, lb, 5] * bx + lineQ[la, lb, 6] * by +
                               lineQ[la, lb, 7] * bz))
@@ -433,9 +436,11 @@ def _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz, L, M, N, lineD, lin
 
 @jit(forceinline=True)
 def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, gQ, ma, mb,
-               hQ, na, nb, lineB, gB, hB, bLD, bLQ, bMD, bMQ, bND, bNQ, hasn, hasq, based, rbar):
+               hQ, na, nb, lineB, gB, hB, bLD, bLQ, bMD, bMQ, bND, bNQ, kla, klb, kma, kmb,
+               kna, knb, hasn, hasq, based, rbar):
     """Adjoint of :func:`_jvp_point`: the bar of ``out`` at the point into the table bars
-    (``bLD``... the chunk's) and ``xbar``; returns 1 below QNORM_MIN."""
+    (``bLD``... the chunk's, at ``(kla, klb)``, ``(kma, kmb)``, ``(kna, knb)``: the table
+    indices, or (0, 0) of a row's accumulator) and ``xbar``; returns 1 below QNORM_MIN."""
     t = s[i, j, k, L]
     sm = s[i, j, k, M]
     if hasn is not None:
@@ -450,13 +455,13 @@ def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, 
     oy = obar[i, j, k, 1]
     oz = obar[i, j, k, 2]
     # Δ (linear in the D tables)
-    _d_bar(bLD, la, lb, 0, 1.0 - t, ox, oy, oz)
-    _d_bar(bLD, la, lb, 3, t, ox, oy, oz)
-    _d_bar(bMD, ma, mb, 0, um, ox, oy, oz)
-    _d_bar(bMD, ma, mb, 3, sm, ox, oy, oz)
+    _d_bar(bLD, kla, klb, 0, 1.0 - t, ox, oy, oz)
+    _d_bar(bLD, kla, klb, 3, t, ox, oy, oz)
+    _d_bar(bMD, kma, kmb, 0, um, ox, oy, oz)
+    _d_bar(bMD, kma, kmb, 3, sm, ox, oy, oz)
     if hasn is not None:
-        _d_bar(bND, na, nb, 0, un, ox, oy, oz)
-        _d_bar(bND, na, nb, 3, sn, ox, oy, oz)
+        _d_bar(bND, kna, knb, 0, un, ox, oy, oz)
+        _d_bar(bND, kna, knb, 3, sn, ox, oy, oz)
     if hasq is None:
         if rbar is not None:
             xbar[i, j, k, 0] = ox
@@ -503,13 +508,26 @@ def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, 
     wx = (bx_ - qx * pr) * inv
     wy = (by_ - qy * pr) * inv
     wz = (bz_ - qz * pr) * inv
-    _du_q_bar(lineQ, bLQ, la, lb, t, ww, wx, wy, wz)
-    _q_bar(bMQ, ma, mb, 0, um, ww, wx, wy, wz)
-    _q_bar(bMQ, ma, mb, 4, sm, ww, wx, wy, wz)
+    _du_q_bar(lineQ, bLQ, la, lb, t, ww, wx, wy, wz, kla, klb)
+    _q_bar(bMQ, kma, kmb, 0, um, ww, wx, wy, wz)
+    _q_bar(bMQ, kma, kmb, 4, sm, ww, wx, wy, wz)
     if hasn is not None:
-        _q_bar(bNQ, na, nb, 0, un, ww, wx, wy, wz)
-        _q_bar(bNQ, na, nb, 4, sn, ww, wx, wy, wz)
+        _q_bar(bNQ, kna, knb, 0, un, ww, wx, wy, wz)
+        _q_bar(bNQ, kna, knb, 4, sn, ww, wx, wy, wz)
     return 1 if n < QNORM_MIN else 0
+
+
+@jit(inline="always")
+def _flush(accD, accQ, tD, tQ, a, b):
+    """Add a row's accumulated bars to the entry ``(a, b)`` of the tables ``tD``, ``tQ`` and
+    zero the accumulators (``tQ`` has 8 or 10 components: the rest of ``accQ`` is 0)."""
+    for c in range(6):
+        tD[a, b, c] += accD[0, 0, c]
+        accD[0, 0, c] = 0.0
+    for c in range(tQ.shape[2]):
+        tQ[a, b, c] += accQ[0, 0, c]
+    for c in range(10):
+        accQ[0, 0, c] = 0.0
 
 
 def _jvp_kernel(hasn: bool, hasq: bool, based: bool, dbased: bool):
@@ -579,19 +597,42 @@ def _kernel(kind, hasn, hasq, based, extra):
             bMQ = bgQ[:, :, :, ch if share[1] else 0]
             bND = bhD[:, :, :, ch if share[2] else 0]
             bNQ = bhQ[:, :, :, ch if share[2] else 0]
+            accD = np.zeros((1, 1, 6))
+            accQ = np.zeros((1, 1, 10))
             nbad = 0
             for p in range(p0[ch], p0[ch + 1]):
                 for q in range(nj if hasn else 1):
                     j = q if hasn else p
                     k = p if hasn else 0
-                    for i in range(ni):
-                        la, lb = face_coords(i, j, k, L)
-                        ma, mb = face_coords(i, j, k, M)
-                        na, nb = face_coords(i, j, k, N)
-                        nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N,
-                                           lineQ, la, lb, gQ, ma, mb, hQ, na, nb, lineB, gB,
-                                           hB, bLD, bLQ, bMD, bMQ, bND, bNQ, nflag, qflag,
-                                           bflag, xflag)
+                    # the role whose direction is i reads one table entry all along
+                    # the row: its bars go to the row's accumulators, added once after
+                    if hasn:
+                        cl = k if L == 1 else j
+                        cm = k if M == 1 else j
+                        cn = k if N == 1 else j
+                    else:
+                        cl = cm = cn = 0
+                    if L == 0:
+                        for i in range(ni):
+                            nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
+                                               N, lineQ, j, k, gQ, i, cm, hQ, i, cn, lineB,
+                                               gB, hB, accD, accQ, bMD, bMQ, bND, bNQ,
+                                               0, 0, i, cm, i, cn, nflag, qflag, bflag, xflag)
+                        _flush(accD, accQ, bLD, bLQ, j, k)
+                    elif M == 0:
+                        for i in range(ni):
+                            nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
+                                               N, lineQ, i, cl, gQ, j, k, hQ, i, cn, lineB,
+                                               gB, hB, bLD, bLQ, accD, accQ, bND, bNQ,
+                                               i, cl, 0, 0, i, cn, nflag, qflag, bflag, xflag)
+                        _flush(accD, accQ, bMD, bMQ, j, k)
+                    else:
+                        for i in range(ni):
+                            nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
+                                               N, lineQ, i, cl, gQ, i, cm, hQ, j, k, lineB,
+                                               gB, hB, bLD, bLQ, bMD, bMQ, accD, accQ,
+                                               i, cl, i, cm, 0, 0, nflag, qflag, bflag, xflag)
+                        _flush(accD, accQ, bND, bNQ, j, k)
             bad[ch] = nbad
     return vjp
 
