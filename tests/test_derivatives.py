@@ -180,7 +180,9 @@ def test_volume_fallback_points_are_counted():
 
 
 def test_volume_vjp_same_bits_on_1_and_2_threads():
-    """The adjoint's sums do not depend on the threads (fixed chunks, summed in order)."""
+    """The adjoint's sums do not depend on the threads (fixed chunks, summed in order); the
+    tangent's points neither (called here without the Deformer's serial_below, so that two
+    threads really run on this small block)."""
     k = _case(3, True, False, True, 2)
     xyz, s, plan, n = _block((9, 8, 20), (0, 1, 2), 2)
     rng = np.random.default_rng(0)
@@ -190,9 +192,11 @@ def test_volume_vjp_same_bits_on_1_and_2_threads():
     for nt in (1, 2):
         gdb, gqb = np.zeros((n, 3)), np.zeros((n, 4))
         xb = np.zeros_like(xyz, order="F")
+        out, dout = np.empty_like(xyz, order="F"), np.empty_like(xyz, order="F")
         with use_threads(nt):
             dtfi.volume_vjp(plan, xyz, s, gd, gq, k["c"], ob, gdb, gqb, xbar=xb)
-        res.append((gdb, gqb, xb))
+            dtfi.volume_jvp(plan, xyz, s, gd, gq, gdb, gqb, k["c"], out, dout, dxyz=ob)
+        res.append((gdb, gqb, xb, out, dout))
     for a, b in zip(*res):
         assert np.array_equal(a, b)
 
@@ -274,6 +278,8 @@ def test_jvp_of_a_rigid_rotation_rotates_every_point(name, kw, deformed):
 
 @pytest.mark.parametrize("method", ["two-level", "tfi"])
 def test_jvp_and_vjp_same_bits_on_1_and_2_threads(method):
+    """Deformer(threads=1) and threads=2 (on blocks this small the kernels run serially
+    below tfi_quat._jit.SERIAL_BELOW; the kernels' own thread test is above)."""
     grid, walls, sym, fixed = G.o_grid_3d(ni=13, nj=7, nk=12)
     res = []
     for nt in (1, 2):
