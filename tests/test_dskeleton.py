@@ -154,7 +154,10 @@ def test_fit_jacobian():
         assert _rel(J @ dp.ravel(), fd) < 1e-7
 
 
-def test_threads_same_bits():
+def test_threads_same_bits(monkeypatch):
+    # small grids run serially below a work threshold: raise the per-point work so that
+    # the patch kernels do go on 2 threads here
+    monkeypatch.setattr(ds, "PATCH_WORK", 10 ** 9)
     d = _deformer("ogrid3d", "two-level")
     d.deform(_motion(d))
     drd = _direction(d, np.random.default_rng(1))

@@ -47,7 +47,8 @@ import math
 import numpy as np
 
 from .. import tfi
-from .._jit import jit
+from .stages import PATCH_WORK
+from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
            "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp", "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
@@ -422,8 +423,8 @@ def patch_weight(ff, m, k):
 _DREAD = (1, 2, 3, 4, 5, 6, 7, 8)
 
 
-@jit
-def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+@task_jit
+def patch_forward_items(lo, hi, Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     """Tangents of the derived patches' points, in place: Δ/K (8 weights), Q (the normalised
     Soni blend, faded for two-level), the two-level re-basing ``K += rot(Q, shift)``.
 
@@ -446,7 +447,7 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     ws = np.empty((3, 3, 4))
     lt = np.empty((3, 2))
     wf = np.empty((3, 4))
-    for m in range(ii.shape[0]):
+    for m in range(lo, hi):
         g = ii[m, 0]
         for c in range(3):
             s = 0.0
@@ -503,9 +504,18 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
             Z[g, q0 + c] = dq[c]
 
 
-@jit
-def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
-    """The transpose of :func:`patch_forward` on the adjoints ``Zb`` in place."""
+def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+    """Tangents of the derived patches' points in place (:func:`patch_forward_items` on the
+    threads: each point writes its own row and reads the patches' sides only)."""
+    with serial_below(PATCH_WORK * ii.shape[0]):
+        parallel_for(patch_forward_items, ii.shape[0], Z, d0, q0, use_q, two, ii, ff, Q, shift,
+                     qmin)
+
+
+@task_jit
+def patch_adj_items(lo, hi, Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin, C):
+    """The Q adjoints of the patch points ``lo <= m < hi`` (:func:`patch_forward`'s transpose)
+    into ``C`` (n, 8, 4), one row per read; ``Zb`` is only read (independent tasks)."""
     one = np.zeros(4)
     one[0] = 1.0
     V = np.empty(4)
@@ -523,22 +533,15 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     ws = np.empty((3, 3, 4))
     lt = np.empty((3, 2))
     wf = np.empty((3, 4))
-    for m in range(ii.shape[0] - 1, -1, -1):
+    for m in range(lo, hi):
         g = ii[m, 0]
+        for k in range(8):
+            for c in range(4):
+                C[m, k, c] = 0.0
         for c in range(3):
             Kb[c] = Zb[g, d0 + c]
-            Zb[g, d0 + c] = 0.0
         for c in range(4):
-            qb_[c] = Zb[g, q0 + c] if use_q else 0.0
-            if use_q:
-                Zb[g, q0 + c] = 0.0
-        for k in range(8):
-            w = patch_weight(ff, m, k)
-            r = ii[m, 1 + k]
-            for c in range(3):
-                Zb[r, d0 + c] += w * Kb[c]
-        if not use_q:
-            continue
+            qb_[c] = Zb[g, q0 + c]
         patch_value(Q, ii, ff, m, V, sc, sg, ws, lt)
         nv = math.sqrt(_dot4(V, V))
         if nv < qmin:
@@ -576,20 +579,54 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
             bb[c] = 0.0
         lt_adj(0, Vb, ab, bb, ws, lt)
         for c in range(4):
-            Zb[ii[m, 1], q0 + c] += ff[m, 4] * ab[c]
-            Zb[ii[m, 2], q0 + c] += sg[0] * bb[c]
+            C[m, 0, c] += ff[m, 4] * ab[c]
+            C[m, 1, c] += sg[0] * bb[c]
         for side in range(2):
             o = 3 * side
             w = (1.0 - sm) if side == 0 else sm
             for c in range(4):
-                Zb[ii[m, 5 + o], q0 + c] += w * sg[3 + side] * Vb[c]
+                C[m, 4 + o, c] += w * sg[3 + side] * Vb[c]
                 Ub[c] = -w * Vb[c]
                 ab[c] = 0.0
                 bb[c] = 0.0
             lt_adj(1 + side, Ub, ab, bb, ws, lt)
             for c in range(4):
-                Zb[ii[m, 3 + o], q0 + c] += ff[m, 5 + side] * ab[c]
-                Zb[ii[m, 4 + o], q0 + c] += sg[1 + side] * bb[c]
+                C[m, 2 + o, c] += ff[m, 5 + side] * ab[c]
+                C[m, 3 + o, c] += sg[1 + side] * bb[c]
+
+
+@jit
+def patch_adj_scatter(Zb, d0, q0, use_q, ii, ff, C):
+    """The serial scatter of :func:`patch_adj_items`' adjoints (items reversed, fixed order)."""
+    Kb = np.empty(3)
+    for m in range(ii.shape[0] - 1, -1, -1):
+        g = ii[m, 0]
+        for c in range(3):
+            Kb[c] = Zb[g, d0 + c]
+            Zb[g, d0 + c] = 0.0
+        if use_q:
+            for c in range(4):
+                Zb[g, q0 + c] = 0.0
+        for k in range(8):
+            w = patch_weight(ff, m, k)
+            r = ii[m, 1 + k]
+            for c in range(3):
+                Zb[r, d0 + c] += w * Kb[c]
+            if use_q:
+                for c in range(4):
+                    Zb[r, q0 + c] += C[m, k, c]
+
+
+def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+    """The transpose of :func:`patch_forward` on the adjoints ``Zb`` in place: the items'
+    adjoints on the threads, then their scatter in a fixed order (the same bits on any
+    number of threads)."""
+    C = np.empty((ii.shape[0] if use_q else 0, 8, 4))
+    if use_q:
+        with serial_below(PATCH_WORK * ii.shape[0]):
+            parallel_for(patch_adj_items, ii.shape[0], Zb, d0, q0, use_q, two, ii, ff, Q, shift,
+                         qmin, C)
+    patch_adj_scatter(Zb, d0, q0, use_q, ii, ff, C if use_q else np.zeros((0, 8, 4)))
 
 
 class PatchOp:
