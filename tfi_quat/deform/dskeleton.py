@@ -56,7 +56,8 @@ __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobia
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
 NCOL = 27
-# body rows: q (0:4), t (4:7), Δ_b (7:10), q_b (10:14), v_b = log q_b (14:17)
+# body rows: Δ_b (0:3), q_b (3:7), v_b = log q_b (7:10), the fit's q (BQ:BQ+4) and t (+4:+7)
+BQ = 10
 _H = 1e-30          # complex step
 
 
@@ -1656,7 +1657,7 @@ def _build(deformer, rd):
     for b, (body, (q, t)) in enumerate(zip(two.bodies, fits)):
         g = body.gids
         Jf = fit_jacobian(P[g], rd[g], q, body.axis, body.tproj)
-        ops.append(Op(brow[b:b + 1], 0, 7, g[None, :], RD, 3, Jf[None]))
+        ops.append(Op(brow[b:b + 1], BQ, 7, g[None, :], RD, 3, Jf[None]))
     # y = rot(q)^-1 (rd - t) on the walls: reads the row's rd and the body's (q, t)
     bwall = np.empty(wall.size, dtype=np.int64)
     pos_w = np.full(G, -1, dtype=np.int64)
@@ -1675,10 +1676,12 @@ def _build(deformer, rd):
         Xy[sel, 4:7] = t
     Xy[:, 7:10] = rd[wall]
     Jy = cs_jacobian(fy, Xy)
-    Jfull = np.zeros((wall.size, 3, 40))
+    # reads columns BQ:RD+3 of the body row ((q, t)) and of the point row (rd)
+    width = RD + 3 - BQ
+    Jfull = np.zeros((wall.size, 3, 2 * width))
     Jfull[:, :, :7] = Jy[:, :, :7]
-    Jfull[:, :, 20 + RD:20 + RD + 3] = Jy[:, :, 7:10]
-    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, Jfull))
+    Jfull[:, :, width + RD - BQ:width + RD - BQ + 3] = Jy[:, :, 7:10]
+    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), BQ, width, Jfull))
     # residual pass
     idx, Jw = wall_jacobian(sk, y, c)
     ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
@@ -1699,15 +1702,15 @@ def _build(deformer, rd):
         q, t = X[:, :4], X[:, 4:7]
         cc = np.broadcast_to(c, t.shape)
         return np.concatenate([t + _rot(q, cc) - cc, q, cs_log(q)], axis=1)
-    ops.append(Op(brow, 7, 10, _self(brow), 0, 7, cs_jacobian(fb, qts)))
+    ops.append(Op(brow, 0, 10, _self(brow), BQ, 7, cs_jacobian(fb, qts)))
     bq = fb(qts.astype(np.complex128)).real
-    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.ones((wall.size, 1)), diag=True))
+    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 0, 7, np.ones((wall.size, 1)), diag=True))
     if der.size:
         # Δ = Σ φ_b Δ_b, v = Σ φ_b v_b (into the scratch columns), Q = exp(v)
         phi = two.phi
         reads = np.broadcast_to(brow, (der.size, nb))
-        ops.append(Op(der, D0, 3, reads, 7, 3, phi, diag=True))
-        ops.append(Op(der, T0, 3, reads, 14, 3, phi, diag=True))
+        ops.append(Op(der, D0, 3, reads, 0, 3, phi, diag=True))
+        ops.append(Op(der, T0, 3, reads, 7, 3, phi, diag=True))
         ops.append(ExpOp(der, T0, P0, phi @ bq[:, 7:10]))
     ops += _symmetry_op(sk, *rec["rigid_pre"], P, c, D0, True)
 
