@@ -39,7 +39,8 @@ def _deformer(kind, method):
 
 def _motion(d, amp=0.02, rot=7.0):
     """A rotation of every wall plus a smooth deformation (in the grid's plane for 2-D)."""
-    move = rigid_motion(rot, axis=(0.0, 0.0, 1.0), about=(0.1, 0.2, 0.0), translate=(0.03, -0.02, 0.0))
+    move = rigid_motion(rot, axis=(0.0, 0.0, 1.0), about=(0.1, 0.2, 0.0),
+                        translate=(0.03, -0.02, 0.0))
     flat = np.array([1.0, 1.0, 0.0 if d.ndim == 2 else 1.0])
 
     def f(x):

@@ -12,31 +12,41 @@ the last step (the reference before any step):
 
 How (docs/derivatives-boundary.md): the map is a chain of stages, each writing
 some columns of some rows of one state array ``Z`` (a row per boundary point
-and one per wall body) from a few rows of it.  Linearising a step builds, per
-stage, the local Jacobian of every item it writes (O(surface) numbers):
+and one per wall body) from a few rows of it.  Linearising a step
+(:func:`linearise`, on first use after the step; O(surface) numbers) stores per
+stage what its tangent needs:
 
-* linear stages (the Δ / K hierarchy, projections onto symmetry planes, the
-  copies of walls): their weights, read off the skeleton;
-* the rigid fits: their closed-form derivative (:func:`fit_tangent`);
-* the point-wise nonlinear stages (wall quaternions, slerps, normalised
-  blends, the symmetry twist, rotations, log / exp): the complex-step
-  derivative of a numpy transcription of the compiled kernel
-  (:func:`cs_jacobian`), exact to round-off (no difference is taken).  The
-  branches (hemisphere signs, one-sided differences, fallbacks) are those of
-  the real values, i.e. of the forward step.
+* linear stages (the Δ / K hierarchy's vertex and gap weights, projections onto
+  symmetry planes, copies): their weights (:class:`Op`);
+* the rigid fits: their closed-form Jacobian (:func:`fit_jacobian`);
+* the derived patches: indices and blending parameters only; the tangent and
+  adjoint of the normalised Soni blend of slerps, of the two-level fade and of
+  the re-basing are hand-derived compiled kernels (:class:`PatchOp`);
+* rotations of positions and re-basings, the rigid blend's exp: the rotation
+  and its hand-derived derivative computed on the fly (:class:`RotOp`,
+  :class:`ExpOp`);
+* the wall quaternions (normals, two-step rotation, mean angle, mirrored halos,
+  the filling of undefined normals, the merge of copies) and the symmetry twist:
+  complex-step derivatives of compiled complex transcriptions of the kernels
+  (:func:`wall_jacobian`, :class:`SymOp`), exact to round-off (no difference is
+  taken); the few small point-wise stages left (vertex and gap slerps, the fits'
+  pull-back and log) by the complex step on numpy transcriptions
+  (:func:`cs_jacobian`).  The branches (hemisphere signs, one-sided differences,
+  fallbacks) are those of the real values, i.e. of the step's.
 
-:func:`fields_jvp` then runs the chain forward on tangents and
-:func:`fields_vjp` runs the transposed chain backward (:func:`chain_forward`,
-:func:`chain_backward`, compiled, serial, so the bits do not depend on the
-thread count); the adjoint is exact by construction.
+:func:`fields_jvp` runs the chain forward on tangents and :func:`fields_vjp` the
+transposed chain backward (:func:`chain_forward`, :func:`chain_backward`); the
+adjoint is exact by construction, and the bits do not depend on the thread count
+(the patch kernels run on the threads item by item, their adjoint's scatter in a
+fixed order).
 
-Where the forward map is not differentiable the derivative is that of the
-branch the step took, with these conventions: a wall point whose normal is
-undefined (filled from its neighbours by the forward step) and a patch point
-where the quaternion blend falls back to the rotation-vector blend
-(``|V| < QNORM_MIN``, near a half turn) get a zero tangent of Q; a rigid fit
-whose normal matrix is singular (degenerate body) gets the least-squares
-(minimum-norm) rotation tangent.
+Where the forward map is not differentiable the derivative is that of the branch
+the step took: hemisphere signs are held; a wall point whose normals are
+undefined follows the step's filling from its neighbours (a patch with no
+defined point: 0); a patch point whose quaternion blend falls back to the
+rotation-vector blend (``|V| < QNORM_MIN``, near a half turn) gets a zero
+tangent of Q; a rigid fit whose normal matrix is singular (degenerate body) gets
+the least-squares (pseudo-inverse) rotation tangent.
 """
 
 from __future__ import annotations
@@ -51,7 +61,8 @@ from .stages import PATCH_WORK
 from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp", "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp",
+           "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
 
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
@@ -210,7 +221,8 @@ def rot_forward(Z, out, o0, f0, q0, v0, sr, q, v):
         o = out[m]
         a, b, c = rot_dq(q[m], v[m], Z[o, q0], Z[o, q0 + 1], Z[o, q0 + 2], Z[o, q0 + 3])
         if v0 >= 0:
-            x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, v0], Z[o, v0 + 1], Z[o, v0 + 2])
+            x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, v0], Z[o, v0 + 1],
+                             Z[o, v0 + 2])
             a += x
             b += y
             c += z
@@ -377,7 +389,8 @@ def patch_value(Q, ii, ff, m, V, sc, s, ws, lt):
     s[4] = -1.0 if _dot4(U1, Q[ii[m, 8]]) < 0.0 else 1.0
     sm = ff[m, 1]
     for c in range(4):
-        V[c] = U[c] + (1.0 - sm) * (s[3] * Q[ii[m, 5], c] - U0[c]) + sm * (s[4] * Q[ii[m, 8], c] - U1[c])
+        V[c] = (U[c] + (1.0 - sm) * (s[3] * Q[ii[m, 5], c] - U0[c])
+                + sm * (s[4] * Q[ii[m, 8], c] - U1[c]))
 
 
 @jit(inline="always")
@@ -1012,7 +1025,7 @@ def fields_vjp(deformer, pass_bars, pos_bar):
 
 
 # ----------------------------------------------------------------------------- stages
-# ----------------------------------------------------------------------------- wall copies, compiled
+# ------------------------------------------------------------------------ wall copies, compiled
 @jit(inline="always")
 def _c3(ax, ay, az, bx, by, bz):
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
@@ -1035,7 +1048,8 @@ def _catan2(y, x):
 
 @jit
 def wall_q_cs(pu, pd, ok, e, curve, out):
-    """The quaternion of one wall point copy (boundary._point_quaternion) on its complex ``pd`` (5, 3): the quaternion
+    """The quaternion of one wall point copy (boundary._point_quaternion) on its complex
+    deformed stencil ``pd`` (5, 3) (centre, +a, -a, +b, -b): the quaternion
     into ``out`` (4, complex); returns False where a normal is undefined."""
     E = np.zeros((4, 3))
     F = np.zeros((4, 3), dtype=np.complex128)
@@ -1100,7 +1114,9 @@ def wall_q_cs(pu, pd, ok, e, curve, out):
     t1x, t1y, t1z = _cunit(au[0] + 0j, au[1] + 0j, au[2] + 0j)
     t2x, t2y, t2z = _c3(ux, uy, uz, t1x, t1y, t1z)
     # T1 = rot(Q1, t1)
-    qx, qy, qz = 2.0 * (a2 * t1z - a3 * t1y), 2.0 * (a3 * t1x - a1 * t1z), 2.0 * (a1 * t1y - a2 * t1x)
+    qx = 2.0 * (a2 * t1z - a3 * t1y)
+    qy = 2.0 * (a3 * t1x - a1 * t1z)
+    qz = 2.0 * (a1 * t1y - a2 * t1x)
     T1x = t1x + a0 * qx + (a2 * qz - a3 * qy)
     T1y = t1y + a0 * qy + (a3 * qx - a1 * qz)
     T1z = t1z + a0 * qz + (a1 * qy - a2 * qx)
@@ -1558,7 +1574,8 @@ def patch_ops(sk, Qcur, dcol, qcol, two):
         g = Gp[L, M]
         t, sm = tt[L, M], ss[L, M]
         t0, t1 = tt[L, 0], tt[L, nm - 1]
-        reads = np.stack([Gp[0, M], Gp[nl - 1, M], Gp[0, 0].repeat(L.size), Gp[nl - 1, 0].repeat(L.size),
+        reads = np.stack([Gp[0, M], Gp[nl - 1, M], Gp[0, 0].repeat(L.size),
+                          Gp[nl - 1, 0].repeat(L.size),
                           Gp[L, 0], Gp[0, nm - 1].repeat(L.size), Gp[nl - 1, nm - 1].repeat(L.size),
                           Gp[L, nm - 1]], 1)
         wts = np.stack([1.0 - t, t, -(1.0 - sm) * (1.0 - t0), -(1.0 - sm) * t0, 1.0 - sm,
@@ -1566,7 +1583,8 @@ def patch_ops(sk, Qcur, dcol, qcol, two):
         rows.append(g)
         idx.append(reads)
         wd.append(wts)
-        cst.append(np.stack([t, sm, t0, t1, s0[M], np.full(L.size, s0[0]), np.full(L.size, s0[-1])], 1))
+        cst.append(np.stack([t, sm, t0, t1, s0[M], np.full(L.size, s0[0]),
+                             np.full(L.size, s0[-1])], 1))
     if not rows:
         return []
     rows = np.concatenate(rows)
