@@ -116,7 +116,7 @@ def test_jvp_vjp_small_grids(kind, method):
     _check(d, rng)                      # at the last step
 
 
-@pytest.mark.parametrize("name", ["naca0012_c_257x65", "naca4412_o_257x65"])
+@pytest.mark.parametrize("name", ["naca0012_c_257x65", "naca4412_o_257x65", "two_block_65x33"])
 def test_jvp_vjp_shipped_2d(name):
     g, case = _case(name)
     for method in METHODS:
