@@ -39,7 +39,8 @@ def _deformer(kind, method):
 
 def _motion(d, amp=0.02, rot=7.0):
     """A rotation of every wall plus a smooth deformation (in the grid's plane for 2-D)."""
-    move = rigid_motion(rot, axis=(0.0, 0.0, 1.0), about=(0.1, 0.2, 0.0), translate=(0.03, -0.02, 0.0))
+    move = rigid_motion(rot, axis=(0.0, 0.0, 1.0), about=(0.1, 0.2, 0.0),
+                        translate=(0.03, -0.02, 0.0))
     flat = np.array([1.0, 1.0, 0.0 if d.ndim == 2 else 1.0])
 
     def f(x):
@@ -115,7 +116,7 @@ def test_jvp_vjp_small_grids(kind, method):
     _check(d, rng)                      # at the last step
 
 
-@pytest.mark.parametrize("name", ["naca0012_c_257x65", "naca4412_o_257x65"])
+@pytest.mark.parametrize("name", ["naca0012_c_257x65", "naca4412_o_257x65", "two_block_65x33"])
 def test_jvp_vjp_shipped_2d(name):
     g, case = _case(name)
     for method in METHODS:
@@ -154,7 +155,10 @@ def test_fit_jacobian():
         assert _rel(J @ dp.ravel(), fd) < 1e-7
 
 
-def test_threads_same_bits():
+def test_threads_same_bits(monkeypatch):
+    # small grids run serially below a work threshold: raise the per-point work so that
+    # the patch kernels do go on 2 threads here
+    monkeypatch.setattr(ds, "PATCH_WORK", 10 ** 9)
     d = _deformer("ogrid3d", "two-level")
     d.deform(_motion(d))
     drd = _direction(d, np.random.default_rng(1))

@@ -495,7 +495,7 @@ class Deformer:
         """The boundary level's linearisation at :attr:`last_targets`
         (:class:`tfi_quat.deform.dskeleton.Linearisation`), built on first use after a step."""
         from .dskeleton import linearise
-        with use_threads(self.threads):
+        with self._lock, use_threads(self.threads):
             if self._linear is None:
                 self._linear = linearise(self, self.last_targets)
             return self._linear
@@ -503,7 +503,8 @@ class Deformer:
     def linear_passes(self):
         """The volume passes ``(Δ or K, Q, centre, tables)`` at the linearisation point (the
         last step's targets): always both passes for ``"two-level"`` (residual, then rigid),
-        one for the others (``Q`` None for ``"tfi"``).  New arrays, O(surface)."""
+        one for the others (``Q`` None for ``"tfi"``).  O(surface) arrays held by the
+        linearisation (:meth:`linearisation`): do not modify them."""
         return self.linearisation().values
 
     def _samareh_fields(self, rd):

@@ -12,31 +12,41 @@ the last step (the reference before any step):
 
 How (docs/derivatives-boundary.md): the map is a chain of stages, each writing
 some columns of some rows of one state array ``Z`` (a row per boundary point
-and one per wall body) from a few rows of it.  Linearising a step builds, per
-stage, the local Jacobian of every item it writes (O(surface) numbers):
+and one per wall body) from a few rows of it.  Linearising a step
+(:func:`linearise`, on first use after the step; O(surface) numbers) stores per
+stage what its tangent needs:
 
-* linear stages (the Δ / K hierarchy, projections onto symmetry planes, the
-  copies of walls): their weights, read off the skeleton;
-* the rigid fits: their closed-form derivative (:func:`fit_tangent`);
-* the point-wise nonlinear stages (wall quaternions, slerps, normalised
-  blends, the symmetry twist, rotations, log / exp): the complex-step
-  derivative of a numpy transcription of the compiled kernel
-  (:func:`cs_jacobian`), exact to round-off (no difference is taken).  The
-  branches (hemisphere signs, one-sided differences, fallbacks) are those of
-  the real values, i.e. of the forward step.
+* linear stages (the Δ / K hierarchy's vertex and gap weights, projections onto
+  symmetry planes, copies): their weights (:class:`Op`);
+* the rigid fits: their closed-form Jacobian (:func:`fit_jacobian`);
+* the derived patches: indices and blending parameters only; the tangent and
+  adjoint of the normalised Soni blend of slerps, of the two-level fade and of
+  the re-basing are hand-derived compiled kernels (:class:`PatchOp`);
+* rotations of positions and re-basings, the rigid blend's exp: the rotation
+  and its hand-derived derivative computed on the fly (:class:`RotOp`,
+  :class:`ExpOp`);
+* the wall quaternions (normals, two-step rotation, mean angle, mirrored halos,
+  the filling of undefined normals, the merge of copies) and the symmetry twist:
+  complex-step derivatives of compiled complex transcriptions of the kernels
+  (:func:`wall_jacobian`, :class:`SymOp`), exact to round-off (no difference is
+  taken); the few small point-wise stages left (vertex and gap slerps, the fits'
+  pull-back and log) by the complex step on numpy transcriptions
+  (:func:`cs_jacobian`).  The branches (hemisphere signs, one-sided differences,
+  fallbacks) are those of the real values, i.e. of the step's.
 
-:func:`fields_jvp` then runs the chain forward on tangents and
-:func:`fields_vjp` runs the transposed chain backward (:func:`chain_forward`,
-:func:`chain_backward`, compiled, serial, so the bits do not depend on the
-thread count); the adjoint is exact by construction.
+:func:`fields_jvp` runs the chain forward on tangents and :func:`fields_vjp` the
+transposed chain backward (:func:`chain_forward`, :func:`chain_backward`); the
+adjoint is exact by construction, and the bits do not depend on the thread count
+(the patch kernels run on the threads item by item, their adjoint's scatter in a
+fixed order).
 
-Where the forward map is not differentiable the derivative is that of the
-branch the step took, with these conventions: a wall point whose normal is
-undefined (filled from its neighbours by the forward step) and a patch point
-where the quaternion blend falls back to the rotation-vector blend
-(``|V| < QNORM_MIN``, near a half turn) get a zero tangent of Q; a rigid fit
-whose normal matrix is singular (degenerate body) gets the least-squares
-(minimum-norm) rotation tangent.
+Where the forward map is not differentiable the derivative is that of the branch
+the step took: hemisphere signs are held; a wall point whose normals are
+undefined follows the step's filling from its neighbours (a patch with no
+defined point: 0); a patch point whose quaternion blend falls back to the
+rotation-vector blend (``|V| < QNORM_MIN``, near a half turn) gets a zero
+tangent of Q; a rigid fit whose normal matrix is singular (degenerate body) gets
+the least-squares (pseudo-inverse) rotation tangent.
 """
 
 from __future__ import annotations
@@ -47,15 +57,18 @@ import math
 import numpy as np
 
 from .. import tfi
-from .._jit import jit
+from .stages import PATCH_WORK
+from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp", "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp",
+           "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
 
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
 NCOL = 27
-# body rows: q (0:4), t (4:7), Δ_b (7:10), q_b (10:14), v_b = log q_b (14:17)
+# body rows: Δ_b (0:3), q_b (3:7), v_b = log q_b (7:10), the fit's q (BQ:BQ+4) and t (+4:+7)
+BQ = 10
 _H = 1e-30          # complex step
 
 
@@ -208,7 +221,8 @@ def rot_forward(Z, out, o0, f0, q0, v0, sr, q, v):
         o = out[m]
         a, b, c = rot_dq(q[m], v[m], Z[o, q0], Z[o, q0 + 1], Z[o, q0 + 2], Z[o, q0 + 3])
         if v0 >= 0:
-            x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, v0], Z[o, v0 + 1], Z[o, v0 + 2])
+            x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, v0], Z[o, v0 + 1],
+                             Z[o, v0 + 2])
             a += x
             b += y
             c += z
@@ -375,7 +389,8 @@ def patch_value(Q, ii, ff, m, V, sc, s, ws, lt):
     s[4] = -1.0 if _dot4(U1, Q[ii[m, 8]]) < 0.0 else 1.0
     sm = ff[m, 1]
     for c in range(4):
-        V[c] = U[c] + (1.0 - sm) * (s[3] * Q[ii[m, 5], c] - U0[c]) + sm * (s[4] * Q[ii[m, 8], c] - U1[c])
+        V[c] = (U[c] + (1.0 - sm) * (s[3] * Q[ii[m, 5], c] - U0[c])
+                + sm * (s[4] * Q[ii[m, 8], c] - U1[c]))
 
 
 @jit(inline="always")
@@ -422,8 +437,8 @@ def patch_weight(ff, m, k):
 _DREAD = (1, 2, 3, 4, 5, 6, 7, 8)
 
 
-@jit
-def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+@task_jit
+def patch_forward_items(lo, hi, Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     """Tangents of the derived patches' points, in place: Δ/K (8 weights), Q (the normalised
     Soni blend, faded for two-level), the two-level re-basing ``K += rot(Q, shift)``.
 
@@ -446,7 +461,7 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     ws = np.empty((3, 3, 4))
     lt = np.empty((3, 2))
     wf = np.empty((3, 4))
-    for m in range(ii.shape[0]):
+    for m in range(lo, hi):
         g = ii[m, 0]
         for c in range(3):
             s = 0.0
@@ -503,9 +518,18 @@ def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
             Z[g, q0 + c] = dq[c]
 
 
-@jit
-def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
-    """The transpose of :func:`patch_forward` on the adjoints ``Zb`` in place."""
+def patch_forward(Z, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+    """Tangents of the derived patches' points in place (:func:`patch_forward_items` on the
+    threads: each point writes its own row and reads the patches' sides only)."""
+    with serial_below(PATCH_WORK * ii.shape[0]):
+        parallel_for(patch_forward_items, ii.shape[0], Z, d0, q0, use_q, two, ii, ff, Q, shift,
+                     qmin)
+
+
+@task_jit
+def patch_adj_items(lo, hi, Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin, C):
+    """The Q adjoints of the patch points ``lo <= m < hi`` (:func:`patch_forward`'s transpose)
+    into ``C`` (n, 8, 4), one row per read; ``Zb`` is only read (independent tasks)."""
     one = np.zeros(4)
     one[0] = 1.0
     V = np.empty(4)
@@ -523,22 +547,15 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
     ws = np.empty((3, 3, 4))
     lt = np.empty((3, 2))
     wf = np.empty((3, 4))
-    for m in range(ii.shape[0] - 1, -1, -1):
+    for m in range(lo, hi):
         g = ii[m, 0]
+        for k in range(8):
+            for c in range(4):
+                C[m, k, c] = 0.0
         for c in range(3):
             Kb[c] = Zb[g, d0 + c]
-            Zb[g, d0 + c] = 0.0
         for c in range(4):
-            qb_[c] = Zb[g, q0 + c] if use_q else 0.0
-            if use_q:
-                Zb[g, q0 + c] = 0.0
-        for k in range(8):
-            w = patch_weight(ff, m, k)
-            r = ii[m, 1 + k]
-            for c in range(3):
-                Zb[r, d0 + c] += w * Kb[c]
-        if not use_q:
-            continue
+            qb_[c] = Zb[g, q0 + c]
         patch_value(Q, ii, ff, m, V, sc, sg, ws, lt)
         nv = math.sqrt(_dot4(V, V))
         if nv < qmin:
@@ -576,20 +593,54 @@ def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
             bb[c] = 0.0
         lt_adj(0, Vb, ab, bb, ws, lt)
         for c in range(4):
-            Zb[ii[m, 1], q0 + c] += ff[m, 4] * ab[c]
-            Zb[ii[m, 2], q0 + c] += sg[0] * bb[c]
+            C[m, 0, c] += ff[m, 4] * ab[c]
+            C[m, 1, c] += sg[0] * bb[c]
         for side in range(2):
             o = 3 * side
             w = (1.0 - sm) if side == 0 else sm
             for c in range(4):
-                Zb[ii[m, 5 + o], q0 + c] += w * sg[3 + side] * Vb[c]
+                C[m, 4 + o, c] += w * sg[3 + side] * Vb[c]
                 Ub[c] = -w * Vb[c]
                 ab[c] = 0.0
                 bb[c] = 0.0
             lt_adj(1 + side, Ub, ab, bb, ws, lt)
             for c in range(4):
-                Zb[ii[m, 3 + o], q0 + c] += ff[m, 5 + side] * ab[c]
-                Zb[ii[m, 4 + o], q0 + c] += sg[1 + side] * bb[c]
+                C[m, 2 + o, c] += ff[m, 5 + side] * ab[c]
+                C[m, 3 + o, c] += sg[1 + side] * bb[c]
+
+
+@jit
+def patch_adj_scatter(Zb, d0, q0, use_q, ii, ff, C):
+    """The serial scatter of :func:`patch_adj_items`' adjoints (items reversed, fixed order)."""
+    Kb = np.empty(3)
+    for m in range(ii.shape[0] - 1, -1, -1):
+        g = ii[m, 0]
+        for c in range(3):
+            Kb[c] = Zb[g, d0 + c]
+            Zb[g, d0 + c] = 0.0
+        if use_q:
+            for c in range(4):
+                Zb[g, q0 + c] = 0.0
+        for k in range(8):
+            w = patch_weight(ff, m, k)
+            r = ii[m, 1 + k]
+            for c in range(3):
+                Zb[r, d0 + c] += w * Kb[c]
+            if use_q:
+                for c in range(4):
+                    Zb[r, q0 + c] += C[m, k, c]
+
+
+def patch_backward(Zb, d0, q0, use_q, two, ii, ff, Q, shift, qmin):
+    """The transpose of :func:`patch_forward` on the adjoints ``Zb`` in place: the items'
+    adjoints on the threads, then their scatter in a fixed order (the same bits on any
+    number of threads)."""
+    C = np.empty((ii.shape[0] if use_q else 0, 8, 4))
+    if use_q:
+        with serial_below(PATCH_WORK * ii.shape[0]):
+            parallel_for(patch_adj_items, ii.shape[0], Zb, d0, q0, use_q, two, ii, ff, Q, shift,
+                         qmin, C)
+    patch_adj_scatter(Zb, d0, q0, use_q, ii, ff, C if use_q else np.zeros((0, 8, 4)))
 
 
 class PatchOp:
@@ -974,7 +1025,7 @@ def fields_vjp(deformer, pass_bars, pos_bar):
 
 
 # ----------------------------------------------------------------------------- stages
-# ----------------------------------------------------------------------------- wall copies, compiled
+# ------------------------------------------------------------------------ wall copies, compiled
 @jit(inline="always")
 def _c3(ax, ay, az, bx, by, bz):
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
@@ -997,7 +1048,8 @@ def _catan2(y, x):
 
 @jit
 def wall_q_cs(pu, pd, ok, e, curve, out):
-    """The quaternion of one wall point copy (boundary._point_quaternion) on its complex ``pd`` (5, 3): the quaternion
+    """The quaternion of one wall point copy (boundary._point_quaternion) on its complex
+    deformed stencil ``pd`` (5, 3) (centre, +a, -a, +b, -b): the quaternion
     into ``out`` (4, complex); returns False where a normal is undefined."""
     E = np.zeros((4, 3))
     F = np.zeros((4, 3), dtype=np.complex128)
@@ -1062,7 +1114,9 @@ def wall_q_cs(pu, pd, ok, e, curve, out):
     t1x, t1y, t1z = _cunit(au[0] + 0j, au[1] + 0j, au[2] + 0j)
     t2x, t2y, t2z = _c3(ux, uy, uz, t1x, t1y, t1z)
     # T1 = rot(Q1, t1)
-    qx, qy, qz = 2.0 * (a2 * t1z - a3 * t1y), 2.0 * (a3 * t1x - a1 * t1z), 2.0 * (a1 * t1y - a2 * t1x)
+    qx = 2.0 * (a2 * t1z - a3 * t1y)
+    qy = 2.0 * (a3 * t1x - a1 * t1z)
+    qz = 2.0 * (a1 * t1y - a2 * t1x)
     T1x = t1x + a0 * qx + (a2 * qz - a3 * qy)
     T1y = t1y + a0 * qy + (a3 * qx - a1 * qz)
     T1z = t1z + a0 * qz + (a1 * qy - a2 * qx)
@@ -1520,7 +1574,8 @@ def patch_ops(sk, Qcur, dcol, qcol, two):
         g = Gp[L, M]
         t, sm = tt[L, M], ss[L, M]
         t0, t1 = tt[L, 0], tt[L, nm - 1]
-        reads = np.stack([Gp[0, M], Gp[nl - 1, M], Gp[0, 0].repeat(L.size), Gp[nl - 1, 0].repeat(L.size),
+        reads = np.stack([Gp[0, M], Gp[nl - 1, M], Gp[0, 0].repeat(L.size),
+                          Gp[nl - 1, 0].repeat(L.size),
                           Gp[L, 0], Gp[0, nm - 1].repeat(L.size), Gp[nl - 1, nm - 1].repeat(L.size),
                           Gp[L, nm - 1]], 1)
         wts = np.stack([1.0 - t, t, -(1.0 - sm) * (1.0 - t0), -(1.0 - sm) * t0, 1.0 - sm,
@@ -1528,7 +1583,8 @@ def patch_ops(sk, Qcur, dcol, qcol, two):
         rows.append(g)
         idx.append(reads)
         wd.append(wts)
-        cst.append(np.stack([t, sm, t0, t1, s0[M], np.full(L.size, s0[0]), np.full(L.size, s0[-1])], 1))
+        cst.append(np.stack([t, sm, t0, t1, s0[M], np.full(L.size, s0[0]),
+                             np.full(L.size, s0[-1])], 1))
     if not rows:
         return []
     rows = np.concatenate(rows)
@@ -1619,7 +1675,7 @@ def _build(deformer, rd):
     for b, (body, (q, t)) in enumerate(zip(two.bodies, fits)):
         g = body.gids
         Jf = fit_jacobian(P[g], rd[g], q, body.axis, body.tproj)
-        ops.append(Op(brow[b:b + 1], 0, 7, g[None, :], RD, 3, Jf[None]))
+        ops.append(Op(brow[b:b + 1], BQ, 7, g[None, :], RD, 3, Jf[None]))
     # y = rot(q)^-1 (rd - t) on the walls: reads the row's rd and the body's (q, t)
     bwall = np.empty(wall.size, dtype=np.int64)
     pos_w = np.full(G, -1, dtype=np.int64)
@@ -1638,10 +1694,12 @@ def _build(deformer, rd):
         Xy[sel, 4:7] = t
     Xy[:, 7:10] = rd[wall]
     Jy = cs_jacobian(fy, Xy)
-    Jfull = np.zeros((wall.size, 3, 40))
+    # reads columns BQ:RD+3 of the body row ((q, t)) and of the point row (rd)
+    width = RD + 3 - BQ
+    Jfull = np.zeros((wall.size, 3, 2 * width))
     Jfull[:, :, :7] = Jy[:, :, :7]
-    Jfull[:, :, 20 + RD:20 + RD + 3] = Jy[:, :, 7:10]
-    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), 0, 20, Jfull))
+    Jfull[:, :, width + RD - BQ:width + RD - BQ + 3] = Jy[:, :, 7:10]
+    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), BQ, width, Jfull))
     # residual pass
     idx, Jw = wall_jacobian(sk, y, c)
     ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
@@ -1662,15 +1720,15 @@ def _build(deformer, rd):
         q, t = X[:, :4], X[:, 4:7]
         cc = np.broadcast_to(c, t.shape)
         return np.concatenate([t + _rot(q, cc) - cc, q, cs_log(q)], axis=1)
-    ops.append(Op(brow, 7, 10, _self(brow), 0, 7, cs_jacobian(fb, qts)))
+    ops.append(Op(brow, 0, 10, _self(brow), BQ, 7, cs_jacobian(fb, qts)))
     bq = fb(qts.astype(np.complex128)).real
-    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 7, 7, np.ones((wall.size, 1)), diag=True))
+    ops.append(Op(wall, D0, 7, (G + bwall)[:, None], 0, 7, np.ones((wall.size, 1)), diag=True))
     if der.size:
         # Δ = Σ φ_b Δ_b, v = Σ φ_b v_b (into the scratch columns), Q = exp(v)
         phi = two.phi
         reads = np.broadcast_to(brow, (der.size, nb))
-        ops.append(Op(der, D0, 3, reads, 7, 3, phi, diag=True))
-        ops.append(Op(der, T0, 3, reads, 14, 3, phi, diag=True))
+        ops.append(Op(der, D0, 3, reads, 0, 3, phi, diag=True))
+        ops.append(Op(der, T0, 3, reads, 7, 3, phi, diag=True))
         ops.append(ExpOp(der, T0, P0, phi @ bq[:, 7:10]))
     ops += _symmetry_op(sk, *rec["rigid_pre"], P, c, D0, True)
 
