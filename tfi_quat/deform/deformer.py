@@ -299,7 +299,7 @@ class Deformer:
             #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
             self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
         self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()     # re-entrant: jvp/vjp hold it and build the linearisation
         #: the wall copies and the checks of the array form (:class:`.walls.WallInput`)
         self.walls = WallInput(grid, self.skeleton, dup_tol)
         self._scratch = buffers.Scratch(grid)
