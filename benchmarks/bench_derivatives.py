@@ -10,7 +10,10 @@ vjp <= 3x a step).  The first derivative call after a step also builds the
 boundary level's linearisation (once per step): its time is reported apart
 (``first jvp``), and the memory that linearisation keeps (``tracemalloc``:
 what stays allocated after the call, against the coordinate bytes; target
-<= 1x).  On a busy machine only the ratios mean anything.
+<= 1x).  Then the accuracy on that grid: the V curve of ``jvp`` against
+central differences of ``deform`` (its best point: target <= 1e-6) and the
+dot-product test (target <= 1e-10).  On a busy machine only the ratios mean
+anything.
 
     python benchmarks/bench_derivatives.py                # the wing
     python benchmarks/bench_derivatives.py --big          # and the 10 M-point grid
@@ -109,6 +112,25 @@ def run(name, d, xs, u, repeat):
           f"   (builds the linearisation)")
     print(f"  linearisation kept  {kept / 2**20:8.1f} MB  {kept / coord:5.2f} x coordinates"
           f"   (target <= 1)")
+    # accuracy on this grid: the V curve of jvp against central differences, the dot test
+    d.deform(xs)
+    J = d.jvp(u)
+    g = d.vjp(v)
+    scale = max(float(np.abs(j).max()) for j in J)
+    curve = []
+    for h in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8):
+        gp = d.deform(xs + h * u)
+        gm = d.deform(xs - h * u)
+        curve.append((h, max(float(np.abs((a.xyz - b.xyz) / (2 * h) - j).max())
+                             for a, b, j in zip(gp, gm, J)) / scale))
+        del gp, gm
+    d.deform(xs)
+    rhs = sum(float(np.sum(a * b)) for a, b in zip(v, J))
+    dot = abs(float(np.sum(g * u)) - rhs) / abs(rhs)
+    print("  jvp vs central differences of deform (max error / max |jvp|):")
+    print("    " + "  ".join(f"h={h:.0e}: {e:.1e}" for h, e in curve))
+    print(f"  best {min(e for _, e in curve):.1e} (target <= 1e-6); dot-product test "
+          f"|<vjp(v),u> - <v,jvp(u)>| / |<v,jvp(u)>| = {dot:.1e} (target <= 1e-10)")
     return med, first, kept / coord
 
 
