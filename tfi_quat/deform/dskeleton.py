@@ -86,7 +86,10 @@ class Op:
 
     def __init__(self, out, o0, no, idx, i0, ni, J, diag=False):
         self.out = np.ascontiguousarray(out, dtype=np.int64)
-        self.idx = np.ascontiguousarray(np.reshape(idx, (self.out.size, -1)), dtype=np.int64)
+        idx = np.asarray(idx)
+        k = idx.shape[-1] if idx.ndim > 1 else 1
+        self.idx = np.ascontiguousarray(np.reshape(idx, (self.out.size, k if self.out.size == 0
+                                                         else -1)), dtype=np.int64)
         self.o0, self.no, self.i0, self.ni = int(o0), int(no), int(i0), int(ni)
         self.J = np.ascontiguousarray(J, dtype=np.float64)
         self.diag = bool(diag)
