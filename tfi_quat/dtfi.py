@@ -518,16 +518,18 @@ def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, 
 
 
 @jit(inline="always")
-def _flush(accD, accQ, tD, tQ, a, b):
-    """Add a row's accumulated bars to the entry ``(a, b)`` of the tables ``tD``, ``tQ`` and
-    zero the accumulators (``tQ`` has 8 or 10 components: the rest of ``accQ`` is 0)."""
+def _flush(accD, accQ, tD, tQ, a, b, hasq):
+    """Add a row's accumulated bars to the entry ``(a, b)`` of the tables ``tD`` and (with
+    ``hasq``; else ``tQ`` is a dummy) ``tQ``, and zero the accumulators (``tQ`` has 8 or 10
+    components: the rest of ``accQ`` is 0)."""
     for c in range(6):
         tD[a, b, c] += accD[0, 0, c]
         accD[0, 0, c] = 0.0
-    for c in range(tQ.shape[2]):
-        tQ[a, b, c] += accQ[0, 0, c]
-    for c in range(10):
-        accQ[0, 0, c] = 0.0
+    if hasq is not None:
+        for c in range(tQ.shape[2]):
+            tQ[a, b, c] += accQ[0, 0, c]
+        for c in range(10):
+            accQ[0, 0, c] = 0.0
 
 
 def _jvp_kernel(hasn: bool, hasq: bool, based: bool, dbased: bool):
@@ -618,21 +620,21 @@ def _kernel(kind, hasn, hasq, based, extra):
                                                N, lineQ, j, k, gQ, i, cm, hQ, i, cn, lineB,
                                                gB, hB, accD, accQ, bMD, bMQ, bND, bNQ,
                                                0, 0, i, cm, i, cn, nflag, qflag, bflag, xflag)
-                        _flush(accD, accQ, bLD, bLQ, j, k)
+                        _flush(accD, accQ, bLD, bLQ, j, k, qflag)
                     elif M == 0:
                         for i in range(ni):
                             nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
                                                N, lineQ, i, cl, gQ, j, k, hQ, i, cn, lineB,
                                                gB, hB, bLD, bLQ, accD, accQ, bND, bNQ,
                                                i, cl, 0, 0, i, cn, nflag, qflag, bflag, xflag)
-                        _flush(accD, accQ, bMD, bMQ, j, k)
+                        _flush(accD, accQ, bMD, bMQ, j, k, qflag)
                     else:
                         for i in range(ni):
                             nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
                                                N, lineQ, i, cl, gQ, i, cm, hQ, j, k, lineB,
                                                gB, hB, bLD, bLQ, bMD, bMQ, accD, accQ,
                                                i, cl, i, cm, 0, 0, nflag, qflag, bflag, xflag)
-                        _flush(accD, accQ, bND, bNQ, j, k)
+                        _flush(accD, accQ, bND, bNQ, j, k, qflag)
             bad[ch] = nbad
     return vjp
 
