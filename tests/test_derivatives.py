@@ -335,6 +335,9 @@ def test_duplicates_ids_and_the_linearisation_point():
     assert dup.any()                                    # the two blocks share wall points
     u = _smooth(P, 1, 2)
     J0 = d.jvp(u)                                       # before any deform: at the reference
+    # the interfaces (i = 0 and i = -1 of both blocks are the same points): one tangent
+    assert np.array_equal(J0[0][-1], J0[1][-1]) and np.array_equal(J0[0][0], J0[1][0])
+    assert np.abs(J0[0][-1]).max() > 0.0
     u2 = u.copy()
     u2[dup] = 123.0                                     # ignored copies
     assert all(np.array_equal(a, b) for a, b in zip(J0, d.jvp(u2)))
