@@ -1047,22 +1047,23 @@ def _catan2(y, x):
 
 
 @jit
-def wall_q_cs(pu, pd, ok, e, curve, out):
+def wall_q_cs(pu, pd, ok, e, curve, out, E, F, au, ad, bu, bd):
     """The quaternion of one wall point copy (boundary._point_quaternion) on its complex
     deformed stencil ``pd`` (5, 3) (centre, +a, -a, +b, -b): the quaternion
     into ``out`` (4, complex); returns False where a normal is undefined."""
-    E = np.zeros((4, 3))
-    F = np.zeros((4, 3), dtype=np.complex128)
     for k in range(4):
-        if ok[1 + k]:
-            for c in range(3):
+        for c in range(3):
+            if ok[1 + k]:
                 E[k, c] = pu[1 + k, c] - pu[0, c]
                 F[k, c] = pd[1 + k, c] - pd[0, c]
-    au = np.zeros(3)
-    ad = np.zeros(3, dtype=np.complex128)
-    bu = np.zeros(3)
-    bd = np.zeros(3, dtype=np.complex128)
+            else:
+                E[k, c] = 0.0
+                F[k, c] = 0.0
     for c in range(3):
+        au[c] = 0.0
+        ad[c] = 0.0
+        bu[c] = 0.0
+        bd[c] = 0.0
         if ok[1] and ok[2]:
             au[c] = E[0, c] - E[1, c]
             ad[c] = F[0, c] - F[1, c]
@@ -1161,32 +1162,35 @@ def wall_q_cs(pu, pd, ok, e, curve, out):
     return True
 
 
-@jit
-def wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good):
-    """Every copy of a wall patch: the quaternion ``qc`` (n, 4), its complex-step Jacobian
-    ``Jc`` (n, 4, 15) in the deformed stencil and the defined flag ``good``."""
+@task_jit
+def wall_copies_cs(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
+    """The copies ``lo <= m < hi`` of a wall patch: the quaternion ``qc`` (n, 4), its
+    complex-step Jacobian ``Jc`` (n, 4, 15) in the deformed stencil and the defined flag
+    ``good`` (independent items)."""
     pd = np.empty((5, 3), dtype=np.complex128)
     out = np.empty(4, dtype=np.complex128)
+    E = np.empty((4, 3))
+    F = np.empty((4, 3), dtype=np.complex128)
+    au = np.empty(3)
+    ad = np.empty(3, dtype=np.complex128)
+    bu = np.empty(3)
+    bd = np.empty(3, dtype=np.complex128)
     h = 1e-30
-    for m in range(pu_s.shape[0]):
+    for m in range(lo, hi):
         for s in range(5):
             for c in range(3):
                 pd[s, c] = pd_s[m, s, c]
-        good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+        good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out, E, F, au, ad, bu, bd)
         for c in range(4):
             qc[m, c] = out[c].real if good[m] else np.nan
         for j in range(15):
-            if not good[m]:
-                for c in range(4):
-                    Jc[m, c, j] = 0.0
-                continue
             s, c0 = j // 3, j % 3
-            if not ok[m, s]:
+            if not (good[m] and ok[m, s]):
                 for c in range(4):
                     Jc[m, c, j] = 0.0
                 continue
             pd[s, c0] = pd_s[m, s, c0] + 1j * h
-            wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+            wall_q_cs(pu_s[m], pd, ok[m], e, curve, out, E, F, au, ad, bu, bd)
             pd[s, c0] = pd_s[m, s, c0]
             for c in range(4):
                 Jc[m, c, j] = out[c].imag / h
@@ -1345,7 +1349,8 @@ def _wall_jacobian(sk, rd_in, centre):
         qc = np.empty((I.size, 4))
         Jc = np.empty((I.size, 4, 15))
         good = np.empty(I.size, dtype=np.bool_)
-        wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good)
+        with serial_below(64 * I.size):
+            parallel_for(wall_copies_cs, I.size, pu_s, pd_s, ok, e, curve, qc, Jc, good)
         # defined normals; the others the step fills from their neighbours (below)
         good &= np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
         Jb = Jc.reshape(-1, 4, 5, 3)
