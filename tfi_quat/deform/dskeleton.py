@@ -1197,85 +1197,106 @@ def wall_copies_cs(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
 
 
 @jit(inline="always")
-def _crot(w, x, y, z, vx, vy, vz):
-    tx = 2.0 * (y * vz - z * vy)
-    ty = 2.0 * (z * vx - x * vz)
-    tz = 2.0 * (x * vy - y * vx)
-    return (vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz),
-            vz + w * tz + (x * ty - y * tx))
-
-
-@jit(inline="always")
-def sym_eval(y, arm, carm, point, nrm, out):
-    """The symmetry fix (stages.symmetry_fix with Q) of one point on complex ``y`` = (F, Q)."""
-    nx, ny, nz = nrm[0], nrm[1], nrm[2]
-    rx, ry, rz = _crot(y[3], y[4], y[5], y[6], arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
-    px = carm[0] + y[0] + rx
-    py = carm[1] + y[1] + ry
-    pz = carm[2] + y[2] + rz
-    dd = (px - point[0]) * nx + (py - point[1]) * ny + (pz - point[2]) * nz
-    px -= dd * nx
-    py -= dd * ny
-    pz -= dd * nz
-    u = y[4] * nx + y[5] * ny + y[6] * nz
-    t0, t1, t2, t3 = y[3], u * nx, u * ny, u * nz
-    nn = cmath.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
-    if nn.real == 0.0:
-        t0, t1, t2, t3 = 1.0 + 0j, 0j, 0j, 0j
+def _twist(Y, m, nrm, tw):
+    """The symmetry twist of Q = Y[m, 3:7] about the unit normal: ``tw`` (4) and the raw
+    norm (0: no twist, the identity)."""
+    u = Y[m, 4] * nrm[0] + Y[m, 5] * nrm[1] + Y[m, 6] * nrm[2]
+    tw[0] = Y[m, 3]
+    for c in range(3):
+        tw[1 + c] = u * nrm[c]
+    nr = math.sqrt(tw[0] * tw[0] + tw[1] * tw[1] + tw[2] * tw[2] + tw[3] * tw[3])
+    if nr == 0.0:
+        tw[0] = 1.0
+        tw[1] = tw[2] = tw[3] = 0.0
     else:
-        t0, t1, t2, t3 = t0 / nn, t1 / nn, t2 / nn, t3 / nn
-    sx, sy, sz = _crot(t0, t1, t2, t3, arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
-    out[0] = px - carm[0] - sx
-    out[1] = py - carm[1] - sy
-    out[2] = pz - carm[2] - sz
-    out[3] = t0
-    out[4] = t1
-    out[5] = t2
-    out[6] = t3
+        for c in range(4):
+            tw[c] /= nr
+    return nr
 
 
 @jit
 def sym_forward(Z, rows, c0, Y, arm, carm, point, normal):
-    """Tangent of the symmetry fix on rows ``rows`` (columns ``c0:c0+7``), by one complex
-    step along the tangent per point (exact), from the stored inputs ``Y`` (n, 7)."""
-    y = np.empty(7, dtype=np.complex128)
-    out = np.empty(7, dtype=np.complex128)
-    h = 1e-30
+    """Tangent of the symmetry fix (stages.symmetry_fix with Q) on rows ``rows`` (columns
+    ``c0:c0+7`` = (F, Q)), hand-derived, from the stored inputs ``Y`` (n, 7) and arms:
+    ``dF' = (I - n n^T)(dF + ∂_q rot(q, arm) dq) - ∂_q rot(tw, arm) dtw``, ``tw`` the
+    normalised twist ``[q0, (q_v . n) n]``."""
+    tw = np.empty(4)
     for m in range(rows.shape[0]):
         r = rows[m]
-        for c in range(7):
-            y[c] = Y[m, c] + 1j * h * Z[r, c0 + c]
-        sym_eval(y, arm[m], carm, point[m], normal[m], out)
-        for c in range(7):
-            Z[r, c0 + c] = out[c].imag / h
+        nrm = normal[m]
+        nr = _twist(Y, m, nrm, tw)
+        q = Y[m, 3:7]
+        a0, a1, a2 = rot_dq(q, arm[m], Z[r, c0 + 3], Z[r, c0 + 4], Z[r, c0 + 5], Z[r, c0 + 6])
+        x0 = Z[r, c0] + a0
+        x1 = Z[r, c0 + 1] + a1
+        x2 = Z[r, c0 + 2] + a2
+        dn = x0 * nrm[0] + x1 * nrm[1] + x2 * nrm[2]
+        x0 -= dn * nrm[0]
+        x1 -= dn * nrm[1]
+        x2 -= dn * nrm[2]
+        if nr == 0.0:
+            d0 = d1 = d2 = d3 = 0.0
+        else:
+            du = Z[r, c0 + 4] * nrm[0] + Z[r, c0 + 5] * nrm[1] + Z[r, c0 + 6] * nrm[2]
+            r0, r1, r2, r3 = Z[r, c0 + 3], du * nrm[0], du * nrm[1], du * nrm[2]
+            p = tw[0] * r0 + tw[1] * r1 + tw[2] * r2 + tw[3] * r3
+            d0 = (r0 - tw[0] * p) / nr
+            d1 = (r1 - tw[1] * p) / nr
+            d2 = (r2 - tw[2] * p) / nr
+            d3 = (r3 - tw[3] * p) / nr
+        b0, b1, b2 = rot_dq(tw, arm[m], d0, d1, d2, d3)
+        Z[r, c0] = x0 - b0
+        Z[r, c0 + 1] = x1 - b1
+        Z[r, c0 + 2] = x2 - b2
+        Z[r, c0 + 3] = d0
+        Z[r, c0 + 4] = d1
+        Z[r, c0 + 5] = d2
+        Z[r, c0 + 6] = d3
 
 
 @jit
 def sym_backward(Zb, rows, c0, Y, arm, carm, point, normal):
-    """The transpose of :func:`sym_forward` (its Jacobian's columns by complex steps)."""
-    y = np.empty(7, dtype=np.complex128)
-    out = np.empty(7, dtype=np.complex128)
-    b = np.empty(7)
-    h = 1e-30
+    """The transpose of :func:`sym_forward` in place (items reversed)."""
+    tw = np.empty(4)
+    tb = np.empty(4)
     for m in range(rows.shape[0] - 1, -1, -1):
         r = rows[m]
+        nrm = normal[m]
+        nr = _twist(Y, m, nrm, tw)
+        q = Y[m, 3:7]
+        a0, a1, a2 = Zb[r, c0], Zb[r, c0 + 1], Zb[r, c0 + 2]
+        for c in range(4):
+            tb[c] = Zb[r, c0 + 3 + c]
         for c in range(7):
-            b[c] = Zb[r, c0 + c]
             Zb[r, c0 + c] = 0.0
-        for j in range(7):
-            for c in range(7):
-                y[c] = Y[m, c]
-            y[j] += 1j * h
-            sym_eval(y, arm[m], carm, point[m], normal[m], out)
-            s = 0.0
-            for c in range(7):
-                s += out[c].imag / h * b[c]
-            Zb[r, c0 + j] += s
+        dn = a0 * nrm[0] + a1 * nrm[1] + a2 * nrm[2]
+        p0, p1, p2 = a0 - dn * nrm[0], a1 - dn * nrm[1], a2 - dn * nrm[2]
+        Zb[r, c0] += p0
+        Zb[r, c0 + 1] += p1
+        Zb[r, c0 + 2] += p2
+        for j in range(4):
+            e0 = 1.0 if j == 0 else 0.0
+            e1 = 1.0 if j == 1 else 0.0
+            e2 = 1.0 if j == 2 else 0.0
+            e3 = 1.0 if j == 3 else 0.0
+            x, y, z = rot_dq(q, arm[m], e0, e1, e2, e3)
+            Zb[r, c0 + 3 + j] += x * p0 + y * p1 + z * p2
+            x, y, z = rot_dq(tw, arm[m], e0, e1, e2, e3)
+            tb[j] -= x * a0 + y * a1 + z * a2
+        if nr == 0.0:
+            continue
+        p = tw[0] * tb[0] + tw[1] * tb[1] + tw[2] * tb[2] + tw[3] * tb[3]
+        for c in range(4):
+            tb[c] = (tb[c] - tw[c] * p) / nr
+        Zb[r, c0 + 3] += tb[0]
+        du = tb[1] * nrm[0] + tb[2] * nrm[1] + tb[3] * nrm[2]
+        for c in range(3):
+            Zb[r, c0 + 4 + c] += du * nrm[c]
 
 
 class SymOp:
-    """The symmetry fix with Q: 7 + 3 numbers per point (its inputs and arm), the Jacobian
-    by complex steps on the fly (:func:`sym_forward`, :func:`sym_backward`)."""
+    """The symmetry fix with Q: 7 + 3 numbers per point (its inputs and arm), the
+    hand-derived kernels :func:`sym_forward`, :func:`sym_backward`."""
 
     __slots__ = ("rows", "c0", "Y", "arm", "carm", "point", "normal")
     diag = False
