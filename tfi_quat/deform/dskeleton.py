@@ -57,12 +57,17 @@ import math
 import numpy as np
 
 from .. import tfi
-from .stages import PATCH_WORK
 from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
            "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp",
            "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
+
+#: a patch point's tangent or adjoint costs about as much as this many volume points (the
+#: patch kernels run on the threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
+PATCH_WORK = 32
+#: the same for a wall point copy's complex steps
+WALL_WORK = 64
 
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
@@ -1370,7 +1375,7 @@ def _wall_jacobian(sk, rd_in, centre):
         qc = np.empty((I.size, 4))
         Jc = np.empty((I.size, 4, 15))
         good = np.empty(I.size, dtype=np.bool_)
-        with serial_below(64 * I.size):
+        with serial_below(WALL_WORK * I.size):
             parallel_for(wall_copies_cs, I.size, pu_s, pd_s, ok, e, curve, qc, Jc, good)
         # defined normals; the others the step fills from their neighbours (below)
         good &= np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
