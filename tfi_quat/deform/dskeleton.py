@@ -1188,7 +1188,7 @@ def wall_copies_cs(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
         good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out, E, F, au, ad, bu, bd)
         for c in range(4):
             qc[m, c] = out[c].real if good[m] else np.nan
-        for j in range(15):
+        for j in range(3, 15):
             s, c0 = j // 3, j % 3
             if not (good[m] and ok[m, s]):
                 for c in range(4):
@@ -1199,6 +1199,14 @@ def wall_copies_cs(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
             pd[s, c0] = pd_s[m, s, c0]
             for c in range(4):
                 Jc[m, c, j] = out[c].imag / h
+        # q depends on the stencil through its edges only: the centre's column is minus
+        # the sum of the neighbours'
+        for c in range(4):
+            for c0 in range(3):
+                acc = 0.0
+                for s in range(1, 5):
+                    acc += Jc[m, c, 3 * s + c0]
+                Jc[m, c, c0] = -acc
 
 
 @jit(inline="always")
