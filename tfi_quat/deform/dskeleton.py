@@ -1010,14 +1010,16 @@ def _pass_parts(lin, Z):
 
 def fields_vjp(deformer, pass_bars, pos_bar):
     """The adjoint of :func:`fields_jvp`: ``(pass_bars, pos_bar) -> rd_bar`` (G, 3) (zero off
-    the walls).  ``pass_bars``: per pass ``(D_bar, Q_bar)`` (Q_bar None for "tfi"; either may be
-    None for zero)."""
+    the walls).  ``pass_bars``: per pass ``(D_bar, Q_bar)`` (Q_bar None for "tfi"; either, or
+    the pair, may be None for zero)."""
     lin = deformer.linearisation()
     G = lin.G
     Zb = np.zeros((G + lin.nb, NCOL))
     if len(pass_bars) != len(lin.passes):
         raise ValueError(f"pass_bars must have {len(lin.passes)} entries, got {len(pass_bars)}")
     for (d0, q0), bars in zip(lin.passes, pass_bars):
+        if bars is None:
+            continue
         db, qb = bars
         if db is not None:
             Zb[:G, d0:d0 + 3] += np.asarray(db, dtype=np.float64).reshape(G, 3)
