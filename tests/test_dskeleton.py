@@ -159,6 +159,7 @@ def test_threads_same_bits(monkeypatch):
     # small grids run serially below a work threshold: raise the per-point work so that
     # the patch kernels do go on 2 threads here
     monkeypatch.setattr(ds, "PATCH_WORK", 10 ** 9)
+    monkeypatch.setattr(ds, "WALL_WORK", 10 ** 9)
     d = _deformer("ogrid3d", "two-level")
     d.deform(_motion(d))
     drd = _direction(d, np.random.default_rng(1))

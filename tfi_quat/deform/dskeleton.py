@@ -57,12 +57,17 @@ import math
 import numpy as np
 
 from .. import tfi
-from .stages import PATCH_WORK
 from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
            "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp",
            "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
+
+#: a patch point's tangent or adjoint costs about as much as this many volume points (the
+#: patch kernels run on the threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
+PATCH_WORK = 32
+#: the same for a wall point copy's complex steps
+WALL_WORK = 64
 
 # columns of the state Z (rows: boundary points, then one per wall body)
 K0, Q0, D0, P0, POS, RD, Y, T0 = 0, 3, 7, 10, 14, 17, 20, 23
@@ -1008,14 +1013,16 @@ def _pass_parts(lin, Z):
 
 def fields_vjp(deformer, pass_bars, pos_bar):
     """The adjoint of :func:`fields_jvp`: ``(pass_bars, pos_bar) -> rd_bar`` (G, 3) (zero off
-    the walls).  ``pass_bars``: per pass ``(D_bar, Q_bar)`` (Q_bar None for "tfi"; either may be
-    None for zero)."""
+    the walls).  ``pass_bars``: per pass ``(D_bar, Q_bar)`` (Q_bar None for "tfi"; either, or
+    the pair, may be None for zero)."""
     lin = deformer.linearisation()
     G = lin.G
     Zb = np.zeros((G + lin.nb, NCOL))
     if len(pass_bars) != len(lin.passes):
         raise ValueError(f"pass_bars must have {len(lin.passes)} entries, got {len(pass_bars)}")
     for (d0, q0), bars in zip(lin.passes, pass_bars):
+        if bars is None:
+            continue
         db, qb = bars
         if db is not None:
             Zb[:G, d0:d0 + 3] += np.asarray(db, dtype=np.float64).reshape(G, 3)
@@ -1050,22 +1057,23 @@ def _catan2(y, x):
 
 
 @jit
-def wall_q_cs(pu, pd, ok, e, curve, out):
+def wall_q_cs(pu, pd, ok, e, curve, out, E, F, au, ad, bu, bd):
     """The quaternion of one wall point copy (boundary._point_quaternion) on its complex
     deformed stencil ``pd`` (5, 3) (centre, +a, -a, +b, -b): the quaternion
     into ``out`` (4, complex); returns False where a normal is undefined."""
-    E = np.zeros((4, 3))
-    F = np.zeros((4, 3), dtype=np.complex128)
     for k in range(4):
-        if ok[1 + k]:
-            for c in range(3):
+        for c in range(3):
+            if ok[1 + k]:
                 E[k, c] = pu[1 + k, c] - pu[0, c]
                 F[k, c] = pd[1 + k, c] - pd[0, c]
-    au = np.zeros(3)
-    ad = np.zeros(3, dtype=np.complex128)
-    bu = np.zeros(3)
-    bd = np.zeros(3, dtype=np.complex128)
+            else:
+                E[k, c] = 0.0
+                F[k, c] = 0.0
     for c in range(3):
+        au[c] = 0.0
+        ad[c] = 0.0
+        bu[c] = 0.0
+        bd[c] = 0.0
         if ok[1] and ok[2]:
             au[c] = E[0, c] - E[1, c]
             ad[c] = F[0, c] - F[1, c]
@@ -1164,117 +1172,149 @@ def wall_q_cs(pu, pd, ok, e, curve, out):
     return True
 
 
-@jit
-def wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good):
-    """Every copy of a wall patch: the quaternion ``qc`` (n, 4), its complex-step Jacobian
-    ``Jc`` (n, 4, 15) in the deformed stencil and the defined flag ``good``."""
+@task_jit
+def wall_copies_cs(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
+    """The copies ``lo <= m < hi`` of a wall patch: the quaternion ``qc`` (n, 4), its
+    complex-step Jacobian ``Jc`` (n, 4, 15) in the deformed stencil and the defined flag
+    ``good`` (independent items)."""
     pd = np.empty((5, 3), dtype=np.complex128)
     out = np.empty(4, dtype=np.complex128)
+    E = np.empty((4, 3))
+    F = np.empty((4, 3), dtype=np.complex128)
+    au = np.empty(3)
+    ad = np.empty(3, dtype=np.complex128)
+    bu = np.empty(3)
+    bd = np.empty(3, dtype=np.complex128)
     h = 1e-30
-    for m in range(pu_s.shape[0]):
+    for m in range(lo, hi):
         for s in range(5):
             for c in range(3):
                 pd[s, c] = pd_s[m, s, c]
-        good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+        good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out, E, F, au, ad, bu, bd)
         for c in range(4):
             qc[m, c] = out[c].real if good[m] else np.nan
-        for j in range(15):
-            if not good[m]:
-                for c in range(4):
-                    Jc[m, c, j] = 0.0
-                continue
+        for j in range(3, 15):
             s, c0 = j // 3, j % 3
-            if not ok[m, s]:
+            if not (good[m] and ok[m, s]):
                 for c in range(4):
                     Jc[m, c, j] = 0.0
                 continue
             pd[s, c0] = pd_s[m, s, c0] + 1j * h
-            wall_q_cs(pu_s[m], pd, ok[m], e, curve, out)
+            wall_q_cs(pu_s[m], pd, ok[m], e, curve, out, E, F, au, ad, bu, bd)
             pd[s, c0] = pd_s[m, s, c0]
             for c in range(4):
                 Jc[m, c, j] = out[c].imag / h
+        # q depends on the stencil through its edges only: the centre's column is minus
+        # the sum of the neighbours'
+        for c in range(4):
+            for c0 in range(3):
+                acc = 0.0
+                for s in range(1, 5):
+                    acc += Jc[m, c, 3 * s + c0]
+                Jc[m, c, c0] = -acc
 
 
 @jit(inline="always")
-def _crot(w, x, y, z, vx, vy, vz):
-    tx = 2.0 * (y * vz - z * vy)
-    ty = 2.0 * (z * vx - x * vz)
-    tz = 2.0 * (x * vy - y * vx)
-    return (vx + w * tx + (y * tz - z * ty), vy + w * ty + (z * tx - x * tz),
-            vz + w * tz + (x * ty - y * tx))
-
-
-@jit(inline="always")
-def sym_eval(y, arm, carm, point, nrm, out):
-    """The symmetry fix (stages.symmetry_fix with Q) of one point on complex ``y`` = (F, Q)."""
-    nx, ny, nz = nrm[0], nrm[1], nrm[2]
-    rx, ry, rz = _crot(y[3], y[4], y[5], y[6], arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
-    px = carm[0] + y[0] + rx
-    py = carm[1] + y[1] + ry
-    pz = carm[2] + y[2] + rz
-    dd = (px - point[0]) * nx + (py - point[1]) * ny + (pz - point[2]) * nz
-    px -= dd * nx
-    py -= dd * ny
-    pz -= dd * nz
-    u = y[4] * nx + y[5] * ny + y[6] * nz
-    t0, t1, t2, t3 = y[3], u * nx, u * ny, u * nz
-    nn = cmath.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3)
-    if nn.real == 0.0:
-        t0, t1, t2, t3 = 1.0 + 0j, 0j, 0j, 0j
+def _twist(Y, m, nrm, tw):
+    """The symmetry twist of Q = Y[m, 3:7] about the unit normal: ``tw`` (4) and the raw
+    norm (0: no twist, the identity)."""
+    u = Y[m, 4] * nrm[0] + Y[m, 5] * nrm[1] + Y[m, 6] * nrm[2]
+    tw[0] = Y[m, 3]
+    for c in range(3):
+        tw[1 + c] = u * nrm[c]
+    nr = math.sqrt(tw[0] * tw[0] + tw[1] * tw[1] + tw[2] * tw[2] + tw[3] * tw[3])
+    if nr == 0.0:
+        tw[0] = 1.0
+        tw[1] = tw[2] = tw[3] = 0.0
     else:
-        t0, t1, t2, t3 = t0 / nn, t1 / nn, t2 / nn, t3 / nn
-    sx, sy, sz = _crot(t0, t1, t2, t3, arm[0] + 0j, arm[1] + 0j, arm[2] + 0j)
-    out[0] = px - carm[0] - sx
-    out[1] = py - carm[1] - sy
-    out[2] = pz - carm[2] - sz
-    out[3] = t0
-    out[4] = t1
-    out[5] = t2
-    out[6] = t3
+        for c in range(4):
+            tw[c] /= nr
+    return nr
 
 
 @jit
 def sym_forward(Z, rows, c0, Y, arm, carm, point, normal):
-    """Tangent of the symmetry fix on rows ``rows`` (columns ``c0:c0+7``), by one complex
-    step along the tangent per point (exact), from the stored inputs ``Y`` (n, 7)."""
-    y = np.empty(7, dtype=np.complex128)
-    out = np.empty(7, dtype=np.complex128)
-    h = 1e-30
+    """Tangent of the symmetry fix (stages.symmetry_fix with Q) on rows ``rows`` (columns
+    ``c0:c0+7`` = (F, Q)), hand-derived, from the stored inputs ``Y`` (n, 7) and arms:
+    ``dF' = (I - n n^T)(dF + ∂_q rot(q, arm) dq) - ∂_q rot(tw, arm) dtw``, ``tw`` the
+    normalised twist ``[q0, (q_v . n) n]``."""
+    tw = np.empty(4)
     for m in range(rows.shape[0]):
         r = rows[m]
-        for c in range(7):
-            y[c] = Y[m, c] + 1j * h * Z[r, c0 + c]
-        sym_eval(y, arm[m], carm, point[m], normal[m], out)
-        for c in range(7):
-            Z[r, c0 + c] = out[c].imag / h
+        nrm = normal[m]
+        nr = _twist(Y, m, nrm, tw)
+        q = Y[m, 3:7]
+        a0, a1, a2 = rot_dq(q, arm[m], Z[r, c0 + 3], Z[r, c0 + 4], Z[r, c0 + 5], Z[r, c0 + 6])
+        x0 = Z[r, c0] + a0
+        x1 = Z[r, c0 + 1] + a1
+        x2 = Z[r, c0 + 2] + a2
+        dn = x0 * nrm[0] + x1 * nrm[1] + x2 * nrm[2]
+        x0 -= dn * nrm[0]
+        x1 -= dn * nrm[1]
+        x2 -= dn * nrm[2]
+        if nr == 0.0:
+            d0 = d1 = d2 = d3 = 0.0
+        else:
+            du = Z[r, c0 + 4] * nrm[0] + Z[r, c0 + 5] * nrm[1] + Z[r, c0 + 6] * nrm[2]
+            r0, r1, r2, r3 = Z[r, c0 + 3], du * nrm[0], du * nrm[1], du * nrm[2]
+            p = tw[0] * r0 + tw[1] * r1 + tw[2] * r2 + tw[3] * r3
+            d0 = (r0 - tw[0] * p) / nr
+            d1 = (r1 - tw[1] * p) / nr
+            d2 = (r2 - tw[2] * p) / nr
+            d3 = (r3 - tw[3] * p) / nr
+        b0, b1, b2 = rot_dq(tw, arm[m], d0, d1, d2, d3)
+        Z[r, c0] = x0 - b0
+        Z[r, c0 + 1] = x1 - b1
+        Z[r, c0 + 2] = x2 - b2
+        Z[r, c0 + 3] = d0
+        Z[r, c0 + 4] = d1
+        Z[r, c0 + 5] = d2
+        Z[r, c0 + 6] = d3
 
 
 @jit
 def sym_backward(Zb, rows, c0, Y, arm, carm, point, normal):
-    """The transpose of :func:`sym_forward` (its Jacobian's columns by complex steps)."""
-    y = np.empty(7, dtype=np.complex128)
-    out = np.empty(7, dtype=np.complex128)
-    b = np.empty(7)
-    h = 1e-30
+    """The transpose of :func:`sym_forward` in place (items reversed)."""
+    tw = np.empty(4)
+    tb = np.empty(4)
     for m in range(rows.shape[0] - 1, -1, -1):
         r = rows[m]
+        nrm = normal[m]
+        nr = _twist(Y, m, nrm, tw)
+        q = Y[m, 3:7]
+        a0, a1, a2 = Zb[r, c0], Zb[r, c0 + 1], Zb[r, c0 + 2]
+        for c in range(4):
+            tb[c] = Zb[r, c0 + 3 + c]
         for c in range(7):
-            b[c] = Zb[r, c0 + c]
             Zb[r, c0 + c] = 0.0
-        for j in range(7):
-            for c in range(7):
-                y[c] = Y[m, c]
-            y[j] += 1j * h
-            sym_eval(y, arm[m], carm, point[m], normal[m], out)
-            s = 0.0
-            for c in range(7):
-                s += out[c].imag / h * b[c]
-            Zb[r, c0 + j] += s
+        dn = a0 * nrm[0] + a1 * nrm[1] + a2 * nrm[2]
+        p0, p1, p2 = a0 - dn * nrm[0], a1 - dn * nrm[1], a2 - dn * nrm[2]
+        Zb[r, c0] += p0
+        Zb[r, c0 + 1] += p1
+        Zb[r, c0 + 2] += p2
+        for j in range(4):
+            e0 = 1.0 if j == 0 else 0.0
+            e1 = 1.0 if j == 1 else 0.0
+            e2 = 1.0 if j == 2 else 0.0
+            e3 = 1.0 if j == 3 else 0.0
+            x, y, z = rot_dq(q, arm[m], e0, e1, e2, e3)
+            Zb[r, c0 + 3 + j] += x * p0 + y * p1 + z * p2
+            x, y, z = rot_dq(tw, arm[m], e0, e1, e2, e3)
+            tb[j] -= x * a0 + y * a1 + z * a2
+        if nr == 0.0:
+            continue
+        p = tw[0] * tb[0] + tw[1] * tb[1] + tw[2] * tb[2] + tw[3] * tb[3]
+        for c in range(4):
+            tb[c] = (tb[c] - tw[c] * p) / nr
+        Zb[r, c0 + 3] += tb[0]
+        du = tb[1] * nrm[0] + tb[2] * nrm[1] + tb[3] * nrm[2]
+        for c in range(3):
+            Zb[r, c0 + 4 + c] += du * nrm[c]
 
 
 class SymOp:
-    """The symmetry fix with Q: 7 + 3 numbers per point (its inputs and arm), the Jacobian
-    by complex steps on the fly (:func:`sym_forward`, :func:`sym_backward`)."""
+    """The symmetry fix with Q: 7 + 3 numbers per point (its inputs and arm), the
+    hand-derived kernels :func:`sym_forward`, :func:`sym_backward`."""
 
     __slots__ = ("rows", "c0", "Y", "arm", "carm", "point", "normal")
     diag = False
@@ -1348,7 +1388,8 @@ def _wall_jacobian(sk, rd_in, centre):
         qc = np.empty((I.size, 4))
         Jc = np.empty((I.size, 4, 15))
         good = np.empty(I.size, dtype=np.bool_)
-        wall_copies_cs(pu_s, pd_s, ok, e, curve, qc, Jc, good)
+        with serial_below(WALL_WORK * I.size):
+            parallel_for(wall_copies_cs, I.size, pu_s, pd_s, ok, e, curve, qc, Jc, good)
         # defined normals; the others the step fills from their neighbours (below)
         good &= np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
         Jb = Jc.reshape(-1, 4, 5, 3)
