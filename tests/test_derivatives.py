@@ -405,3 +405,19 @@ def test_docs_worked_example_runs():
     ns = {"__name__": "derivatives_page"}
     exec(compile(blocks[0], "docs/derivatives.md", "exec"), ns)
     assert ns["grad"].shape == (len(ns["d"].surface_ids()), 3)
+
+
+def test_nothing_of_the_derivatives_is_loaded_by_a_step():
+    """The derivative kernels are made on first use: a process that only deforms never
+    imports tfi_quat.dtfi nor the boundary level's derivatives (issue 13's cold start)."""
+    import subprocess
+    import sys
+    code = ("import sys; import numpy as np; sys.path.insert(0, 'tests'); "
+            "import _deform_grids as G; from tfi_quat.deform import Deformer; "
+            "g, w, s, f = G.o_grid(ni=9, nj=5); d = Deformer(g, walls=w, fixed=f); "
+            "d.deform(d.surface_points() * 1.01); "
+            "print(sorted(m for m in sys.modules if m.endswith(('dtfi', 'dvolume', 'dskeleton'))))")
+    from pathlib import Path
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[1], check=True).stdout
+    assert out.strip() == "[]"
