@@ -45,7 +45,7 @@ from .quaternion import log_s
 
 __all__ = [
     "QNORM_MIN",
-    "sinc2", "slerp_angle", "slerp_weights", "rel_log", "exp_times",
+    "sinc2", "dsinc2", "slerp_angle", "slerp_weights", "dslerp_weights", "rel_log", "exp_times",
     "face_coords", "face_point",
     "u_d", "v_d", "w_d", "u_q", "v_q", "w_q", "fallback_q",
     "dist", "max_abs", "at", "line_point", "arc_line_i", "arc_tile", "TILE", "by_direction",
@@ -80,6 +80,14 @@ def sinc2(x2):
 
 
 @jit(inline="always")
+def dsinc2(x2):
+    """The derivative of :func:`sinc2` with respect to ``x2`` (of the polynomial itself, so
+    that the derivative kernels differentiate exactly what the volume kernels compute)."""
+    return _S1 + x2 * (2.0 * _S2 + x2 * (3.0 * _S3 + x2 * (4.0 * _S4 + x2 * (5.0 * _S5 + x2 * (
+        6.0 * _S6 + x2 * (7.0 * _S7 + x2 * (8.0 * _S8 + x2 * (9.0 * _S9 + x2 * 10.0 * _S10))))))))
+
+
+@jit(inline="always")
 def slerp_angle(a0, a1, a2, a3, b0, b1, b2, b3):
     """Angle between two unit quaternions (as 4-vectors, ``b`` already aligned): ``(ω², sinc(ω))``."""
     d0 = a0 - b0
@@ -101,6 +109,17 @@ def slerp_weights(t, w2, sw):
     """Slerp weights ``sin((1-t)ω)/sin ω`` and ``sin(tω)/sin ω``; exactly (1, 0) at t=0, (0, 1) at t=1."""
     u = 1.0 - t
     return u * sinc2(u * u * w2) / sw, t * sinc2(t * t * w2) / sw
+
+
+@jit(inline="always")
+def dslerp_weights(t, w2, sw):
+    """The derivatives of :func:`slerp_weights` with respect to ``w2`` (``sw = sinc2(w2)``)."""
+    u = 1.0 - t
+    ds = dsinc2(w2) / sw
+    uu = u * u * w2
+    tt = t * t * w2
+    return (u * (u * u * dsinc2(uu) - sinc2(uu) * ds) / sw,
+            t * (t * t * dsinc2(tt) - sinc2(tt) * ds) / sw)
 
 
 @jit(inline="always")

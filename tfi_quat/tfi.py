@@ -1326,6 +1326,29 @@ class GatherPlan:
               FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
         return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
 
+    @property
+    def face_rows(self) -> tuple:
+        """The global rows of the faces normal to L, M, N: three ``(>= na, nb, 2)`` int64 arrays
+        (last index: low, high face; a 2-D plan's third is a dummy).  Read-only use."""
+        return self._index
+
+    @property
+    def face_pairs(self) -> tuple:
+        """The arclength parameters on the M and N faces, ``(SM, SN)``, each ``(na, nb, 3, 2)``
+        (a 2-D plan's ``SN`` is a dummy).  Read-only use."""
+        return self._SM, self._SN
+
+    def fill_tables(self, g_delta, g_q) -> tuple:
+        """The 8 tables the volume kernels read (``lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN``;
+        layout in the module docstring) for the global arrays ``g_delta`` (G, 3) and ``g_q``
+        (G, 4) or None, built as :func:`deform_block_gathered` builds them.  With
+        ``keep_tables`` they are the plan's own, overwritten by its next call: for a caller
+        that uses them at once (the derivatives, :mod:`tfi_quat.dtfi`)."""
+        gd = _check_global(g_delta, 3, self.n_index, "g_delta")
+        gq = None if g_q is None else _check_global(g_q, 4, self.n_index, "g_q")
+        with self._lock:
+            return self._fill(gd, gq)
+
     def base_tables(self, g_base) -> tuple:
         """The tables of the baseline TFI of a fixed field ``g_base`` (G, 3) over this
         block's faces, for ``deform_block_gathered(..., base=...)``: a copy (O(surface)),

@@ -329,7 +329,7 @@ class Deformer:
             #: the two-level parts (:class:`tfi_quat.deform.twolevel.TwoLevel`), None for the others
             self.two_level = twolevel.build_two_level(self.skeleton, layer) if two else None
         self._work = _Work(pts.P, None if self.two_level is None else self.two_level.c)
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()     # re-entrant: jvp/vjp hold it and build the linearisation
         #: the wall copies and the checks of the array form (:class:`.walls.WallInput`)
         self.walls = WallInput(grid, self.skeleton, dup_tol)
         self._scratch = buffers.Scratch(self.grid)
@@ -343,6 +343,10 @@ class Deformer:
         self.quality = None
         self.setup_seconds = time.perf_counter() - t0
         self.timings = StepTimings()
+        #: the global wall targets (G, 3) of the last :meth:`deform` (the reference before
+        #: any): the point its derivatives are linearised at (O(surface); updated in place)
+        self.last_targets = pts.P.copy()
+        self._linear = None
 
     @property
     def n_global(self) -> int:
@@ -499,6 +503,8 @@ class Deformer:
                     raise DeformationError("ids= and displacement= go with an array of wall points "
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
                 rd = other_targets(self.skeleton, self._all, moved, self._work.rd)
+            np.copyto(self.last_targets, rd)      # in place: a step allocates nothing
+            self._linear = None
             if self.two_level is not None:
                 passes, ts, t1, t3 = self._two_level_fields(rd)
             else:
@@ -512,6 +518,22 @@ class Deformer:
                 self.timings = StepTimings(walls=t1 - t0, skeleton=ts, faces=t3 - t1 - ts,
                                            volumes=t4 - t3 - tc, check=tc)
             return grid
+
+    def linearisation(self):
+        """The boundary level's linearisation at :attr:`last_targets`
+        (:class:`tfi_quat.deform.dskeleton.Linearisation`), built on first use after a step."""
+        from .dskeleton import linearise
+        with self._lock, use_threads(self.threads):
+            if self._linear is None:
+                self._linear = linearise(self, self.last_targets)
+            return self._linear
+
+    def linear_passes(self):
+        """The volume passes ``(Δ or K, Q, centre, tables)`` at the linearisation point (the
+        last step's targets): always both passes for ``"two-level"`` (residual, then rigid),
+        one for the others (``Q`` None for ``"tfi"``).  O(surface) arrays held by the
+        linearisation (:meth:`linearisation`): do not modify them."""
+        return self.linearisation().values
 
     def _samareh_fields(self, rd):
         """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q) on the
@@ -713,6 +735,87 @@ class Deformer:
                     np.subtract(x1, x0, out=v)
                     np.divide(v, dt, out=v)
             return out
+
+    def jvp(self, dxs, ids=None, *, at=None, out=None):
+        """The tangent of the deformation: how the grid moves when the wall points move by ``dxs``.
+
+        The forward product of the Jacobian of :meth:`deform` (volume grid as a function of
+        the wall points), linearised at the wall positions of the last :meth:`deform`
+        (the reference before any), or at ``at``.  ``docs/derivatives.md`` has the details.
+
+        Parameters
+        ----------
+        dxs : array_like, shape (n, 3)
+            A tangent of the wall points: one row per wall point copy in
+            :meth:`surface_ids` order, or with ``ids`` the copies ``ids`` (as in
+            :meth:`deform`: every wall point at least once; the first row given
+            for a point counts, the others are ignored).  2-D grids: z = 0.
+        ids : array_like of int, shape (n, 4), optional
+            ``(block, i, j, k)`` (0-based) of each row of ``dxs`` (and of ``at``).
+        at : array_like, shape (n, 3), optional
+            Wall point positions (the array form of :meth:`deform`, rows as
+            ``dxs``) to linearise at instead; they stay the linearisation point
+            until the next :meth:`deform` or ``at``.
+        out : Grid or list, optional
+            Buffers for the result, in any layout :meth:`deform` writes.
+
+        Returns
+        -------
+        list of ndarray, or ``out``
+            Per block the tangent of its coordinates, Fortran ``(ni, nj, nk, 3)``
+            (a slave point of an interface: its master's, as every boundary copy).
+
+        Raises
+        ------
+        DeformationError
+            Bad input (shapes, ids, non-finite values, as :meth:`deform`), or blocks
+            where the forward map takes its rotation-vector fallback (blended
+            rotations near 180 degrees apart), which the derivatives do not cover.
+        """
+        from . import dvolume
+        from .dskeleton import fields_jvp
+        with self._lock, use_threads(self.threads):
+            if at is not None:
+                self._linearise_at(at, ids)
+            drd = dvolume.tangent_targets(self, dxs, ids)
+            passes = self.linear_passes()
+            tangents, dpos = fields_jvp(self, drd)
+            res = dvolume.volume_jvp(self, passes, tangents, dpos, out)
+            return res if out is None else out
+
+    def vjp(self, dxv, *, at=None, ids=None) -> np.ndarray:
+        """The adjoint of :meth:`jvp`: the gradient with respect to the wall points of
+        ``<dxv, grid>``, for a bar ``dxv`` of the grid's coordinates.
+
+        Parameters
+        ----------
+        dxv : Grid or list
+            Per block an array ``(ni, nj, nk, 3)`` (or a tuple ``x, y, z``), in
+            any layout :meth:`deform` writes.
+        at, ids : optional
+            As for :meth:`jvp` (``ids``: of the rows of ``at`` only).
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            Rows in :meth:`surface_ids` order: ``<vjp(v), u> = <v, jvp(u)>``.  The
+            first copy of a wall point gets its whole gradient, its other copies 0
+            (:meth:`deform` uses the first copy).
+        """
+        from . import dvolume
+        from .dskeleton import fields_vjp
+        with self._lock, use_threads(self.threads):
+            if at is not None:
+                self._linearise_at(at, ids)
+            passes = self.linear_passes()
+            pass_bars, pos_bar = dvolume.volume_vjp(self, passes, dxv)
+            rd_bar = fields_vjp(self, pass_bars, pos_bar)
+            return dvolume.surface_bar(self, rd_bar)
+
+    def _linearise_at(self, at, ids) -> None:
+        rd = self.walls.array_targets(at, ids, False, self.skeleton.points.P.copy())
+        self.last_targets = rd
+        self._linear = None
 
     def summary(self) -> str:
         """A few lines describing the skeleton (for the CLI and logs)."""

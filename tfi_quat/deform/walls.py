@@ -96,35 +96,14 @@ class WallInput:
             raise DeformationError(f"xs must hold real numbers, got dtype {xs.dtype}")
         xs = np.asarray(xs, dtype=np.float64)
         m = xs.shape[0]
-        if ids is None:
-            sid, gid = self.surface()
-            if m != sid.shape[0]:
-                raise DeformationError(
-                    f"xs has {m} rows; without ids it must have one row per wall point copy of "
-                    f"surface_ids(), {sid.shape[0]} (or give ids)")
-            copy_of = sid
-        else:
-            copy_of = self._check_ids(ids, m)
-            keys, kgid = self._wall_lookup()
-            flat = point_keys(self.grid, copy_of)
-            at = np.minimum(np.searchsorted(keys, flat), keys.size - 1)
-            hit = keys[at] == flat
-            if not hit.all():
-                r = int(np.flatnonzero(~hit)[0])
-                raise DeformationError(f"ids row {r}: {self._copy_name(*copy_of[r])} (0-based) is "
-                                       f"not a wall point ({int((~hit).sum())} such row(s))")
-            gid = kgid[at]
+        copy_of, gid = self.rows(ids, m, "xs")
         bad = ~np.isfinite(xs)
         if bad.any():
             r = int(np.flatnonzero(bad.any(axis=1))[0])
             raise DeformationError(f"xs row {r} ({self._copy_name(*copy_of[r])}, 0-based) is not "
                                    f"finite ({int(bad.any(axis=1).sum())} such row(s))")
         # one row per distinct point, the first copy given; the others must agree with it
-        order = np.argsort(gid, kind="stable")
-        g_sorted = gid[order]
-        start = np.ones(m, dtype=bool)
-        start[1:] = g_sorted[1:] != g_sorted[:-1]
-        first = order[start]
+        order, start, first = _first_rows(gid)
         # the repeated copies (rows of xs) and the first copy of their point
         rep = np.flatnonzero(~start)
         lead = order[np.maximum.accumulate(np.where(start, np.arange(m), 0))[rep]]
@@ -140,13 +119,7 @@ class WallInput:
                 f"dup_tol = {self.dup_tol:g} ({int(over.sum())} copy(ies) disagree with their "
                 f"first; Deformer(dup_tol=...) sets the tolerance)")
         g_first = gid[first]
-        seen = np.zeros(pts.n_global, dtype=bool)
-        seen[g_first] = True
-        missing = pts.wall[~seen[pts.wall]]
-        if missing.size:
-            b, flat = self._key_to_copy(int(pts.rep_key[missing[0]]))
-            raise DeformationError(f"{missing.size} wall point(s) have no row in xs, e.g. "
-                                   f"{self._copy_name(b, *flat)} (0-based)")
+        self.check_covered(g_first, "xs")
         rd[g_first] = xs[first]
         if displacement:
             rd[g_first] += pts.P[g_first]
@@ -155,7 +128,45 @@ class WallInput:
             raise DeformationError(f"the {what} of a 2-D grid must have z = 0")
         return rd
 
-    def _check_ids(self, ids, m: int) -> np.ndarray:
+    def rows(self, ids, m: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(copy_of (m, 4), gid (m,))``: the wall point copy each of the ``m`` rows of an
+        array input ``what`` stands for (``ids``; None: :meth:`surface` order) and its global
+        id, checked (DeformationError naming the row)."""
+        if ids is None:
+            sid, gid = self.surface()
+            if m != sid.shape[0]:
+                raise DeformationError(
+                    f"{what} has {m} rows; without ids it must have one row per wall point copy "
+                    f"of surface_ids(), {sid.shape[0]} (or give ids)")
+            return sid, gid
+        copy_of = self._check_ids(ids, m, what)
+        keys, kgid = self._wall_lookup()
+        flat = point_keys(self.grid, copy_of)
+        at = np.minimum(np.searchsorted(keys, flat), keys.size - 1)
+        hit = keys[at] == flat
+        if not hit.all():
+            r = int(np.flatnonzero(~hit)[0])
+            raise DeformationError(f"ids row {r}: {self._copy_name(*copy_of[r])} (0-based) is "
+                                   f"not a wall point ({int((~hit).sum())} such row(s))")
+        return copy_of, kgid[at]
+
+    def first_rows(self, gid: np.ndarray) -> np.ndarray:
+        """The rows that count of rows naming the global points ``gid``: the first row of each
+        distinct point (the others are copies)."""
+        return _first_rows(gid)[2]
+
+    def check_covered(self, g_first: np.ndarray, what: str) -> None:
+        """A DeformationError unless the global ids ``g_first`` cover every wall point."""
+        pts = self.skeleton.points
+        seen = np.zeros(pts.n_global, dtype=bool)
+        seen[g_first] = True
+        missing = pts.wall[~seen[pts.wall]]
+        if missing.size:
+            b, flat = self._key_to_copy(int(pts.rep_key[missing[0]]))
+            raise DeformationError(f"{missing.size} wall point(s) have no row in {what}, e.g. "
+                                   f"{self._copy_name(b, *flat)} (0-based)")
+
+    def _check_ids(self, ids, m: int, what: str = "xs") -> np.ndarray:
         """``ids`` as an (m, 4) int64 array of existing points, else a DeformationError naming
         the row."""
         a = np.asarray(ids)
@@ -163,7 +174,7 @@ class WallInput:
             raise DeformationError(f"ids must have shape (m, 4) (block, i, j, k, 0-based), got "
                                    f"{a.shape}")
         if a.shape[0] != m:
-            raise DeformationError(f"ids has {a.shape[0]} rows, xs {m}: one id per row of xs")
+            raise DeformationError(f"ids has {a.shape[0]} rows, {what} {m}: one id per row of {what}")
         if not np.issubdtype(a.dtype, np.integer):
             raise DeformationError(f"ids must be integers, got dtype {a.dtype}")
         a = a.astype(np.int64, copy=False)
@@ -187,6 +198,16 @@ class WallInput:
         ni, nj, _ = self.grid[b].dims
         r = key - int(off[b])
         return b, (r % ni, (r // ni) % nj, r // (ni * nj))
+
+
+def _first_rows(gid: np.ndarray) -> tuple:
+    """``(order, start, first)``: a stable sort of the rows by ``gid``, where each point's run
+    starts in it, and the first row of each distinct point."""
+    order = np.argsort(gid, kind="stable")
+    g_sorted = gid[order]
+    start = np.ones(gid.shape[0], dtype=bool)
+    start[1:] = g_sorted[1:] != g_sorted[:-1]
+    return order, start, order[start]
 
 
 def other_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
