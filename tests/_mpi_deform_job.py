@@ -88,6 +88,11 @@ def main() -> None:
                               source_format=d.grid.source_format)
             if not (case.get("array") or case.get("out")) or fail:
                 out = d.deform(moved, check=case.get("check", True))
+            if case.get("jvp"):         # the derivatives are serial only: a clear refusal
+                try:
+                    d.jvp(np.zeros((d.surface_ids().shape[0], 3)))
+                except Exception as exc:    # noqa: BLE001  (the test reads it)
+                    res["jvp_error"] = f"{type(exc).__name__}: {exc}"
             res["blocks"] = list(d.blocks)
             res["quality"] = str(d.quality)
             if case.get("trace"):

@@ -225,9 +225,12 @@ def test_one_and_three_ranks(grids, tmp_path, monkeypatch):
     check_outputs(root, tmp_path, three[:2] + three[3:], results[:2] + results[3:], monkeypatch)
     errors = {r.get("error") for r in results[2]}
     assert len(errors) == 1 and "blocks= is empty" in errors.pop()
-    one = [case(spec, "ring", "bend", ["r1.h5"]), case(spec, "two", "rigid", ["t1.x"])]
+    one = [case(spec, "ring", "bend", ["r1.h5"]), case(spec, "two", "rigid", ["t1.x"], jvp=True)]
     results = run_job(tmp_path, 1, one)
     check_outputs(root, tmp_path, one, results, monkeypatch)
+    # the derivatives are not distributed yet: refused with a clear error, not wrong numbers
+    err = results[1][0]["jvp_error"]
+    assert err.startswith("ParallelError") and "not available on a distributed Deformer" in err
 
 
 def test_deformer_comm_without_mpi4py_names_the_extra(monkeypatch):

@@ -378,6 +378,16 @@ class DistributedDeformer(Deformer):
         every = sorted((item for part in parts for item in part), key=lambda item: item[0])
         return CellCheck.merge(r for _, r in every)
 
+    def jvp(self, *args, **kw):
+        """Not available over MPI yet (docs/derivatives.md): raises :class:`ParallelError`."""
+        raise ParallelError("Deformer.jvp is not available on a distributed Deformer (comm=) yet: "
+                            "run the derivatives on a serial Deformer of the whole grid")
+
+    def vjp(self, *args, **kw):
+        """Not available over MPI yet (docs/derivatives.md): raises :class:`ParallelError`."""
+        raise ParallelError("Deformer.vjp is not available on a distributed Deformer (comm=) yet: "
+                            "run the derivatives on a serial Deformer of the whole grid")
+
     def write(self, path, grid, **kw) -> None:
         """Write a step's result (this rank's blocks) collectively: :func:`tfi_quat.io.write` with
         ``comm`` and ``blocks`` (``like`` default: the reference's file variant when ``path``
