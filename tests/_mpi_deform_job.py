@@ -90,6 +90,8 @@ def main() -> None:
                 out = d.deform(moved, check=case.get("check", True))
             res["blocks"] = list(d.blocks)
             res["quality"] = str(d.quality)
+            res["free_rows"] = (int(d.skeleton.vertices.free.size),
+                                int(d.full_skeleton.vertices.free.size))
             if case.get("trace"):
                 res["peak"] = tracemalloc.get_traced_memory()[1]
                 res["own_points"] = sum(b.npoints for b in d.grid)

@@ -554,12 +554,11 @@ class Deformer:
         wall = sk.points.wall
         P = sk.points.P
         w = self._work
-        fits = twolevel.fit_bodies(sk, two, rd, w.y)
+        fits = twolevel.fit_bodies(sk, two, rd, w.y, self._gather_parts, self._y_rows)
         y = w.y
         tiny = 1e-14 * self._scale
-        local = bool(np.max(np.abs(y[wall] - P[wall]), initial=0.0) > tiny)
         rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
-        qwall = self._wall_quaternions(y, self.centre) if local else None
+        local, qwall = self._residual_quaternions(y, tiny)
         t1 = time.perf_counter()
         ts = 0.0
         pos = w.pos
@@ -649,6 +648,19 @@ class Deformer:
                           connectivity=grid.connectivity)
         result.quality = report
         return result
+
+    #: the rigid fits' collective (:func:`twolevel.fit_bodies`' ``gather``; None: serial)
+    _gather_parts = None
+    #: per wall body, the points of the residual targets a step needs (None: all)
+    _y_rows = None
+
+    def _residual_quaternions(self, y, tiny):
+        """``(local, qwall)``: whether the residual targets ``y`` move a wall point by more
+        than ``tiny``, and then their merged wall quaternions (else None)."""
+        sk = self.skeleton
+        wall = sk.points.wall
+        local = bool(np.max(np.abs(y[wall] - sk.points.P[wall]), initial=0.0) > tiny)
+        return local, (self._wall_quaternions(y, self.centre) if local else None)
 
     def _wall_quaternions(self, rd, centre):
         """The merged wall quaternions of the walls moved to ``rd`` (under MPI: each wall patch

@@ -59,8 +59,10 @@ from .shell import ShellGrid, shell_of
 
 __all__ = ["DistributedDeformer", "open_shell", "split_skeleton"]
 
-#: collectives of one step: the wall targets, the wall quaternions, the cell checks
+#: collectives of one step: the wall targets, the wall quaternions, the cell checks (and, in
+#: two-level steps, the rigid fits' two passes)
 _STAGES = 3
+_STAGES_TWO_LEVEL = 5
 
 
 def _numbers(blocks, where: str) -> list[int]:
@@ -216,7 +218,7 @@ def split_skeleton(sk, two, own):
     replicated O(surface) work of a step shrinks to the rank's share of the boundary, plus
     the walls (wall quaternions, rigid fits) and the free vertices, which every rank keeps.
     """
-    from .skeleton import Patches, Segments, Symmetry
+    from .skeleton import Patches, Segments, Symmetry, Vertices
     from .stages import level_pack
     need = np.zeros(sk.n_global, dtype=bool)
     for b in own:
@@ -242,12 +244,21 @@ def split_skeleton(sk, two, own):
         segments = Segments(left[keep], right[keep],
                             np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
                             np.ascontiguousarray(pts[rows]), np.ascontiguousarray(s[rows]))
+    # the free vertices those read (each row of the inverse-distance blend is computed alone,
+    # stages.idw_rows: the same bits for any subset of rows)
+    vertices = sk.vertices
+    if vertices.idw is not None:
+        keep = need[vertices.free]
+        src, w, decay, ref = vertices.idw
+        vertices = Vertices(vertices.corners, vertices.free[keep],
+                            (src, np.ascontiguousarray(w[keep]), decay[keep], ref[keep])
+                            if keep.any() else None)
     sym = sk.symmetry
     on = need[sym.gids]
     symmetry = Symmetry(sym.gids[on], sym.point[on], sym.normal[on])
     der = need[sk.derived]
     sk = dataclasses.replace(sk, patches=patches, segments=segments, symmetry=symmetry,
-                             derived=sk.derived[der])
+                             vertices=vertices, derived=sk.derived[der])
     if two is not None:
         two = dataclasses.replace(two, phi=np.ascontiguousarray(two.phi[der]))
     return sk, two
@@ -268,7 +279,7 @@ class DistributedDeformer(Deformer):
         check_comm(comm)
         #: the communicator
         self.comm = comm
-        self._stage = _STAGES
+        self._stage = self._stages = _STAGES
         shell = open_shell(source, comm, blocks)
         exc = None
         try:
@@ -283,6 +294,42 @@ class DistributedDeformer(Deformer):
         #: the whole skeleton (every rank's copy is the same); :attr:`skeleton` is this rank's part
         self.full_skeleton = self.skeleton
         self.skeleton, self.two_level = split_skeleton(self.skeleton, self.two_level, self.blocks)
+        self._plan_walls()
+
+    def _plan_walls(self) -> None:
+        """The wall work of this rank: its wall patches (those on its blocks), the parts of the
+        rigid fits' partition in them, the wall points whose merged quaternions it reads and
+        the points of the residual targets it needs (its part of the skeleton reads them, or
+        its wall patches' halos)."""
+        sk, two = self.skeleton, self.two_level
+        own = self._own_set
+        self._my_patches = [m for m, w in enumerate(sk.walls.patches) if w.spec.block in own]
+        need = np.zeros(sk.n_global, dtype=bool)
+        for b in self.blocks:
+            for g in sk.blocks[b].face_gid:
+                need[g.ravel()] = True
+        for p in sk.patches.items:
+            need[p.gid.ravel()] = True
+        if sk.segments is not None:
+            left, right, _, pts, _ = sk.segments.arrays()
+            need[left] = need[right] = need[pts] = True
+        if sk.vertices.idw is not None:
+            need[sk.vertices.idw[0]] = True
+        need[sk.symmetry.gids] = True
+        wall = sk.points.wall
+        self._merge_rows = np.flatnonzero(need[wall])
+        if two is None:
+            return
+        self._stages = _STAGES_TWO_LEVEL
+        for m in self._my_patches:
+            h = sk.walls.patches[m].halo.ravel()
+            need[h[h >= 0]] = True
+        self._my_parts = np.flatnonzero(np.isin(two.part_patch, self._my_patches))
+        ptr, gids = two.part_ptr, two.part_gids
+        self._part_rows = (np.concatenate([gids[ptr[m]:ptr[m + 1]] for m in self._my_parts])
+                           if self._my_parts.size else np.zeros(0, dtype=np.int64))
+        need[self._part_rows] = True
+        self._y_rows = [body.gids[need[body.gids]] for body in two.bodies]
 
     @property
     def dims(self) -> list:
@@ -319,7 +366,7 @@ class DistributedDeformer(Deformer):
             return super().deform(moved, **kw)
         except Exception as exc:
             agreed = exc
-            while self._stage < _STAGES:    # the collectives the other ranks are in
+            while self._stage < self._stages:    # the collectives the other ranks are in
                 try:
                     self._sync(exc, None)
                 except Exception as e:  # noqa: BLE001
@@ -354,22 +401,51 @@ class DistributedDeformer(Deformer):
             self._sync(None, None)
         return out
 
-    def _wall_quaternions(self, rd, centre):
-        """Each rank computes the quaternions of the wall patches on its blocks; all are
-        exchanged and merged in the global patch order (the serial merge: the same bits)."""
+    def _gather_parts(self, fn, nparts: int) -> np.ndarray:
+        """One pass of the rigid fits (:func:`.twolevel.fit_bodies`): each rank computes the
+        parts in its wall patches, one ``allgather`` gives every rank all of them in order."""
+        exc = mine = None
+        try:
+            mine = fn(self._my_parts)
+        except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
+            exc = e
+        parts = self._sync(exc, None if mine is None else (self._my_parts, mine))
+        out = np.empty((nparts, mine.shape[1]))
+        for which, vals in parts:
+            out[which] = vals
+        return out
+
+    def _residual_quaternions(self, y, tiny):
+        """The serial method's ``(local, qwall)`` with one collective: the ranks' largest
+        residual on their parts of the walls travel with the wall patches' quaternions."""
         sk = self.skeleton
-        mine = [m for m, w in enumerate(sk.walls.patches) if w.spec.block in self._own_set]
+        rows = self._part_rows
+        big = float(np.max(np.abs(y[rows] - sk.points.P[rows]), initial=0.0))
+        qwall, bigs = self._exchange_quaternions(y, self.centre, big)
+        local = max(bigs) > tiny
+        return local, (qwall if local else None)
+
+    def _wall_quaternions(self, rd, centre):
+        return self._exchange_quaternions(rd, centre, None)[0]
+
+    def _exchange_quaternions(self, rd, centre, extra):
+        """Each rank computes the quaternions of the wall patches on its blocks; all are
+        exchanged (with every rank's ``extra``) and merged in the global patch order (the
+        serial merge: the same bits) at the wall points this rank reads.  Returns the merged
+        quaternions and the ranks' ``extra``."""
+        sk = self.skeleton
+        mine = self._my_patches
         exc = qs = None
         try:
             qs = stages.patch_quaternions(sk, rd, centre, mine)
         except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
             exc = e
-        parts = self._sync(exc, None if qs is None else list(zip(mine, qs)))
+        parts = self._sync(exc, None if qs is None else (list(zip(mine, qs)), extra))
         every = [None] * len(sk.walls.patches)
-        for part in parts:
+        for part, _ in parts:
             for m, q in part:
                 every[m] = q
-        return stages.merge_wall_quaternions(sk, every)
+        return stages.merge_wall_quaternions(sk, every, self._merge_rows), [e for _, e in parts]
 
     def _report(self, reports, check):
         parts = self._sync(None, reports if check else None)
