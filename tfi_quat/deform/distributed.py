@@ -317,7 +317,10 @@ class DistributedDeformer(Deformer):
             need[sk.vertices.idw[0]] = True
         need[sk.symmetry.gids] = True
         wall = sk.points.wall
-        self._merge_rows = np.flatnonzero(need[wall])
+        self._merge = stages.merge_plan(sk, np.flatnonzero(need[wall]))
+        self._merge_acc = np.zeros((wall.size, 4))      # rows it does not read: 1
+        self._merge_acc[:, 0] = 1.0
+        self._merge_count = np.zeros(wall.size, dtype=np.int64)
         if two is None:
             return
         self._stages = _STAGES_TWO_LEVEL
@@ -445,7 +448,8 @@ class DistributedDeformer(Deformer):
         for part, _ in parts:
             for m, q in part:
                 every[m] = q
-        return stages.merge_wall_quaternions(sk, every, self._merge_rows), [e for _, e in parts]
+        qwall = stages.merge_wall_rows(self._merge, every, self._merge_acc, self._merge_count)
+        return qwall, [e for _, e in parts]
 
     def _report(self, reports, check):
         parts = self._sync(None, reports if check else None)

@@ -403,6 +403,15 @@ def part_moments(P, rd, which, ptr, gids, body, cu, cd, out):
 
 
 @jit
+def add_parts(vals, body, out):
+    """``out[body[m]] += vals[m]`` for the parts in order (the fits' fixed-order reduction)."""
+    for m in range(vals.shape[0]):
+        b = body[m]
+        for c in range(vals.shape[1]):
+            out[b, c] += vals[m, c]
+
+
+@jit
 def rigid_blend(phi, idx, Db, Rb, gd, gq):
     """The rigid part of the two-level formulation on the listed points (rows of ``phi``):
     ``Δ = Σ_b φ_b Δ_b`` and ``Q = exp(Σ_b φ_b v_b)`` (``v_b``: the rotation vector of body
@@ -654,27 +663,43 @@ def patch_quaternions(sk, rd: np.ndarray, centre: np.ndarray, which) -> list:
     return out
 
 
-def merge_wall_quaternions(sk, qs, rows=None) -> np.ndarray:
+def merge_wall_quaternions(sk, qs) -> np.ndarray:
     """The merged wall quaternions ``(n_wall, 4)`` from every wall patch's own (``qs``, in the
-    order of ``sk.walls.patches``).  ``rows``: merge only these wall points (indices into
-    the wall points; the others are left at 1): a point's merge runs over the patches in
-    order whatever the other points, so its bits do not depend on ``rows``."""
+    order of ``sk.walls.patches``)."""
     nw = sk.points.wall.size
     acc = np.zeros((nw, 4))
     count = np.zeros(nw, dtype=np.int64)
-    if rows is None:
-        for q, lid in zip(qs, sk.walls.local):
-            merge_quaternions(lid, q, acc, count)
-        acc /= np.linalg.norm(acc, axis=1, keepdims=True)
-        return acc
-    mask = np.zeros(nw, dtype=bool)
-    mask[rows] = True
     for q, lid in zip(qs, sk.walls.local):
-        sel = mask[lid]
-        if sel.any():
-            merge_quaternions(np.ascontiguousarray(lid[sel]), np.ascontiguousarray(q[sel]), acc, count)
+        merge_quaternions(lid, q, acc, count)
+    acc /= np.linalg.norm(acc, axis=1, keepdims=True)
+    return acc
+
+
+def merge_plan(sk, rows) -> tuple:
+    """What :func:`merge_wall_rows` needs to merge the wall quaternions at the wall points
+    ``rows`` only (indices into the wall points): ``(rows, [(patch, positions in it, their
+    wall indices)])`` for the patches holding one of them."""
+    rows = np.asarray(rows, dtype=np.int64)
+    mask = np.zeros(sk.points.wall.size, dtype=bool)
+    mask[rows] = True
+    plan = []
+    for m, lid in enumerate(sk.walls.local):
+        pos = np.flatnonzero(mask[lid])
+        if pos.size:
+            plan.append((m, pos, np.ascontiguousarray(lid[pos])))
+    return rows, plan
+
+
+def merge_wall_rows(plan, qs, acc, count) -> np.ndarray:
+    """:func:`merge_wall_quaternions` at the rows of ``plan`` (:func:`merge_plan`) only, into
+    the buffers ``acc`` (n_wall, 4; its other rows are left as they are) and ``count``.  A
+    point's merge runs over the patches in order whatever the other points, so its bits are
+    those of the whole merge."""
+    rows, parts = plan
+    count[rows] = 0
+    for m, pos, lid in parts:
+        merge_quaternions(lid, np.ascontiguousarray(qs[m][pos]), acc, count)
     acc[rows] /= np.linalg.norm(acc[rows], axis=1, keepdims=True)
-    acc[~mask, 0] = 1.0
     return acc
 
 

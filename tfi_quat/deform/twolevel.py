@@ -315,8 +315,7 @@ def fit_centroids(two: TwoLevel, sums: np.ndarray) -> tuple:
     from every part's sums (:func:`fit_sums`, all parts in order), added in part order."""
     nb = len(two.bodies)
     acc = np.zeros((nb, 6))
-    for m in range(sums.shape[0]):
-        acc[two.part_body[m]] += sums[m]
+    stages.add_parts(sums, two.part_body, acc)
     n = np.array([body.gids.size for body in two.bodies], dtype=np.float64)[:, None]
     return np.ascontiguousarray(acc[:, :3] / n), np.ascontiguousarray(acc[:, 3:] / n)
 
@@ -354,8 +353,7 @@ def fit_bodies(sk: Skeleton, two: TwoLevel, rd: np.ndarray, y: np.ndarray, gathe
     mom = gather(lambda which: fit_moments(sk, two, rd, cents, which), nparts)
     nb = len(two.bodies)
     h = np.zeros((nb, 9))
-    for m in range(mom.shape[0]):
-        h[two.part_body[m]] += mom[m]
+    stages.add_parts(mom, two.part_body, h)
     fits = []
     for b, body in enumerate(two.bodies):
         q, t = rigid_from_moments(cents[0][b], cents[1][b], h[b].reshape(3, 3), body.axis,
