@@ -513,13 +513,13 @@ class Deformer:
         """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q) on the
         boundary points; returns the volume pass (:meth:`_volumes`)."""
         sk = self.skeleton
-        wall = sk.points.wall
+        wall, rows = sk.step_walls()
         c = self.centre
         P = sk.points.P
         w = self._work
         gdelta, gq, pos = w.gd, w.qg, w.pos
         if self._use_q:
-            qw = self._wall_quaternions(rd, c)
+            qw = self._wall_quaternions(rd, c)[rows]
             gq[wall] = qw
             # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
             gdelta[wall] = rd[wall] - c - qa.rotate(qw, P[wall] - c)
@@ -551,7 +551,7 @@ class Deformer:
         the volume passes (:meth:`_volumes`)."""
         sk = self.skeleton
         two = self.two_level
-        wall = sk.points.wall
+        wall = sk.step_walls()[0]
         P = sk.points.P
         w = self._work
         fits = twolevel.fit_bodies(sk, two, rd, w.y, self._gather_parts, self._y_rows)

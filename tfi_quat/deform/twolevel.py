@@ -136,6 +136,7 @@ class TwoLevel:
     part_gids: np.ndarray
     part_body: np.ndarray
     part_patch: np.ndarray
+    wall_body: np.ndarray
 
 
 def _bodies(sk: Skeleton) -> tuple[Body, ...]:
@@ -296,7 +297,13 @@ def build_two_level(sk: Skeleton, layer: WallLayer) -> TwoLevel:
     # A = R_u - TFI(c), evaluated inside the volume kernel from these O(surface) tables
     base = tuple(None if plan.gather is None else plan.gather.base_tables(c) for plan in sk.blocks)
     np.negative(c, out=c)
-    return TwoLevel(layer, bodies, phi, c, shift, P - c, damp, base, *fit_parts(sk, bodies))
+    wall_body = np.empty(sk.points.wall.size, dtype=np.int64)
+    pos = np.full(sk.n_global, -1, dtype=np.int64)
+    pos[sk.points.wall] = np.arange(sk.points.wall.size)
+    for b, body in enumerate(bodies):
+        wall_body[pos[body.gids]] = b
+    return TwoLevel(layer, bodies, phi, c, shift, P - c, damp, base, *fit_parts(sk, bodies),
+                    wall_body)
 
 
 # ------------------------------------------------------------------ a step
@@ -371,8 +378,8 @@ def local_fields(sk: Skeleton, two: TwoLevel, y, qwall, K, gq, pos):
     on vertices and segments."""
     P = sk.points.P
     A = two.arm
-    wall = sk.points.wall
-    gq[wall] = qwall
+    wall, rows = sk.step_walls()
+    gq[wall] = qwall[rows]
     K[wall] = y[wall]                   # walls: A = 0
     damp = two.damp
     shift = two.shift
@@ -406,11 +413,13 @@ def rigid_fields(sk: Skeleton, two: TwoLevel, fits, centre, gdelta, gq) -> None:
     nb = len(two.bodies)
     Db = np.empty((nb, 3))
     Qb = np.empty((nb, 4))
-    for b, (body, (q, t)) in enumerate(zip(two.bodies, fits)):
+    for b, (q, t) in enumerate(fits):
         # c + Δ + rot(q, x - c) = rot(q, x) + t
         Db[b] = t + qa.rotate(q, c) - c
         Qb[b] = q
-        gdelta[body.gids] = Db[b]
-        gq[body.gids] = q
+    wall, rows = sk.step_walls()
+    body = two.wall_body[rows]
+    gdelta[wall] = Db[body]
+    gq[wall] = Qb[body]
     stages.rigid_blend(two.phi, sk.derived, Db, qa.log(Qb), gdelta, gq)
     stages.symmetry_stage(sk, gdelta, gq, c)
