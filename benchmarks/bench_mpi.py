@@ -74,11 +74,11 @@ def worker(folder: Path, repeat: int) -> None:
     write = time.perf_counter() - t0
     full, part = d.full_skeleton, d.skeleton
     # the wall work of a step, per wall point, on the whole walls (one rank: it owns them all):
-    # split over the ranks (the fits' part sums, the patches' quaternions, the merge at the
-    # points a rank reads) or replicated (the wall input's reduction and digest, row copies)
-    import hashlib
-
+    # split over the ranks (the fits' part sums, the patches' quaternions, the merge and the
+    # row copies at the points a rank reads) or replicated (the wall input's reduction and
+    # the ranks' comparison of it)
     from tfi_quat.deform import stages, twolevel
+    from tfi_quat.deform.distributed import fingerprint
     from tfi_quat.deform.walls import other_targets
     P, wall = full.points.P, full.points.wall
     rd, y = P.copy(), P.copy()
@@ -98,8 +98,7 @@ def worker(folder: Path, repeat: int) -> None:
 
     for name, fn in (("motion", lambda: move(P[wall])),
                      ("targets", lambda: other_targets(full, d._all, move, rd)),
-                     ("digest", lambda: hashlib.blake2b(np.ascontiguousarray(rd[wall]).tobytes(),
-                                                        digest_size=16).digest()),
+                     ("digest", lambda: fingerprint(rd.view(np.uint64), wall, np.zeros(2, np.uint64))),
                      ("copies", copies),
                      ("fit", lambda: twolevel.fit_bodies(full, two, rd, y)),
                      ("wallq", lambda: stages.patch_quaternions(full, y, d.centre, allp)),
@@ -168,18 +167,18 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
     nw = max(f["wall"], 1)
     setup_per = f["setup"] / f["n_global"]
     k_split = (f["fit"] + f["wallq"]) / nw          # per wall point of the rank's wall patches
-    k_merge = f["merge"] / nw                       # per wall point the rank reads
-    k_rep = (f["targets"] + f["digest"] + f["copies"]) / nw
+    k_merge = (f["merge"] + f["copies"]) / nw       # per wall point the rank reads
+    k_rep = (f["targets"] + f["digest"]) / nw
     const = max(f["step"] - f["volumes"] - f["faces"] - f["fit"] - f["wallq"] - f["merge"]
                 - f["motion"] - f["targets"] - f["digest"] - f["copies"], 0.0)
     ns = 2000
     print(f"\nmeasured per rank (1 rank, one thread, under load): volume stage {v * 1e9:.1f} ns per "
           f"own point; faces stage {k_face * 1e9:.0f} ns per derived boundary point of the rank's part; "
           f"split wall work: rigid fits' part sums + pull-back and the wall patches' quaternions "
-          f"{k_split * 1e9:.0f} ns per wall point of the rank's wall patches, the merge "
-          f"{k_merge * 1e9:.0f} ns per wall point it reads; replicated: the wall input's reduction "
-          f"{f['targets'] / nw * 1e9:.0f} ns, its digest {f['digest'] / nw * 1e9:.0f} ns and the row "
-          f"copies {f['copies'] / nw * 1e9:.0f} ns per wall point (the motion callable "
+          f"{k_split * 1e9:.0f} ns per wall point of the rank's wall patches, the merge and the "
+          f"row copies {k_merge * 1e9:.0f} ns per wall point it reads; replicated: the wall "
+          f"input's reduction {f['targets'] / nw * 1e9:.0f} ns and its fingerprint "
+          f"{f['digest'] / nw * 1e9:.0f} ns per wall point (the motion callable "
           f"{f['motion'] / nw * 1e9:.0f} ns more, the user's); free-vertex blend {vtx * 1e9:.2f} ns "
           f"per vertex x source pair (the rows a rank reads); the rest of a step {const * 1e3:.1f} ms "
           f"(Python, small arrays); set-up {setup_per * 1e6:.1f} us per boundary point")
@@ -188,7 +187,7 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
           f"points at {points_1 / 1e6:.2f} M; {ns} IDW sources, a rank reads at most 8 free vertices "
           f"per block (its corners) and the {ns} sources' merged quaternions; the rank's part of "
           f"the skeleton = its blocks' faces; a rank holds at most one n x n wall face per block; "
-          f"the collectives of a step: five allgathers (16 B digest, the fits' two passes: 48 + 72 "
+          f"the collectives of a step: five allgathers (16 B fingerprint, the fits' two passes: 48 + 72 "
           f"B per part, the wall quaternions: 32 B per wall point, 10 GB/s into each rank, the "
           f"cell reports), latency 5 us x log2(ranks) each; the measured per-point costs hold at "
           f"scale)")
@@ -209,9 +208,10 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
         print(f"  {p:5d} ranks: {per / 1e6:.2f} M points/rank, {nblocks} blocks of {n:.0f}^3: "
               f"volume {t_vol:.3f} s, own faces {t_part:.3f} s, walls (split) {t_split:.4f} s, "
               f"vertices (split) {t_vtx:.4f} s, the rest {const:.3f} s, collectives "
-              f"{t_coll * 1e3:.2f} ms; step {total:.3f} s; replicated: wall input reduction, "
-              f"digest, row copies {t_rep:.4f} s = {100 * t_rep / total:.1f} % (with the "
-              f"quaternions' allgather {100 * (t_rep + t_coll) / total:.1f} %)")
+              f"{t_coll * 1e3:.2f} ms; step {total:.3f} s; replicated (the wall input's reduction "
+              f"and fingerprint) {t_rep:.4f} s = {100 * t_rep / total:.1f} % (with the "
+              f"collectives {100 * (t_rep + t_coll) / total:.1f} %; the user's motion callable on "
+              f"every wall point would add {f['motion'] / nw * wall:.3f} s)")
         copies = nblocks * 6 * n * n
         print(f"         set-up (replicated) {setup_per * copies / 2:.0f} s; memory per rank "
               f"{(100 * per + 600 * copies) / 1e9:.1f} GB (100 B per own point, 600 B per boundary "
@@ -279,7 +279,7 @@ def main(argv=None):
         print(f"set-up collectives: boundary shells {2 * 24 * f1['face_copies'] / 1e6:.1f} MB "
               f"(faces and next layers of every block, one allgather), face parameters "
               f"{24 * f1['face_copies'] / 1e6:.1f} MB (one allgather); a step: five allgathers "
-              f"(16 B digest, the rigid fits' two passes over {f1['nparts']} parts, the wall "
+              f"(16 B fingerprint, the rigid fits' two passes over {f1['nparts']} parts, the wall "
               f"quaternions, the cell reports)")
         model(results[ranks[0]], args.model_points, (256, 1024), args.blocks_per_rank,
               vertex_cost(), f1["wall"], npts)

@@ -25,10 +25,15 @@ Step
     :meth:`DistributedDeformer.deform` takes every input form of the serial
     one (global block numbers in ``ids``); the wall input must be given on
     **every** rank, the same: each rank reduces it to the wall targets and
-    the ranks compare a digest of them (one ``allgather`` of 16 bytes and any
-    error).  Each rank then computes the wall fields (replicated: the rigid
-    fits, the wall quaternions, the free vertices' blend), the rest of the
-    boundary fields only where its blocks' faces read them
+    the ranks compare a fingerprint of them (:func:`fingerprint`; one
+    ``allgather`` of 16 bytes and any error).  The rigid fits: each rank sums
+    the parts of the fits' partition in its wall patches, and two
+    ``allgather`` calls (centroids, then covariances) give every rank all the
+    parts, added in the fixed part order as a serial run adds them.  The wall
+    quaternions: each rank computes those of its wall patches, one
+    ``allgather``, and each rank merges them at the wall points it reads.
+    Each rank then computes the free vertices, the rest of the boundary
+    fields and the wall rows only where its blocks' faces read them
     (:func:`split_skeleton`), and its own blocks, and returns them (a Grid in
     the order of :attr:`blocks`).  ``check``
     reports are gathered and merged over all blocks in global order, so
@@ -57,7 +62,7 @@ from . import stages
 from .deformer import Deformer
 from .shell import ShellGrid, shell_of
 
-__all__ = ["DistributedDeformer", "open_shell", "split_skeleton"]
+__all__ = ["DistributedDeformer", "fingerprint", "open_shell", "split_skeleton"]
 
 #: collectives of one step: the wall targets, the wall quaternions, the cell checks (and, in
 #: two-level steps, the rigid fits' two passes)
@@ -236,8 +241,10 @@ def split_skeleton(sk, two, own):
 
     A step on it computes every point of the own blocks' faces with the same operations, item
     by item, as on the whole skeleton (so with the same bits), and skips the rest: the
-    replicated O(surface) work of a step shrinks to the rank's share of the boundary, plus
-    the walls (wall quaternions, rigid fits) and the free vertices, which every rank keeps.
+    replicated O(surface) work of a step shrinks to the rank's share of the boundary.  The
+    free vertices kept are those the kept items read (each row of their blend is computed
+    alone, :func:`.stages.idw_rows`); the wall rows a step fills are set by the
+    :class:`DistributedDeformer` (``wall_rows``).
     """
     from .skeleton import Patches, Segments, Symmetry, Vertices
     from .stages import level_pack
