@@ -277,3 +277,27 @@ def test_serial_deformer_reads_a_path(tmp_path):
     a = Deformer(str(path), walls=case.walls, fixed=case.fixed).deform(motion("rigid"))
     b = Deformer(tq.read(path), walls=case.walls, fixed=case.fixed).deform(motion("rigid"))
     assert a == b and a.blocks[0].xyz.tobytes() == b.blocks[0].xyz.tobytes()
+
+
+def test_fingerprint_sees_one_bit_and_row_order():
+    """The ranks' wall input is compared by fingerprint: one bit changed anywhere, or two rows
+    swapped, changes it; the rows gathered from a larger array give the contiguous rows'."""
+    from tfi_quat.deform.distributed import fingerprint
+    rng = np.random.default_rng(3)
+    X = rng.standard_normal((500, 3))
+
+    def fp(A, rows=None):
+        out = np.zeros(2, dtype=np.uint64)
+        fingerprint(A.view(np.uint64), np.arange(A.shape[0]) if rows is None else rows, out)
+        return out.tobytes()
+
+    base = fp(X)
+    for r, c in ((0, 0), (257, 1), (499, 2)):
+        Y = X.copy()
+        Y[r, c] = np.nextafter(Y[r, c], np.inf)
+        assert fp(Y) != base
+    assert fp(X[[1, 0] + list(range(2, 500))]) != base
+    big = np.zeros((900, 3))
+    rows = np.sort(rng.choice(900, 500, replace=False))
+    big[rows] = X
+    assert fp(big, rows) == base

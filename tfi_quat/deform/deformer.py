@@ -494,7 +494,7 @@ class Deformer:
                 if ids is not None or displacement:
                     raise DeformationError("ids= and displacement= go with an array of wall points "
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
-                rd = other_targets(self.skeleton, self._all, moved, self._work.rd)
+                rd = self._other_targets(moved)
             if self.two_level is not None:
                 passes, ts, t1, t3 = self._two_level_fields(rd)
             else:
@@ -653,6 +653,10 @@ class Deformer:
     _gather_parts = None
     #: per wall body, the points of the residual targets a step needs (None: all)
     _y_rows = None
+
+    def _other_targets(self, moved):
+        """The wall targets of the input forms other than an array (:func:`.walls.other_targets`)."""
+        return other_targets(self.skeleton, self._all, moved, self._work.rd)
 
     def _residual_quaternions(self, y, tiny):
         """``(local, qwall)``: whether the residual targets ``y`` move a wall point by more

@@ -61,6 +61,7 @@ from ..quality import CellCheck
 from . import stages
 from .deformer import Deformer
 from .shell import ShellGrid, shell_of
+from .walls import motion_targets
 
 __all__ = ["DistributedDeformer", "fingerprint", "open_shell", "split_skeleton"]
 
@@ -319,6 +320,7 @@ class DistributedDeformer(Deformer):
         agree(comm, exc)
         shell.drop_layers()
         self._own_set = frozenset(self.blocks)
+        self._print = None
         #: the whole skeleton (every rank's copy is the same); :attr:`skeleton` is this rank's part
         self.full_skeleton = self.skeleton
         self.skeleton, self.two_level = split_skeleton(self.skeleton, self.two_level, self.blocks)
@@ -351,12 +353,21 @@ class DistributedDeformer(Deformer):
         self._merge_acc = np.zeros((wall.size, 4))      # rows it does not read: 1
         self._merge_acc[:, 0] = 1.0
         self._merge_count = np.zeros(wall.size, dtype=np.int64)
-        if two is None:
-            return
-        self._stages = _STAGES_TWO_LEVEL
+        self._wall_order = np.arange(wall.size)
         for m in self._my_patches:
             h = sk.walls.patches[m].halo.ravel()
             need[h[h >= 0]] = True
+        if two is not None:
+            self._plan_fits(need)
+        # the wall targets it reads (a callable's are written there only)
+        rows = np.flatnonzero(need[wall])
+        self._target_rows = (wall[rows], rows)
+
+    def _plan_fits(self, need) -> None:
+        """The rigid fits' parts in this rank's wall patches and the points of the residual
+        targets it needs (marked in ``need``)."""
+        two = self.two_level
+        self._stages = _STAGES_TWO_LEVEL
         self._my_parts = np.flatnonzero(np.isin(two.part_patch, self._my_patches))
         ptr, gids = two.part_ptr, two.part_gids
         self._part_rows = (np.concatenate([gids[ptr[m]:ptr[m + 1]] for m in self._my_parts])
@@ -408,9 +419,26 @@ class DistributedDeformer(Deformer):
                 raise
             raise agreed from None
 
+    def _other_targets(self, moved):
+        """A callable's targets: its result fingerprinted as it comes (the ranks compare it)
+        and written at the wall points this rank reads only; other forms as serially."""
+        self._print = None
+        if not callable(moved):
+            return super()._other_targets(moved)
+        new = motion_targets(self.skeleton, moved)
+        self._print = np.zeros(2, dtype=np.uint64)
+        fingerprint(new.view(np.uint64), self._wall_order, self._print)
+        gids, rows = self._target_rows
+        rd = self._work.rd
+        rd[gids] = new[rows]
+        return rd
+
     def _agree_targets(self, rd) -> None:
-        digest = np.zeros(2, dtype=np.uint64)
-        fingerprint(rd.view(np.uint64), self.skeleton.points.wall, digest)
+        digest = self._print
+        if digest is None:      # the same value as a callable's: the wall rows in order
+            digest = np.zeros(2, dtype=np.uint64)
+            fingerprint(rd.view(np.uint64), self.skeleton.points.wall, digest)
+        self._print = None
         digests = self._sync(None, digest.tobytes())
         differ = [r for r, d in enumerate(digests) if d != digests[0]]
         if differ:
