@@ -161,6 +161,36 @@ def vertex_cost(nv=2000, ns=2000, repeat=3) -> float:
     return best / (nv * ns)
 
 
+def replicated_cost(n_wall: int, spread: int = 15, repeat: int = 5) -> float:
+    """Seconds per wall point of what every rank does with a motion callable's wall input,
+    measured at the modelled size (``n_wall`` wall points among ``spread`` times as many
+    boundary points): the contiguous copy of the wall points handed to the callable, its
+    result checked, the fingerprint (the callable itself, the caller's, is an identity)."""
+    from types import SimpleNamespace
+
+    from tfi_quat.deform.distributed import fingerprint
+    from tfi_quat.deform.walls import motion_targets
+    rng = np.random.default_rng(0)
+    n = int(n_wall)
+    P = rng.standard_normal((spread * n, 3))
+    wall = np.sort(rng.choice(P.shape[0], n, replace=False))
+    sk = SimpleNamespace(points=SimpleNamespace(P=P, wall=wall), ndim=3)
+    ref = P[wall]
+    order = np.arange(n)
+
+    def once():
+        new = motion_targets(sk, lambda p: p, ref)
+        fingerprint(new.view(np.uint64), order, np.zeros(2, dtype=np.uint64))
+
+    once()
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        once()
+        best = min(best, time.perf_counter() - t0)
+    return best / n
+
+
 def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float, wall_1: int,
           points_1: int) -> None:
     """A step of ``n_points`` points on each rank count, from the 1-rank figures."""
@@ -171,7 +201,8 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
     setup_per = f["setup"] / f["n_global"]
     k_split = (f["fit"] + f["wallq"]) / nw          # per wall point of the rank's wall patches
     k_merge = (f["merge"] + f["copies"]) / nw       # per wall point the rank reads
-    k_rep = (f["targets"] + f["digest"]) / nw
+    wall = wall_1 * (n_points / points_1) ** (2.0 / 3.0)
+    k_rep = replicated_cost(wall)
     const = max(f["step"] - f["volumes"] - f["faces"] - f["fit"] - f["wallq"] - f["merge"]
                 - f["motion"] - f["targets"] - f["digest"] - f["copies"], 0.0)
     ns = 2000
@@ -180,8 +211,9 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
           f"split wall work: rigid fits' part sums + pull-back and the wall patches' quaternions "
           f"{k_split * 1e9:.0f} ns per wall point of the rank's wall patches, the merge and the "
           f"row copies {k_merge * 1e9:.0f} ns per wall point it reads; replicated: the motion's "
-          f"result checked {f['targets'] / nw * 1e9:.0f} ns and fingerprinted "
-          f"{f['digest'] / nw * 1e9:.0f} ns per wall point (the motion callable "
+          f"input copied, its result checked and fingerprinted {k_rep * 1e9:.1f} ns per wall point "
+          f"(measured with {wall / 1e6:.2f} M wall points, the modelled size; at this grid's size "
+          f"{(f['targets'] + f['digest']) / nw * 1e9:.0f} ns; the motion callable "
           f"{f['motion'] / nw * 1e9:.0f} ns more, the user's); free-vertex blend {vtx * 1e9:.2f} ns "
           f"per vertex x source pair (the rows a rank reads); the rest of a step {const * 1e3:.1f} ms "
           f"(Python, small arrays); set-up {setup_per * 1e6:.1f} us per boundary point")
@@ -194,7 +226,6 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
           f"B per part, the wall quaternions: 32 B per wall point, 10 GB/s into each rank, the "
           f"cell reports), latency 5 us x log2(ranks) each; the measured per-point costs hold at "
           f"scale)")
-    wall = wall_1 * (n_points / points_1) ** (2.0 / 3.0)
     for p in ranks:
         per = n_points / p
         n = (per / blocks_per_rank) ** (1.0 / 3.0)
@@ -211,8 +242,8 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
         print(f"  {p:5d} ranks: {per / 1e6:.2f} M points/rank, {nblocks} blocks of {n:.0f}^3: "
               f"volume {t_vol:.3f} s, own faces {t_part:.3f} s, walls (split) {t_split:.4f} s, "
               f"vertices (split) {t_vtx:.4f} s, the rest {const:.3f} s, collectives "
-              f"{t_coll * 1e3:.2f} ms; step {total:.3f} s; replicated (the motion's result checked "
-              f"and fingerprinted) {t_rep:.4f} s = {100 * t_rep / total:.1f} % (with the "
+              f"{t_coll * 1e3:.2f} ms; step {total:.3f} s; replicated (the motion's input copied, "
+              f"its result checked and fingerprinted) {t_rep:.4f} s = {100 * t_rep / total:.1f} % (with the "
               f"collectives {100 * (t_rep + t_coll) / total:.1f} %; the user's motion callable on "
               f"every wall point would add {f['motion'] / nw * wall:.3f} s)")
         copies = nblocks * 6 * n * n

@@ -320,7 +320,7 @@ class DistributedDeformer(Deformer):
         agree(comm, exc)
         shell.drop_layers()
         self._own_set = frozenset(self.blocks)
-        self._print = None
+        self._print = self._wall_ref = None
         #: the whole skeleton (every rank's copy is the same); :attr:`skeleton` is this rank's part
         self.full_skeleton = self.skeleton
         self.skeleton, self.two_level = split_skeleton(self.skeleton, self.two_level, self.blocks)
@@ -425,7 +425,9 @@ class DistributedDeformer(Deformer):
         self._print = None
         if not callable(moved):
             return super()._other_targets(moved)
-        new = motion_targets(self.skeleton, moved)
+        if self._wall_ref is None:                  # the wall points, contiguous, once
+            self._wall_ref = self.skeleton.points.P[self.skeleton.points.wall]
+        new = motion_targets(self.skeleton, moved, self._wall_ref)
         self._print = np.zeros(2, dtype=np.uint64)
         fingerprint(new.view(np.uint64), self._wall_order, self._print)
         gids, rows = self._target_rows

@@ -198,12 +198,13 @@ def _check_targets(sk, X: np.ndarray) -> None:
         raise DeformationError("moved wall points of a 2-D grid must have z = 0")
 
 
-def motion_targets(sk, moved) -> np.ndarray:
-    """The callable form of :meth:`Deformer.deform`: ``moved`` called on the wall points
-    (n_wall, 3) of the skeleton ``sk``, its result checked (shape, finite, z = 0 in 2-D) and
-    returned C-contiguous."""
+def motion_targets(sk, moved, ref: np.ndarray | None = None) -> np.ndarray:
+    """The callable form of :meth:`Deformer.deform`: ``moved`` called on (a copy of) the wall
+    points (n_wall, 3) of the skeleton ``sk`` (``ref``: those points, kept contiguous by the
+    caller), its result checked (shape, finite, z = 0 in 2-D) and returned C-contiguous."""
     wall = sk.points.wall
-    new = np.ascontiguousarray(moved(sk.points.P[wall].copy()), dtype=np.float64)
+    src = sk.points.P[wall] if ref is None else ref.copy()
+    new = np.ascontiguousarray(moved(src), dtype=np.float64)
     if new.shape != (wall.size, 3):
         raise DeformationError(f"the motion callable returned shape {new.shape}, expected "
                                f"({wall.size}, 3) for the {wall.size} wall points")
