@@ -12,7 +12,7 @@ wrote the same bytes.
 
 Then the figures a weak-scaling model needs, per rank: volume-stage seconds per own
 point, seconds per point of the rank's part of the skeleton (faces stage), per wall
-point (walls stage, replicated), per free-vertex source pair (replicated), the set-up
+point (the wall work: split or replicated), per free-vertex source pair (split by rows), the set-up
 per boundary point, and the bytes of the set-up's collectives; and the model of a
 step for ``--model-points`` points on 256 and 1024 ranks (assumptions printed).
 
@@ -73,16 +73,37 @@ def worker(folder: Path, repeat: int) -> None:
     d.write(str(folder / f"out{comm.size}.x"), out, overwrite=True)
     write = time.perf_counter() - t0
     full, part = d.full_skeleton, d.skeleton
-    # the replicated wall work, per wall point: the rigid fits and the wall quaternions
+    # the wall work of a step, per wall point, on the whole walls (one rank: it owns them all):
+    # split over the ranks (the fits' part sums, the patches' quaternions, the merge and the
+    # row copies at the points a rank reads) or replicated (a motion callable's result
+    # checked, and fingerprinted for the ranks' comparison)
     from tfi_quat.deform import stages, twolevel
+    from tfi_quat.deform.distributed import fingerprint
+    from tfi_quat.deform.walls import motion_targets
     P, wall = full.points.P, full.points.wall
     rd, y = P.copy(), P.copy()
     rd[wall] = move(P[wall])
+    two = d.two_level
     parts = {}
     allp = range(len(full.walls.patches))
     qs = stages.patch_quaternions(full, y, d.centre, allp)
+    gq, K, pos = np.zeros((P.shape[0], 4)), P.copy(), P.copy()
+    qw = stages.merge_wall_quaternions(full, qs)
+    new = motion_targets(full, move)
+    order = np.arange(wall.size)
+
+    def copies():
+        rd[wall] = new
+        gq[wall] = qw
+        K[wall] = y[wall]
+        pos[wall] = y[wall]
+        pos[wall] = rd[wall]
+
     for name, fn in (("motion", lambda: move(P[wall])),
-                     ("fit", lambda: twolevel.fit_bodies(full, d.two_level, rd, y)),
+                     ("targets", lambda: motion_targets(full, move)),
+                     ("digest", lambda: fingerprint(new.view(np.uint64), order, np.zeros(2, np.uint64))),
+                     ("copies", copies),
+                     ("fit", lambda: twolevel.fit_bodies(full, two, rd, y)),
                      ("wallq", lambda: stages.patch_quaternions(full, y, d.centre, allp)),
                      ("merge", lambda: stages.merge_wall_quaternions(full, qs))):
         fn()
@@ -90,6 +111,8 @@ def worker(folder: Path, repeat: int) -> None:
         for _ in range(5):
             fn()
         parts[name] = (time.perf_counter() - t0) / 5
+    parts["targets"] = max(parts["targets"] - parts["motion"], 0.0)
+    parts["nparts"] = int(two.part_body.size)
     faces = [int(np.prod(g.shape)) for plan in full.blocks for g in plan.face_gid]
     dt, tm = best
     fig = dict(rank=comm.rank, blocks=list(d.blocks), own_points=sum(b.npoints for b in d.grid),
@@ -110,9 +133,11 @@ def mpiexec() -> str:
 
 
 def vertex_cost(nv=2000, ns=2000, repeat=3) -> float:
-    """Seconds per (free vertex x source) pair of the replicated vertex stage (Δ and Q)."""
+    """Seconds per (free vertex x source) pair of the vertex stage (Δ and Q, row by row: a
+    rank computes the rows its blocks read)."""
     from types import SimpleNamespace
 
+    from tfi_quat._jit import use_threads
     from tfi_quat.deform import stages
     from tfi_quat.deform.skeleton import Vertices
     rng = np.random.default_rng(0)
@@ -126,13 +151,44 @@ def vertex_cost(nv=2000, ns=2000, repeat=3) -> float:
     gd = rng.standard_normal((G, 3))
     gq = rng.standard_normal((G, 4))
     gq /= np.linalg.norm(gq, axis=1, keepdims=True)
-    stages.vertex_stage(sk, gd, gq)
+    best = np.inf
+    with use_threads(1):
+        stages.vertex_stage(sk, gd, gq)
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            stages.vertex_stage(sk, gd, gq)
+            best = min(best, time.perf_counter() - t0)
+    return best / (nv * ns)
+
+
+def replicated_cost(n_wall: int, spread: int = 15, repeat: int = 5) -> float:
+    """Seconds per wall point of what every rank does with a motion callable's wall input,
+    measured at the modelled size (``n_wall`` wall points among ``spread`` times as many
+    boundary points): the contiguous copy of the wall points handed to the callable, its
+    result checked, the fingerprint (the callable itself, the caller's, is an identity)."""
+    from types import SimpleNamespace
+
+    from tfi_quat.deform.distributed import fingerprint
+    from tfi_quat.deform.walls import motion_targets
+    rng = np.random.default_rng(0)
+    n = int(n_wall)
+    P = rng.standard_normal((spread * n, 3))
+    wall = np.sort(rng.choice(P.shape[0], n, replace=False))
+    sk = SimpleNamespace(points=SimpleNamespace(P=P, wall=wall), ndim=3)
+    ref = P[wall]
+    order = np.arange(n)
+
+    def once():
+        new = motion_targets(sk, lambda p: p, ref)
+        fingerprint(new.view(np.uint64), order, np.zeros(2, dtype=np.uint64))
+
+    once()
     best = np.inf
     for _ in range(repeat):
         t0 = time.perf_counter()
-        stages.vertex_stage(sk, gd, gq)
+        once()
         best = min(best, time.perf_counter() - t0)
-    return best / (nv * ns)
+    return best / n
 
 
 def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float, wall_1: int,
@@ -143,45 +199,53 @@ def model(figs1: list, n_points: float, ranks, blocks_per_rank: int, vtx: float,
     k_face = f["faces"] / max(f["part_derived"], 1)
     nw = max(f["wall"], 1)
     setup_per = f["setup"] / f["n_global"]
-    k_rep = (f["fit"] + f["merge"]) / nw
-    k_wq = f["wallq"] / nw
+    k_split = (f["fit"] + f["wallq"]) / nw          # per wall point of the rank's wall patches
+    k_merge = (f["merge"] + f["copies"]) / nw       # per wall point the rank reads
+    wall = wall_1 * (n_points / points_1) ** (2.0 / 3.0)
+    k_rep = replicated_cost(wall)
     const = max(f["step"] - f["volumes"] - f["faces"] - f["fit"] - f["wallq"] - f["merge"]
-                - f["motion"], 0.0)
+                - f["motion"] - f["targets"] - f["digest"] - f["copies"], 0.0)
+    ns = 2000
     print(f"\nmeasured per rank (1 rank, one thread, under load): volume stage {v * 1e9:.1f} ns per "
           f"own point; faces stage {k_face * 1e9:.0f} ns per derived boundary point of the rank's part; "
-          f"rigid fits + merge of the wall quaternions {k_rep * 1e9:.0f} ns per wall point "
-          f"(replicated), the wall patches' quaternions {k_wq * 1e9:.0f} ns per wall point (split "
-          f"by the owners of the wall blocks; the motion callable "
-          f"{f['motion'] / max(f['wall'], 1) * 1e9:.0f} ns more, the user's); free-vertex blend "
-          f"{vtx * 1e9:.2f} ns per vertex x source pair; the rest of a step {const * 1e3:.1f} ms "
-          f"(Python, small arrays); set-up {f['setup'] / f['n_global'] * 1e6:.1f} us per boundary point")
+          f"split wall work: rigid fits' part sums + pull-back and the wall patches' quaternions "
+          f"{k_split * 1e9:.0f} ns per wall point of the rank's wall patches, the merge and the "
+          f"row copies {k_merge * 1e9:.0f} ns per wall point it reads; replicated: the motion's "
+          f"input copied, its result checked and fingerprinted {k_rep * 1e9:.1f} ns per wall point "
+          f"(measured with {wall / 1e6:.2f} M wall points, the modelled size; at this grid's size "
+          f"{(f['targets'] + f['digest']) / nw * 1e9:.0f} ns; the motion callable "
+          f"{f['motion'] / nw * 1e9:.0f} ns more, the user's); free-vertex blend {vtx * 1e9:.2f} ns "
+          f"per vertex x source pair (the rows a rank reads); the rest of a step {const * 1e3:.1f} ms "
+          f"(Python, small arrays); set-up {setup_per * 1e6:.1f} us per boundary point")
     print(f"model of one step for {n_points / 1e9:g} G points (assumptions: {blocks_per_rank} equal "
           f"cubic blocks per rank; the walls scale as the wing's, points^(2/3) from {wall_1} wall "
-          f"points at {points_1 / 1e6:.2f} M; a free vertex at every block corner not on a wall "
-          f"(8 per block, shared by 8), 2000 IDW sources; the rank's part of the skeleton = its "
-          f"blocks' faces; a rank holds at most one n x n wall face per block; the collectives "
-          f"of a step: allgathers of 16 B, of the wall quaternions (32 B per wall point, 10 GB/s "
-          f"into each rank) and of the cell reports, latency 5 us x log2(ranks) each; the "
-          f"measured per-point costs hold at scale)")
-    wall = wall_1 * (n_points / points_1) ** (2.0 / 3.0)
+          f"points at {points_1 / 1e6:.2f} M; {ns} IDW sources, a rank reads at most 8 free vertices "
+          f"per block (its corners) and the {ns} sources' merged quaternions; the rank's part of "
+          f"the skeleton = its blocks' faces; a rank holds at most one n x n wall face per block; "
+          f"the collectives of a step: five allgathers (16 B fingerprint, the fits' two passes: 48 + 72 "
+          f"B per part, the wall quaternions: 32 B per wall point, 10 GB/s into each rank, the "
+          f"cell reports), latency 5 us x log2(ranks) each; the measured per-point costs hold at "
+          f"scale)")
     for p in ranks:
         per = n_points / p
         n = (per / blocks_per_rank) ** (1.0 / 3.0)
         part = blocks_per_rank * 6 * n * n
         nblocks = blocks_per_rank * p
-        verts = nblocks                         # corners: 8 per block, each shared by 8
+        own_wall = min(wall, blocks_per_rank * n * n)
         t_vol = v * per
         t_part = k_face * part
-        t_wall = k_rep * wall + k_wq * min(wall, blocks_per_rank * n * n)
-        t_vtx = vtx * verts * 2000
-        t_coll = 3 * 5e-6 * np.log2(p) + 32 * wall / 1e10
-        total = t_vol + t_part + t_wall + t_vtx + t_coll + const
-        rep = k_rep * wall + t_vtx
+        t_split = k_split * own_wall + k_merge * (own_wall + ns)
+        t_vtx = vtx * 8 * blocks_per_rank * ns
+        t_rep = k_rep * wall
+        t_coll = 5 * 5e-6 * np.log2(p) + 32 * wall / 1e10
+        total = t_vol + t_part + t_split + t_vtx + t_rep + t_coll + const
         print(f"  {p:5d} ranks: {per / 1e6:.2f} M points/rank, {nblocks} blocks of {n:.0f}^3: "
-              f"volume {t_vol:.3f} s, own faces {t_part:.3f} s, walls {t_wall:.3f} s, vertices "
-              f"{t_vtx:.3f} s, collectives {t_coll * 1e3:.2f} ms; step {total:.3f} s, replicated "
-              f"(fits, merge, vertices) {100 * rep / total:.1f} % (with 200 IDW sources: "
-              f"{100 * (rep - 0.9 * t_vtx) / (total - 0.9 * t_vtx):.1f} %)")
+              f"volume {t_vol:.3f} s, own faces {t_part:.3f} s, walls (split) {t_split:.4f} s, "
+              f"vertices (split) {t_vtx:.4f} s, the rest {const:.3f} s, collectives "
+              f"{t_coll * 1e3:.2f} ms; step {total:.3f} s; replicated (the motion's input copied, "
+              f"its result checked and fingerprinted) {t_rep:.4f} s = {100 * t_rep / total:.1f} % (with the "
+              f"collectives {100 * (t_rep + t_coll) / total:.1f} %; the user's motion callable on "
+              f"every wall point would add {f['motion'] / nw * wall:.3f} s)")
         copies = nblocks * 6 * n * n
         print(f"         set-up (replicated) {setup_per * copies / 2:.0f} s; memory per rank "
               f"{(100 * per + 600 * copies) / 1e9:.1f} GB (100 B per own point, 600 B per boundary "
@@ -248,8 +312,9 @@ def main(argv=None):
               f"{f1['free_vertices']} free vertices), face point copies {f1['face_copies']}")
         print(f"set-up collectives: boundary shells {2 * 24 * f1['face_copies'] / 1e6:.1f} MB "
               f"(faces and next layers of every block, one allgather), face parameters "
-              f"{24 * f1['face_copies'] / 1e6:.1f} MB (one allgather); a step: three allgathers "
-              f"(16 B digest, the wall quaternions, the cell reports)")
+              f"{24 * f1['face_copies'] / 1e6:.1f} MB (one allgather); a step: five allgathers "
+              f"(16 B fingerprint, the rigid fits' two passes over {f1['nparts']} parts, the wall "
+              f"quaternions, the cell reports)")
         model(results[ranks[0]], args.model_points, (256, 1024), args.blocks_per_rank,
               vertex_cost(), f1["wall"], npts)
     finally:

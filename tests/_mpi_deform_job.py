@@ -95,6 +95,8 @@ def main() -> None:
                     res["jvp_error"] = f"{type(exc).__name__}: {exc}"
             res["blocks"] = list(d.blocks)
             res["quality"] = str(d.quality)
+            res["free_rows"] = (int(d.skeleton.vertices.free.size),
+                                int(d.full_skeleton.vertices.free.size))
             if case.get("trace"):
                 res["peak"] = tracemalloc.get_traced_memory()[1]
                 res["own_points"] = sum(b.npoints for b in d.grid)

@@ -264,3 +264,68 @@ def test_rigid_part_of_two_bodies_with_different_axes():
     np.testing.assert_allclose(out[0].xyz[:, 0], move(grid[0].xyz[:, 0].reshape(-1, 3)).reshape(
         grid[0].xyz[:, 0].shape), rtol=0, atol=1e-13)
     assert lower.sum() == 1
+
+
+@settings(max_examples=20, deadline=None)
+@given(nv=st.integers(1, 40), ns=st.integers(1, 60), seed=st.integers(0, 10_000))
+def test_vertex_blend_rows_match_numpy_and_any_subset(nv, ns, seed):
+    """The free vertices' blend row by row: Δ equal to the product ``w @ X[src]`` (numpy), the
+    quaternions to the hemisphere-aligned normalised mean written with numpy; any subset of
+    rows (one MPI rank's part) gives those rows' bits exactly."""
+    from types import SimpleNamespace
+    rng = np.random.default_rng(seed)
+    G = ns + nv + 5
+    src = rng.permutation(G)[:ns]
+    w = rng.random((nv, ns)) ** 3
+    w /= w.sum(axis=1, keepdims=True)
+    ref = np.argmax(w, axis=1)
+    decay = rng.random(nv)
+    X = rng.standard_normal((G, 3))
+    Q = rng.standard_normal((G, 4))
+    Q /= np.linalg.norm(Q, axis=1, keepdims=True)
+    vx = SimpleNamespace(idw=(src, w, decay, ref))
+    d = S.vertex_blend(vx, X)
+    np.testing.assert_allclose(d, w @ X[src], rtol=0, atol=1e-14)
+    q = S.vertex_q(vx, Q, decay)
+    qs = Q[src]
+    sign = np.where(qs[ref] @ qs.T >= 0.0, 1.0, -1.0)
+    qbar = (w * sign) @ qs
+    qbar /= np.linalg.norm(qbar, axis=1, keepdims=True)
+    ident = np.tile([1.0, 0.0, 0.0, 0.0], (nv, 1))
+    want = qa.slerp(ident, qbar, decay)
+    np.testing.assert_allclose(np.abs(np.sum(q * want, axis=1)), 1.0, rtol=0, atol=1e-12)
+    rows = np.flatnonzero(rng.random(nv) < 0.5)
+    sub = SimpleNamespace(idw=(src, np.ascontiguousarray(w[rows]), decay[rows], ref[rows]))
+    assert S.vertex_blend(sub, X).tobytes() == d[rows].tobytes()
+    assert S.vertex_q(sub, Q, decay[rows]).tobytes() == q[rows].tobytes()
+
+
+def test_fit_parts_partition_and_fits_match_fit_rigid():
+    """The rigid fits' partition holds every wall point once, in the body it belongs to; the
+    fits from its per-part sums agree with :func:`tfi_quat.fit.fit_rigid` on each body's
+    points (two bodies); the walls are pulled back by each body's fit; a subset of parts
+    (one MPI rank's) gives those parts' sums with the same bits."""
+    from tfi_quat.fit import fit_rigid
+    grid, _, _, _ = G.box_pair(n=7)
+    d = Deformer(grid, walls=["1:jmin", "2:imin", "1:jmax", "2:imax"])
+    sk, two = d.skeleton, d.two_level
+    P = sk.points.P
+    wall = sk.points.wall
+    ptr, gids = two.part_ptr, two.part_gids
+    assert np.array_equal(np.sort(gids), np.sort(wall))
+    for m in range(two.part_body.size):
+        assert np.isin(gids[ptr[m]:ptr[m + 1]], two.bodies[two.part_body[m]].gids).all()
+    rd = P.copy()
+    m_low = rigid_motion(6.0, (1, 0, 0), (1.0, 0.0, 0.5), translate=(0.1, 0.0, 0.0))
+    rd[wall] = m_low(P[wall]) + 1e-3 * np.sin(7.0 * P[wall])
+    y = P.copy()
+    fits = twolevel.fit_bodies(sk, two, rd, y)
+    for body, (q, t) in zip(two.bodies, fits):
+        q0, t0 = fit_rigid(P[body.gids], rd[body.gids], body.axis, body.tproj)
+        assert abs(abs(float(q @ q0)) - 1.0) < 1e-13
+        np.testing.assert_allclose(t, t0, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(y[body.gids], qa.rotate(qa.conjugate(q), rd[body.gids] - t),
+                                   rtol=0, atol=0)
+    allp = twolevel.fit_sums(sk, two, rd, np.arange(two.part_body.size))
+    some = np.arange(1, two.part_body.size, 2)
+    assert twolevel.fit_sums(sk, two, rd, some).tobytes() == allp[some].tobytes()

@@ -66,6 +66,19 @@ def run_job(tmp_path, nranks: int, cases: list) -> list[list[dict]]:
     return [[rep[i] for rep in reports] for i in range(len(cases))]
 
 
+def split_ring8() -> tuple[Grid, list, list, list]:
+    """The ring of :func:`split_ring` cut in eight blocks, four around i times two in j, with
+    symmetry planes at both k ends: the four points where four blocks meet, on the two
+    planes, are free vertices (the inverse-distance blend, split by rows over the ranks)."""
+    from _deform_grids import extrude, o_grid
+    ring = extrude(o_grid(65, 17)[0], nk=5, dz=0.1)[0].xyz
+    parts = [ring[a:a + 17, c:c + 9] for a in (0, 16, 32, 48) for c in (0, 8)]
+    blocks = [Block(np.asfortranarray(p), name=f"ring8_{n}") for n, p in enumerate(parts)]
+    return (Grid(blocks, ndim=3), [f"{b}:jmin" for b in range(1, 9, 2)],
+            [f"{b}:{f}" for b in range(1, 9) for f in ("kmin", "kmax")],
+            [f"{b}:jmax" for b in range(2, 9, 2)])
+
+
 def split_ring() -> tuple[Grid, list, list, list]:
     """A 3-D O-grid ring (65 x 17 x 5) cut in four blocks around i, the third reversed in i:
     point-matched interfaces (one of them the ring's seam) between every pair of neighbours."""
@@ -86,12 +99,15 @@ def grids(tmp_path_factory):
     two = load_case(GRIDS / "two_block_65x33.toml", check_grid=False)
     ring, rw, rs, rf = split_ring()
     tq.write(root / "ring.h5", ring)
+    ring8, r8w, r8s, r8f = split_ring8()
+    tq.write(root / "ring8.x", ring8)
     spec = {
         "wing": dict(grid=str(GRIDS / "wing_ch_501k.x"), walls=[str(s) for s in wing.walls],
                      symmetry=[str(s) for s in wing.symmetry], fixed=[str(s) for s in wing.fixed]),
         "two": dict(grid=str(GRIDS / "two_block_65x33.x"), walls=[str(s) for s in two.walls],
                     fixed=[str(s) for s in two.fixed]),
         "ring": dict(grid=str(root / "ring.h5"), walls=rw, symmetry=rs, fixed=rf),
+        "ring8": dict(grid=str(root / "ring8.x"), walls=r8w, symmetry=r8s, fixed=r8f),
         # the file's own boundary conditions (walls) and 1-to-1 interfaces, some faces fixed
         "cgns": dict(grid=str(ROOT / "tests" / "data" / "cgns" / "multiblock.cgns"), walls=[],
                      fixed=[f"{b}:{f}" for b in (1, 2, 3) for f in ("kmin", "kmax", "jmin", "jmax")]),
@@ -220,9 +236,15 @@ def test_one_and_three_ranks(grids, tmp_path, monkeypatch):
         case(spec, "ring", "bend", ["r.h5", "r.x"], blocks=[[3, 0], [1], [2]]),
         case(spec, "two", "rigid", ["t.h5"], blocks=[[0], [1], []]),
         case(spec, "cgns", "rigid", ["c.h5"]),
+        case(spec, "ring8", "bend", ["r8.x"]),
+        case(spec, "ring8", "bend", ["r8s.x"], method="samareh", blocks=[[0, 1], [2, 3, 4, 5], [6, 7]]),
     ]
     results = run_job(tmp_path, 3, three)
     check_outputs(root, tmp_path, three[:2] + three[3:], results[:2] + results[3:], monkeypatch)
+    # the free vertices' blend is split: each rank computes the rows its blocks read (ranks 0
+    # and 2 hold one side of the ring: the four vertices at its two junctions)
+    rows = [r["free_rows"] for r in results[5]]
+    assert [full for _, full in rows] == [8, 8, 8] and rows[0][0] < 8 and rows[2][0] < 8, rows
     errors = {r.get("error") for r in results[2]}
     assert len(errors) == 1 and "blocks= is empty" in errors.pop()
     one = [case(spec, "ring", "bend", ["r1.h5"]), case(spec, "two", "rigid", ["t1.x"], jvp=True)]
@@ -258,3 +280,27 @@ def test_serial_deformer_reads_a_path(tmp_path):
     a = Deformer(str(path), walls=case.walls, fixed=case.fixed).deform(motion("rigid"))
     b = Deformer(tq.read(path), walls=case.walls, fixed=case.fixed).deform(motion("rigid"))
     assert a == b and a.blocks[0].xyz.tobytes() == b.blocks[0].xyz.tobytes()
+
+
+def test_fingerprint_sees_one_bit_and_row_order():
+    """The ranks' wall input is compared by fingerprint: one bit changed anywhere, or two rows
+    swapped, changes it; the rows gathered from a larger array give the contiguous rows'."""
+    from tfi_quat.deform.distributed import fingerprint
+    rng = np.random.default_rng(3)
+    X = rng.standard_normal((500, 3))
+
+    def fp(A, rows=None):
+        out = np.zeros(2, dtype=np.uint64)
+        fingerprint(A.view(np.uint64), np.arange(A.shape[0]) if rows is None else rows, out)
+        return out.tobytes()
+
+    base = fp(X)
+    for r, c in ((0, 0), (257, 1), (499, 2)):
+        Y = X.copy()
+        Y[r, c] = np.nextafter(Y[r, c], np.inf)
+        assert fp(Y) != base
+    assert fp(X[[1, 0] + list(range(2, 500))]) != base
+    big = np.zeros((900, 3))
+    rows = np.sort(rng.choice(900, 500, replace=False))
+    big[rows] = X
+    assert fp(big, rows) == base

@@ -15,7 +15,7 @@ import numpy as np
 
 from . import quaternion as qa
 
-__all__ = ["fit_rigid", "constrain_to_planes"]
+__all__ = ["fit_rigid", "rigid_from_moments", "constrain_to_planes"]
 
 
 def _plane_basis(n: np.ndarray):
@@ -77,10 +77,19 @@ def fit_rigid(pu, pd, axis=None, tproj=None):
     pd = np.asarray(pd, dtype=np.float64)
     cu = pu.mean(axis=0)
     cd = pd.mean(axis=0)
-    a = pu - cu
-    b = pd - cd
+    return rigid_from_moments(cu, cd, (pu - cu).T @ (pd - cd), axis, tproj)
+
+
+def rigid_from_moments(cu, cd, h, axis=None, tproj=None):
+    """The least-squares rigid motion of :func:`fit_rigid` from the point sets' moments:
+    centroids ``cu``, ``cd`` (3,) and cross-covariance ``h = sum (pu - cu)(pd - cd)^T``
+    (3, 3), so that the sums may be taken over a partition of the points (the two-level
+    Deformer sums per wall patch, :func:`tfi_quat.deform.twolevel.fit_bodies`).  Returns
+    ``(q, t)`` as :func:`fit_rigid`."""
+    cu = np.asarray(cu, dtype=np.float64)
+    cd = np.asarray(cd, dtype=np.float64)
+    h = np.asarray(h, dtype=np.float64)
     if axis is None:
-        h = a.T @ b
         u, _, vt = np.linalg.svd(h)
         dd = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
         r = vt.T @ np.diag([1.0, 1.0, dd]) @ u.T
@@ -92,10 +101,9 @@ def fit_rigid(pu, pd, axis=None, tproj=None):
     else:
         n = np.asarray(axis, dtype=np.float64)
         e1, e2 = _plane_basis(n)
-        a1, a2 = a @ e1, a @ e2
-        b1, b2 = b @ e1, b @ e2
-        sin_ = float(np.sum(a1 * b2 - a2 * b1))
-        cos_ = float(np.sum(a1 * b1 + a2 * b2))
+        # sum a1 b2 - a2 b1 and sum a1 b1 + a2 b2 (a1 = a . e1, ...) from h
+        sin_ = float(e1 @ h @ e2 - e2 @ h @ e1)
+        cos_ = float(e1 @ h @ e1 + e2 @ h @ e2)
         if sin_ == 0.0 and cos_ == 0.0:
             q = np.array([1.0, 0.0, 0.0, 0.0])
         else:

@@ -502,7 +502,7 @@ class Deformer:
                 if ids is not None or displacement:
                     raise DeformationError("ids= and displacement= go with an array of wall points "
                                            f"(n, 3) as the first argument, got {type(moved).__name__}")
-                rd = other_targets(self.skeleton, self._all, moved, self._work.rd)
+                rd = self._other_targets(moved)
             np.copyto(self.last_targets, rd)      # in place: a step allocates nothing
             self._linear = None
             if self.two_level is not None:
@@ -539,13 +539,13 @@ class Deformer:
         """Samareh's update (``"samareh"``; ``"tfi"`` without Q): the hierarchy of (Δ, Q) on the
         boundary points; returns the volume pass (:meth:`_volumes`)."""
         sk = self.skeleton
-        wall = sk.points.wall
+        wall, rows = sk.step_walls()
         c = self.centre
         P = sk.points.P
         w = self._work
         gdelta, gq, pos = w.gd, w.qg, w.pos
         if self._use_q:
-            qw = self._wall_quaternions(rd, c)
+            qw = self._wall_quaternions(rd, c)[rows]
             gq[wall] = qw
             # the translation follows from the merged rotation: c + delta + rot(q, ru - c) = rd
             gdelta[wall] = rd[wall] - c - qa.rotate(qw, P[wall] - c)
@@ -577,15 +577,14 @@ class Deformer:
         the volume passes (:meth:`_volumes`)."""
         sk = self.skeleton
         two = self.two_level
-        wall = sk.points.wall
+        wall = sk.step_walls()[0]
         P = sk.points.P
         w = self._work
-        fits = twolevel.fit_bodies(sk, two, rd, w.y)
+        fits = twolevel.fit_bodies(sk, two, rd, w.y, self._gather_parts, self._y_rows)
         y = w.y
         tiny = 1e-14 * self._scale
-        local = bool(np.max(np.abs(y[wall] - P[wall]), initial=0.0) > tiny)
         rigid = any(np.max(np.abs(q - _IDENT)) > 1e-15 or np.max(np.abs(t)) > tiny for q, t in fits)
-        qwall = self._wall_quaternions(y, self.centre) if local else None
+        local, qwall = self._residual_quaternions(y, tiny)
         t1 = time.perf_counter()
         ts = 0.0
         pos = w.pos
@@ -677,6 +676,23 @@ class Deformer:
                           connectivity=grid.connectivity)
         result.quality = report
         return result
+
+    #: the rigid fits' collective (:func:`twolevel.fit_bodies`' ``gather``; None: serial)
+    _gather_parts = None
+    #: per wall body, the points of the residual targets a step needs (None: all)
+    _y_rows = None
+
+    def _other_targets(self, moved):
+        """The wall targets of the input forms other than an array (:func:`.walls.other_targets`)."""
+        return other_targets(self.skeleton, self._all, moved, self._work.rd)
+
+    def _residual_quaternions(self, y, tiny):
+        """``(local, qwall)``: whether the residual targets ``y`` move a wall point by more
+        than ``tiny``, and then their merged wall quaternions (else None)."""
+        sk = self.skeleton
+        wall = sk.points.wall
+        local = bool(np.max(np.abs(y[wall] - sk.points.P[wall]), initial=0.0) > tiny)
+        return local, (self._wall_quaternions(y, self.centre) if local else None)
 
     def _wall_quaternions(self, rd, centre):
         """The merged wall quaternions of the walls moved to ``rd`` (under MPI: each wall patch

@@ -25,10 +25,15 @@ Step
     :meth:`DistributedDeformer.deform` takes every input form of the serial
     one (global block numbers in ``ids``); the wall input must be given on
     **every** rank, the same: each rank reduces it to the wall targets and
-    the ranks compare a digest of them (one ``allgather`` of 16 bytes and any
-    error).  Each rank then computes the wall fields (replicated: the rigid
-    fits, the wall quaternions, the free vertices' blend), the rest of the
-    boundary fields only where its blocks' faces read them
+    the ranks compare a fingerprint of them (:func:`fingerprint`; one
+    ``allgather`` of 16 bytes and any error).  The rigid fits: each rank sums
+    the parts of the fits' partition in its wall patches, and two
+    ``allgather`` calls (centroids, then covariances) give every rank all the
+    parts, added in the fixed part order as a serial run adds them.  The wall
+    quaternions: each rank computes those of its wall patches, one
+    ``allgather``, and each rank merges them at the wall points it reads.
+    Each rank then computes the free vertices, the rest of the boundary
+    fields and the wall rows only where its blocks' faces read them
     (:func:`split_skeleton`), and its own blocks, and returns them (a Grid in
     the order of :attr:`blocks`).  ``check``
     reports are gathered and merged over all blocks in global order, so
@@ -43,11 +48,11 @@ Errors
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import os
 
 import numpy as np
 
+from .._jit import jit
 from ..errors import GridFormatError, GridValueError, ParallelError
 from ..grid import Grid, partition
 from ..io.mpi import agree, check_comm, from_root, portable, raise_first
@@ -56,11 +61,35 @@ from ..quality import CellCheck
 from . import stages
 from .deformer import Deformer
 from .shell import ShellGrid, shell_of
+from .walls import motion_targets
 
-__all__ = ["DistributedDeformer", "open_shell", "split_skeleton"]
+__all__ = ["DistributedDeformer", "fingerprint", "open_shell", "split_skeleton"]
 
-#: collectives of one step: the wall targets, the wall quaternions, the cell checks
+#: collectives of one step: the wall targets, the wall quaternions, the cell checks (and, in
+#: two-level steps, the rigid fits' two passes)
 _STAGES = 3
+_STAGES_TWO_LEVEL = 5
+
+
+@jit
+def fingerprint(bits, rows, out):
+    """Two 64-bit lanes of a multiply-xorshift hash of the rows ``rows`` of ``bits`` (n, 3)
+    uint64 (the bits of float64 points), in order: the ranks' wall targets compared (a
+    check of the user's input, several times faster than a cryptographic digest)."""
+    h1 = np.uint64(0x9E3779B97F4A7C15)
+    h2 = np.uint64(0xC2B2AE3D27D4EB4F)
+    m1 = np.uint64(0xFF51AFD7ED558CCD)
+    m2 = np.uint64(0xC4CEB9FE1A85EC53)
+    s = np.uint64(33)
+    for n in range(rows.shape[0]):
+        for c in range(3):
+            x = bits[rows[n], c]
+            h1 = (h1 ^ x) * m1
+            h1 ^= h1 >> s
+            h2 = (h2 + x) * m2
+            h2 ^= h2 >> s
+    out[0] = h1
+    out[1] = h2
 
 
 def _numbers(blocks, where: str) -> list[int]:
@@ -213,10 +242,12 @@ def split_skeleton(sk, two, own):
 
     A step on it computes every point of the own blocks' faces with the same operations, item
     by item, as on the whole skeleton (so with the same bits), and skips the rest: the
-    replicated O(surface) work of a step shrinks to the rank's share of the boundary, plus
-    the walls (wall quaternions, rigid fits) and the free vertices, which every rank keeps.
+    replicated O(surface) work of a step shrinks to the rank's share of the boundary.  The
+    free vertices kept are those the kept items read (each row of their blend is computed
+    alone, :func:`.stages.idw_rows`); the wall rows a step fills are set by the
+    :class:`DistributedDeformer` (``wall_rows``).
     """
-    from .skeleton import Patches, Segments, Symmetry
+    from .skeleton import Patches, Segments, Symmetry, Vertices
     from .stages import level_pack
     need = np.zeros(sk.n_global, dtype=bool)
     for b in own:
@@ -242,12 +273,21 @@ def split_skeleton(sk, two, own):
         segments = Segments(left[keep], right[keep],
                             np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
                             np.ascontiguousarray(pts[rows]), np.ascontiguousarray(s[rows]))
+    # the free vertices those read (each row of the inverse-distance blend is computed alone,
+    # stages.idw_rows: the same bits for any subset of rows)
+    vertices = sk.vertices
+    if vertices.idw is not None:
+        keep = need[vertices.free]
+        src, w, decay, ref = vertices.idw
+        vertices = Vertices(vertices.corners, vertices.free[keep],
+                            (src, np.ascontiguousarray(w[keep]), decay[keep], ref[keep])
+                            if keep.any() else None)
     sym = sk.symmetry
     on = need[sym.gids]
     symmetry = Symmetry(sym.gids[on], sym.point[on], sym.normal[on])
     der = need[sk.derived]
     sk = dataclasses.replace(sk, patches=patches, segments=segments, symmetry=symmetry,
-                             derived=sk.derived[der])
+                             vertices=vertices, derived=sk.derived[der])
     if two is not None:
         two = dataclasses.replace(two, phi=np.ascontiguousarray(two.phi[der]))
     return sk, two
@@ -268,7 +308,7 @@ class DistributedDeformer(Deformer):
         check_comm(comm)
         #: the communicator
         self.comm = comm
-        self._stage = _STAGES
+        self._stage = self._stages = _STAGES
         shell = open_shell(source, comm, blocks)
         exc = None
         try:
@@ -280,9 +320,60 @@ class DistributedDeformer(Deformer):
         agree(comm, exc)
         shell.drop_layers()
         self._own_set = frozenset(self.blocks)
+        self._print = self._wall_ref = None
         #: the whole skeleton (every rank's copy is the same); :attr:`skeleton` is this rank's part
         self.full_skeleton = self.skeleton
         self.skeleton, self.two_level = split_skeleton(self.skeleton, self.two_level, self.blocks)
+        self._plan_walls()
+
+    def _plan_walls(self) -> None:
+        """The wall work of this rank: its wall patches (those on its blocks), the parts of the
+        rigid fits' partition in them, the wall points whose merged quaternions it reads and
+        the points of the residual targets it needs (its part of the skeleton reads them, or
+        its wall patches' halos)."""
+        sk, two = self.skeleton, self.two_level
+        own = self._own_set
+        self._my_patches = [m for m, w in enumerate(sk.walls.patches) if w.spec.block in own]
+        need = np.zeros(sk.n_global, dtype=bool)
+        for b in self.blocks:
+            for g in sk.blocks[b].face_gid:
+                need[g.ravel()] = True
+        for p in sk.patches.items:
+            need[p.gid.ravel()] = True
+        if sk.segments is not None:
+            left, right, _, pts, _ = sk.segments.arrays()
+            need[left] = need[right] = need[pts] = True
+        if sk.vertices.idw is not None:
+            need[sk.vertices.idw[0]] = True
+        need[sk.symmetry.gids] = True
+        wall = sk.points.wall
+        rows = np.flatnonzero(need[wall])
+        self.skeleton = sk = dataclasses.replace(sk, wall_rows=rows)
+        self._merge = stages.merge_plan(sk, rows)
+        self._merge_acc = np.zeros((wall.size, 4))      # rows it does not read: 1
+        self._merge_acc[:, 0] = 1.0
+        self._merge_count = np.zeros(wall.size, dtype=np.int64)
+        self._wall_order = np.arange(wall.size)
+        for m in self._my_patches:
+            h = sk.walls.patches[m].halo.ravel()
+            need[h[h >= 0]] = True
+        if two is not None:
+            self._plan_fits(need)
+        # the wall targets it reads (a callable's are written there only)
+        rows = np.flatnonzero(need[wall])
+        self._target_rows = (wall[rows], rows)
+
+    def _plan_fits(self, need) -> None:
+        """The rigid fits' parts in this rank's wall patches and the points of the residual
+        targets it needs (marked in ``need``)."""
+        two = self.two_level
+        self._stages = _STAGES_TWO_LEVEL
+        self._my_parts = np.flatnonzero(np.isin(two.part_patch, self._my_patches))
+        ptr, gids = two.part_ptr, two.part_gids
+        self._part_rows = (np.concatenate([gids[ptr[m]:ptr[m + 1]] for m in self._my_parts])
+                           if self._my_parts.size else np.zeros(0, dtype=np.int64))
+        need[self._part_rows] = True
+        self._y_rows = [body.gids[need[body.gids]] for body in two.bodies]
 
     @property
     def dims(self) -> list:
@@ -319,7 +410,7 @@ class DistributedDeformer(Deformer):
             return super().deform(moved, **kw)
         except Exception as exc:
             agreed = exc
-            while self._stage < _STAGES:    # the collectives the other ranks are in
+            while self._stage < self._stages:    # the collectives the other ranks are in
                 try:
                     self._sync(exc, None)
                 except Exception as e:  # noqa: BLE001
@@ -328,10 +419,29 @@ class DistributedDeformer(Deformer):
                 raise
             raise agreed from None
 
+    def _other_targets(self, moved):
+        """A callable's targets: its result fingerprinted as it comes (the ranks compare it)
+        and written at the wall points this rank reads only; other forms as serially."""
+        self._print = None
+        if not callable(moved):
+            return super()._other_targets(moved)
+        if self._wall_ref is None:                  # the wall points, contiguous, once
+            self._wall_ref = self.skeleton.points.P[self.skeleton.points.wall]
+        new = motion_targets(self.skeleton, moved, self._wall_ref)
+        self._print = np.zeros(2, dtype=np.uint64)
+        fingerprint(new.view(np.uint64), self._wall_order, self._print)
+        gids, rows = self._target_rows
+        rd = self._work.rd
+        rd[gids] = new[rows]
+        return rd
+
     def _agree_targets(self, rd) -> None:
-        wall = self.skeleton.points.wall
-        digest = hashlib.blake2b(np.ascontiguousarray(rd[wall]).tobytes(), digest_size=16).digest()
-        digests = self._sync(None, digest)
+        digest = self._print
+        if digest is None:      # the same value as a callable's: the wall rows in order
+            digest = np.zeros(2, dtype=np.uint64)
+            fingerprint(rd.view(np.uint64), self.skeleton.points.wall, digest)
+        self._print = None
+        digests = self._sync(None, digest.tobytes())
         differ = [r for r, d in enumerate(digests) if d != digests[0]]
         if differ:
             raise ParallelError(f"the wall motion given to deform() differs between rank 0 and "
@@ -354,22 +464,52 @@ class DistributedDeformer(Deformer):
             self._sync(None, None)
         return out
 
-    def _wall_quaternions(self, rd, centre):
-        """Each rank computes the quaternions of the wall patches on its blocks; all are
-        exchanged and merged in the global patch order (the serial merge: the same bits)."""
+    def _gather_parts(self, fn, nparts: int) -> np.ndarray:
+        """One pass of the rigid fits (:func:`.twolevel.fit_bodies`): each rank computes the
+        parts in its wall patches, one ``allgather`` gives every rank all of them in order."""
+        exc = mine = None
+        try:
+            mine = fn(self._my_parts)
+        except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
+            exc = e
+        parts = self._sync(exc, None if mine is None else (self._my_parts, mine))
+        out = np.empty((nparts, mine.shape[1]))
+        for which, vals in parts:
+            out[which] = vals
+        return out
+
+    def _residual_quaternions(self, y, tiny):
+        """The serial method's ``(local, qwall)`` with one collective: the ranks' largest
+        residual on their parts of the walls travel with the wall patches' quaternions."""
         sk = self.skeleton
-        mine = [m for m, w in enumerate(sk.walls.patches) if w.spec.block in self._own_set]
+        rows = self._part_rows
+        big = float(np.max(np.abs(y[rows] - sk.points.P[rows]), initial=0.0))
+        qwall, bigs = self._exchange_quaternions(y, self.centre, big)
+        local = max(bigs) > tiny
+        return local, (qwall if local else None)
+
+    def _wall_quaternions(self, rd, centre):
+        return self._exchange_quaternions(rd, centre, None)[0]
+
+    def _exchange_quaternions(self, rd, centre, extra):
+        """Each rank computes the quaternions of the wall patches on its blocks; all are
+        exchanged (with every rank's ``extra``) and merged in the global patch order (the
+        serial merge: the same bits) at the wall points this rank reads.  Returns the merged
+        quaternions and the ranks' ``extra``."""
+        sk = self.skeleton
+        mine = self._my_patches
         exc = qs = None
         try:
             qs = stages.patch_quaternions(sk, rd, centre, mine)
         except Exception as e:      # noqa: BLE001  (every rank raises the first rank's)
             exc = e
-        parts = self._sync(exc, None if qs is None else list(zip(mine, qs)))
+        parts = self._sync(exc, None if qs is None else (list(zip(mine, qs)), extra))
         every = [None] * len(sk.walls.patches)
-        for part in parts:
+        for part, _ in parts:
             for m, q in part:
                 every[m] = q
-        return stages.merge_wall_quaternions(sk, every)
+        qwall = stages.merge_wall_rows(self._merge, every, self._merge_acc, self._merge_count)
+        return qwall, [e for _, e in parts]
 
     def _report(self, reports, check):
         parts = self._sync(None, reports if check else None)

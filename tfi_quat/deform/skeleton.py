@@ -357,7 +357,9 @@ class Skeleton:
     """Everything a step reads: the boundary points, the hierarchy levels, the blocks.
 
     ``derived``: the derived points' global ids; ``scatter``: per block, the local flat
-    indices of its boundary points and their global ids (the result's boundary copies).
+    indices of its boundary points and their global ids (the result's boundary copies);
+    ``wall_rows``: the wall points a step fills (indices into ``points.wall``; None: all,
+    an MPI rank's part: those it reads, :mod:`.distributed`).
     """
 
     ndim: int
@@ -372,10 +374,18 @@ class Skeleton:
     symmetry: Symmetry
     blocks: tuple[BlockPlan, ...]
     scatter: tuple
+    wall_rows: np.ndarray | None = None
 
     @property
     def n_global(self) -> int:
         return self.points.n_global
+
+    def step_walls(self) -> tuple:
+        """``(gids, rows)``: the wall points a step fills, as global ids and as indices into
+        ``points.wall`` (all of them: ``rows`` is ``slice(None)``)."""
+        if self.wall_rows is None:
+            return self.points.wall, slice(None)
+        return self.points.wall[self.wall_rows], self.wall_rows
 
 
 def _walls(pts: BoundaryPoints, connectivity, ndim: int) -> Walls:

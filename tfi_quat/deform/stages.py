@@ -368,6 +368,50 @@ def level_pack(patches) -> tuple:
 
 
 @jit
+def part_sums(P, rd, which, ptr, gids, out):
+    """Per part ``m = which[k]`` (its points ``gids[ptr[m]:ptr[m + 1]]``): ``out[k] =
+    (sum P, sum rd)`` over its points, in order (the first pass of the rigid fits)."""
+    for k in range(which.shape[0]):
+        m = which[k]
+        for c in range(6):
+            out[k, c] = 0.0
+        for n in range(ptr[m], ptr[m + 1]):
+            g = gids[n]
+            for c in range(3):
+                out[k, c] += P[g, c]
+                out[k, 3 + c] += rd[g, c]
+
+
+@jit
+def part_moments(P, rd, which, ptr, gids, body, cu, cd, out):
+    """Per part ``m = which[k]``: ``out[k] = sum (P - cu_b)(rd - cd_b)^T`` (row major, 9)
+    over its points, in order (``b = body[m]``: the part's body, its centroids ``cu[b]``,
+    ``cd[b]``; the second pass of the rigid fits)."""
+    a = np.empty(3)
+    for k in range(which.shape[0]):
+        m = which[k]
+        b = body[m]
+        for c in range(9):
+            out[k, c] = 0.0
+        for n in range(ptr[m], ptr[m + 1]):
+            g = gids[n]
+            for c in range(3):
+                a[c] = P[g, c] - cu[b, c]
+            for i in range(3):
+                for j in range(3):
+                    out[k, 3 * i + j] += a[i] * (rd[g, j] - cd[b, j])
+
+
+@jit
+def add_parts(vals, body, out):
+    """``out[body[m]] += vals[m]`` for the parts in order (the fits' fixed-order reduction)."""
+    for m in range(vals.shape[0]):
+        b = body[m]
+        for c in range(vals.shape[1]):
+            out[b, c] += vals[m, c]
+
+
+@jit
 def rigid_blend(phi, idx, Db, Rb, gd, gq):
     """The rigid part of the two-level formulation on the listed points (rows of ``phi``):
     ``Δ = Σ_b φ_b Δ_b`` and ``Q = exp(Σ_b φ_b v_b)`` (``v_b``: the rotation vector of body
@@ -474,18 +518,69 @@ _ORIGIN = np.zeros(3)
 PATCH_WORK = 8
 
 
+@task_jit
+def idw_rows(lo, hi, w, X, out):
+    """``out[i] = sum_j w[i, j] X[j]`` for the rows ``lo <= i < hi`` (``X``: the sources'
+    values, (ns, 3)), each row summed in source order: a row's bits do not depend on
+    which other rows are computed (a BLAS product's do)."""
+    ns = X.shape[0]
+    for i in range(lo, hi):
+        a0 = a1 = a2 = 0.0
+        for j in range(ns):
+            f = w[i, j]
+            a0 += f * X[j, 0]
+            a1 += f * X[j, 1]
+            a2 += f * X[j, 2]
+        out[i, 0] = a0
+        out[i, 1] = a1
+        out[i, 2] = a2
+
+
+@task_jit
+def idw_quaternion_rows(lo, hi, w, qs, ref, out):
+    """Rows ``lo <= i < hi``: the weighted mean of the sources' quaternions ``qs`` (ns, 4),
+    each aligned to the hemisphere of the row's strongest source ``qs[ref[i]]``, summed in
+    source order and normalised (that source where the mean vanishes)."""
+    ns = qs.shape[0]
+    for i in range(lo, hi):
+        r = ref[i]
+        a0 = a1 = a2 = a3 = 0.0
+        for j in range(ns):
+            d = qs[r, 0] * qs[j, 0] + qs[r, 1] * qs[j, 1] + qs[r, 2] * qs[j, 2] + qs[r, 3] * qs[j, 3]
+            f = w[i, j] if d >= 0.0 else -w[i, j]
+            a0 += f * qs[j, 0]
+            a1 += f * qs[j, 1]
+            a2 += f * qs[j, 2]
+            a3 += f * qs[j, 3]
+        n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2 + a3 * a3)
+        if n < 1e-6:
+            for c in range(4):
+                out[i, c] = qs[r, c]
+        else:
+            out[i, 0] = a0 / n
+            out[i, 1] = a1 / n
+            out[i, 2] = a2 / n
+            out[i, 3] = a3 / n
+
+
+def vertex_blend(vertices, X: np.ndarray) -> np.ndarray:
+    """``w @ X[src]`` (nv, 3) of the free vertices' inverse-distance weights, row by row
+    (:func:`idw_rows`)."""
+    src, w, _, _ = vertices.idw
+    out = np.empty((w.shape[0], 3))
+    with serial_below(w.size):
+        parallel_for(idw_rows, w.shape[0], w, np.ascontiguousarray(X[src]), out)
+    return out
+
+
 def vertex_q(vertices, gq: np.ndarray, decay: np.ndarray) -> np.ndarray:
     """Quaternions of the free vertices: the hemisphere-aligned weighted mean of the sources,
-    normalised (the strongest source where it vanishes), slerped from 1 by ``decay``."""
+    normalised (the strongest source where it vanishes), slerped from 1 by ``decay``
+    (:func:`idw_quaternion_rows`: each row's bits independent of the other rows)."""
     src, w, _, ref = vertices.idw
-    qs = gq[src]                                         # (ns, 4)
-    qref = qs[ref]                                       # (nv, 4)
-    sign = np.where(qref @ qs.T >= 0.0, 1.0, -1.0)       # (nv, ns)
-    qbar = (w * sign) @ qs
-    norm = np.linalg.norm(qbar, axis=1)
-    small = norm < 1e-6
-    qbar[small] = qref[small]
-    qbar[~small] /= norm[~small, None]
+    qbar = np.empty((w.shape[0], 4))
+    with serial_below(w.size):
+        parallel_for(idw_quaternion_rows, w.shape[0], w, np.ascontiguousarray(gq[src]), ref, qbar)
     ident = np.zeros_like(qbar)
     ident[:, 0] = 1.0
     return qa.slerp(ident, qbar, decay)
@@ -495,9 +590,9 @@ def vertex_stage(sk, gdelta: np.ndarray, gq: np.ndarray | None) -> None:
     """The free vertices: inverse-distance blend of the wall sources, decaying to fixed points."""
     if sk.vertices.idw is None:
         return
-    src, w, decay, _ = sk.vertices.idw
+    _, _, decay, _ = sk.vertices.idw
     free = sk.vertices.free
-    gdelta[free] = decay[:, None] * (w @ gdelta[src])
+    gdelta[free] = decay[:, None] * vertex_blend(sk.vertices, gdelta)
     if gq is not None:
         gq[free] = vertex_q(sk.vertices, gq, decay)
 
@@ -577,6 +672,34 @@ def merge_wall_quaternions(sk, qs) -> np.ndarray:
     for q, lid in zip(qs, sk.walls.local):
         merge_quaternions(lid, q, acc, count)
     acc /= np.linalg.norm(acc, axis=1, keepdims=True)
+    return acc
+
+
+def merge_plan(sk, rows) -> tuple:
+    """What :func:`merge_wall_rows` needs to merge the wall quaternions at the wall points
+    ``rows`` only (indices into the wall points): ``(rows, [(patch, positions in it, their
+    wall indices)])`` for the patches holding one of them."""
+    rows = np.asarray(rows, dtype=np.int64)
+    mask = np.zeros(sk.points.wall.size, dtype=bool)
+    mask[rows] = True
+    plan = []
+    for m, lid in enumerate(sk.walls.local):
+        pos = np.flatnonzero(mask[lid])
+        if pos.size:
+            plan.append((m, pos, np.ascontiguousarray(lid[pos])))
+    return rows, plan
+
+
+def merge_wall_rows(plan, qs, acc, count) -> np.ndarray:
+    """:func:`merge_wall_quaternions` at the rows of ``plan`` (:func:`merge_plan`) only, into
+    the buffers ``acc`` (n_wall, 4; its other rows are left as they are) and ``count``.  A
+    point's merge runs over the patches in order whatever the other points, so its bits are
+    those of the whole merge."""
+    rows, parts = plan
+    count[rows] = 0
+    for m, pos, lid in parts:
+        merge_quaternions(lid, np.ascontiguousarray(qs[m][pos]), acc, count)
+    acc[rows] /= np.linalg.norm(acc[rows], axis=1, keepdims=True)
     return acc
 
 

@@ -25,14 +25,15 @@ import numpy as np
 
 from .. import quaternion as qa
 from ..blending import wall_layer_arclength, wall_layer_line
-from ..fit import constrain_to_planes, fit_rigid
+from ..fit import constrain_to_planes, rigid_from_moments
 from ..grid import face_axes
 from ..topology.graph import connected_components
 from . import stages
 from .skeleton import FIXED, WALL, BoundaryPoints, Skeleton
 
 __all__ = ["ROTATION_LENGTH_FRACTION", "REBASE_FRACTION", "DAMP_FRACTION", "WallLayer", "Body",
-           "TwoLevel", "wall_layer", "build_two_level", "fit_bodies", "local_fields", "rigid_fields"]
+           "TwoLevel", "wall_layer", "build_two_level", "fit_parts", "fit_sums", "fit_centroids",
+           "fit_moments", "fit_bodies", "local_fields", "rigid_fields"]
 
 #: default rotation length (wall-layer thickness) as a fraction of the walls'
 #: size, twice the largest distance of a wall point from the walls' centroid
@@ -131,6 +132,11 @@ class TwoLevel:
     arm: np.ndarray
     damp: np.ndarray
     base: tuple
+    part_ptr: np.ndarray
+    part_gids: np.ndarray
+    part_body: np.ndarray
+    part_patch: np.ndarray
+    wall_body: np.ndarray
 
 
 def _bodies(sk: Skeleton) -> tuple[Body, ...]:
@@ -153,6 +159,35 @@ def _bodies(sk: Skeleton) -> tuple[Body, ...]:
         axis, tproj = constrain_to_planes(normals)
         bodies.append(Body(gids, axis, tproj))
     return tuple(bodies)
+
+
+def fit_parts(sk: Skeleton, bodies) -> tuple:
+    """The partition of the wall points the rigid fits sum over: each wall point in the
+    first wall patch (global patch order) that holds it, split by body; parts in patch
+    order, then body order.  It does not depend on how the blocks are spread over MPI
+    ranks, so every rank count sums the same parts in the same order.  Returns ``(ptr,
+    gids, body, patch)``."""
+    wall = sk.points.wall
+    body_of = np.full(sk.n_global, -1, dtype=np.int64)
+    for b, body in enumerate(bodies):
+        body_of[body.gids] = b
+    seen = np.zeros(wall.size, dtype=bool)
+    sizes, gids, pbody, ppatch = [], [], [], []
+    for m, lid in enumerate(sk.walls.local):
+        lid = np.asarray(lid, dtype=np.int64).ravel()
+        lid = lid[~seen[lid]]
+        _, first = np.unique(lid, return_index=True)
+        lid = lid[np.sort(first)]
+        seen[lid] = True
+        g = wall[lid]
+        for b in np.unique(body_of[g]):
+            sizes.append(int(np.count_nonzero(body_of[g] == b)))
+            gids.append(g[body_of[g] == b])
+            pbody.append(int(b))
+            ppatch.append(m)
+    ptr = np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)]).astype(np.int64)
+    return (ptr, np.concatenate(gids).astype(np.int64) if gids else np.zeros(0, np.int64),
+            np.array(pbody, dtype=np.int64), np.array(ppatch, dtype=np.int64))
 
 
 def _rigid_weights(sk: Skeleton, bodies) -> np.ndarray:
@@ -236,9 +271,9 @@ def _centres(sk: Skeleton, layer: WallLayer):
     # same order as a step: vertices, segments (gap by gap), patches
     vx = sk.vertices
     if vx.idw is not None:
-        src, w, decay, _ = vx.idw
+        decay = vx.idw[2]
         free = vx.free
-        rebase(free, decay[:, None] * (w @ c[src]) + (1.0 - decay)[:, None] * P[free])
+        rebase(free, decay[:, None] * stages.vertex_blend(vx, c) + (1.0 - decay)[:, None] * P[free])
     if sk.segments is not None:
         stages.rebase_gaps(c, *sk.segments.arrays(), target, shift)
     if sk.patches.items:
@@ -262,19 +297,76 @@ def build_two_level(sk: Skeleton, layer: WallLayer) -> TwoLevel:
     # A = R_u - TFI(c), evaluated inside the volume kernel from these O(surface) tables
     base = tuple(None if plan.gather is None else plan.gather.base_tables(c) for plan in sk.blocks)
     np.negative(c, out=c)
-    return TwoLevel(layer, bodies, phi, c, shift, P - c, damp, base)
+    wall_body = np.empty(sk.points.wall.size, dtype=np.int64)
+    pos = np.full(sk.n_global, -1, dtype=np.int64)
+    pos[sk.points.wall] = np.arange(sk.points.wall.size)
+    for b, body in enumerate(bodies):
+        wall_body[pos[body.gids]] = b
+    return TwoLevel(layer, bodies, phi, c, shift, P - c, damp, base, *fit_parts(sk, bodies),
+                    wall_body)
 
 
 # ------------------------------------------------------------------ a step
-def fit_bodies(sk: Skeleton, two: TwoLevel, rd: np.ndarray, y: np.ndarray) -> list:
+def fit_sums(sk: Skeleton, two: TwoLevel, rd: np.ndarray, which) -> np.ndarray:
+    """The first pass of the rigid fits on the parts ``which`` (indices into the parts,
+    :func:`fit_parts`): per part, the sums of its points' reference and target positions
+    ``(len(which), 6)``."""
+    which = np.asarray(which, dtype=np.int64)
+    out = np.empty((which.size, 6))
+    stages.part_sums(sk.points.P, rd, which, two.part_ptr, two.part_gids, out)
+    return out
+
+
+def fit_centroids(two: TwoLevel, sums: np.ndarray) -> tuple:
+    """Per body, the centroids ``(cu, cd)`` (nb, 3) of its reference and target wall points
+    from every part's sums (:func:`fit_sums`, all parts in order), added in part order."""
+    nb = len(two.bodies)
+    acc = np.zeros((nb, 6))
+    stages.add_parts(sums, two.part_body, acc)
+    n = np.array([body.gids.size for body in two.bodies], dtype=np.float64)[:, None]
+    return np.ascontiguousarray(acc[:, :3] / n), np.ascontiguousarray(acc[:, 3:] / n)
+
+
+def fit_moments(sk: Skeleton, two: TwoLevel, rd: np.ndarray, cents: tuple, which) -> np.ndarray:
+    """The second pass of the rigid fits on the parts ``which``: per part, the
+    cross-covariance ``sum (P - cu)(rd - cd)^T`` of its points about its body's centroids
+    ``cents`` (:func:`fit_centroids`), row major ``(len(which), 9)``."""
+    which = np.asarray(which, dtype=np.int64)
+    out = np.empty((which.size, 9))
+    stages.part_moments(sk.points.P, rd, which, two.part_ptr, two.part_gids, two.part_body,
+                        cents[0], cents[1], out)
+    return out
+
+
+def _all_parts(fn, nparts: int) -> np.ndarray:
+    return fn(np.arange(nparts))
+
+
+def fit_bodies(sk: Skeleton, two: TwoLevel, rd: np.ndarray, y: np.ndarray, gather=None,
+               rows=None) -> list:
     """Per wall body: ``(q, t)`` of the best rigid motion of its walls to ``rd`` (G, 3); the
-    pulled-back residual targets ``rot(q)^-1 (rd - t)`` are written to the wall rows of ``y``."""
-    P = sk.points.P
+    pulled-back residual targets ``rot(q)^-1 (rd - t)`` are written to the wall rows of ``y``.
+
+    The fit's sums are taken per part of the fixed partition :func:`fit_parts`, then added
+    in part order (:func:`fit_centroids`, then the covariances).  ``gather(fn, nparts)``
+    returns ``fn(parts)`` for every part in order (default: computes them all; under MPI
+    each rank computes its wall patches' parts and the ranks exchange them,
+    :mod:`.distributed`): the same bits for any rank count.  ``rows``: per body, the
+    points of ``y`` to write (default: all its wall points).
+    """
+    gather = _all_parts if gather is None else gather
+    nparts = two.part_body.size
+    cents = fit_centroids(two, gather(lambda which: fit_sums(sk, two, rd, which), nparts))
+    mom = gather(lambda which: fit_moments(sk, two, rd, cents, which), nparts)
+    nb = len(two.bodies)
+    h = np.zeros((nb, 9))
+    stages.add_parts(mom, two.part_body, h)
     fits = []
-    for body in two.bodies:
-        g = body.gids
-        q, t = fit_rigid(P[g], rd[g], body.axis, body.tproj)
+    for b, body in enumerate(two.bodies):
+        q, t = rigid_from_moments(cents[0][b], cents[1][b], h[b].reshape(3, 3), body.axis,
+                                  body.tproj)
         fits.append((q, t))
+        g = body.gids if rows is None else rows[b]
         y[g] = qa.rotate(qa.conjugate(q), rd[g] - t)
     return fits
 
@@ -286,8 +378,8 @@ def local_fields(sk: Skeleton, two: TwoLevel, y, qwall, K, gq, pos):
     on vertices and segments."""
     P = sk.points.P
     A = two.arm
-    wall = sk.points.wall
-    gq[wall] = qwall
+    wall, rows = sk.step_walls()
+    gq[wall] = qwall[rows]
     K[wall] = y[wall]                   # walls: A = 0
     damp = two.damp
     shift = two.shift
@@ -296,9 +388,9 @@ def local_fields(sk: Skeleton, two: TwoLevel, y, qwall, K, gq, pos):
     # the re-basing shift of the centres (the position K + rot(Q, A) is unchanged by it)
     vx = sk.vertices
     if vx.idw is not None:
-        src, w, decay, _ = vx.idw
+        decay = vx.idw[2]
         free = vx.free
-        K[free] = decay[:, None] * (w @ K[src]) + (1.0 - decay)[:, None] * P[free]
+        K[free] = decay[:, None] * stages.vertex_blend(vx, K) + (1.0 - decay)[:, None] * P[free]
         gq[free] = stages.vertex_q(vx, gq, decay)
         K[free] += qa.rotate(gq[free], shift[free])
     if sk.segments is not None:
@@ -321,11 +413,13 @@ def rigid_fields(sk: Skeleton, two: TwoLevel, fits, centre, gdelta, gq) -> None:
     nb = len(two.bodies)
     Db = np.empty((nb, 3))
     Qb = np.empty((nb, 4))
-    for b, (body, (q, t)) in enumerate(zip(two.bodies, fits)):
+    for b, (q, t) in enumerate(fits):
         # c + Δ + rot(q, x - c) = rot(q, x) + t
         Db[b] = t + qa.rotate(q, c) - c
         Qb[b] = q
-        gdelta[body.gids] = Db[b]
-        gq[body.gids] = q
+    wall, rows = sk.step_walls()
+    body = two.wall_body[rows]
+    gdelta[wall] = Db[body]
+    gq[wall] = Qb[body]
     stages.rigid_blend(two.phi, sk.derived, Db, qa.log(Qb), gdelta, gq)
     stages.symmetry_stage(sk, gdelta, gq, c)

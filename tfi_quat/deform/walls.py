@@ -19,7 +19,7 @@ from ..grid import Grid, face_ijk
 from ..spec import PatchSpec, parse_patch_spec
 from .skeleton import WALL
 
-__all__ = ["WallInput", "other_targets", "point_keys"]
+__all__ = ["WallInput", "motion_targets", "other_targets", "point_keys"]
 
 
 def point_keys(grid: Grid, ids: np.ndarray) -> np.ndarray:
@@ -210,18 +210,38 @@ def _first_rows(gid: np.ndarray) -> tuple:
     return order, start, order[start]
 
 
+def _check_targets(sk, X: np.ndarray) -> None:
+    """The wall targets ``X`` (n_wall, 3): finite, and z = 0 on a 2-D grid."""
+    bad = ~np.isfinite(X)
+    if bad.any():
+        raise DeformationError(f"{int(bad.any(axis=1).sum())} moved wall point(s) are not finite")
+    if sk.ndim == 2 and np.any(X[:, 2] != 0.0):
+        raise DeformationError("moved wall points of a 2-D grid must have z = 0")
+
+
+def motion_targets(sk, moved, ref: np.ndarray | None = None) -> np.ndarray:
+    """The callable form of :meth:`Deformer.deform`: ``moved`` called on (a copy of) the wall
+    points (n_wall, 3) of the skeleton ``sk`` (``ref``: those points, kept contiguous by the
+    caller), its result checked (shape, finite, z = 0 in 2-D) and returned C-contiguous."""
+    wall = sk.points.wall
+    src = sk.points.P[wall] if ref is None else ref.copy()
+    new = np.ascontiguousarray(moved(src), dtype=np.float64)
+    if new.shape != (wall.size, 3):
+        raise DeformationError(f"the motion callable returned shape {new.shape}, expected "
+                               f"({wall.size}, 3) for the {wall.size} wall points")
+    _check_targets(sk, new)
+    return new
+
+
 def other_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
     """The other forms of :meth:`Deformer.deform` (a callable, a moved Grid, a mapping patch ->
     array): deformed positions of every global point, in ``rd`` (only wall rows are written)."""
     pts = sk.points
     wall = pts.wall
     if callable(moved):
-        new = np.asarray(moved(pts.P[wall].copy()), dtype=np.float64)
-        if new.shape != (wall.size, 3):
-            raise DeformationError(f"the motion callable returned shape {new.shape}, expected "
-                                   f"({wall.size}, 3) for the {wall.size} wall points")
-        rd[wall] = new
-    elif isinstance(moved, Grid):
+        rd[wall] = motion_targets(sk, moved)
+        return rd
+    if isinstance(moved, Grid):
         if moved.dims != ref.dims:
             raise DeformationError(f"moved grid dimensions {moved.dims} differ from the "
                                    f"reference {ref.dims}")
@@ -248,9 +268,5 @@ def other_targets(sk, ref: Grid, moved, rd: np.ndarray) -> np.ndarray:
                                    f"mapping, e.g. at {tuple(np.round(pts.P[missing[0]], 6))}")
     else:
         raise DeformationError("moved must be a callable, a Grid, or a mapping patch -> array")
-    bad = ~np.isfinite(rd[wall])
-    if bad.any():
-        raise DeformationError(f"{int(bad.any(axis=1).sum())} moved wall point(s) are not finite")
-    if sk.ndim == 2 and np.any(rd[wall, 2] != 0.0):
-        raise DeformationError("moved wall points of a 2-D grid must have z = 0")
+    _check_targets(sk, rd[wall])
     return rd
