@@ -300,21 +300,24 @@ def _prep(SM, SN, nm, nn, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, li
     arclength parameters ``SM``, ``SN`` (na, nb, 3, 2) on the M and N faces;
     ``nm``, ``nn``: the block's point counts along M and N.
     ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.  Runs the
-    kernel of that kind (:func:`_prep_kernel`).
+    kernel of that dimension (:func:`_prep_kernel`).
     """
-    _prep_kernel(bool(hasn), bool(hasq))(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN,
-                                         lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    _prep_kernel(bool(hasn))(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN, bool(hasq),
+                             lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
 
 
 @functools.lru_cache(maxsize=None)
-def _prep_kernel(hasn: bool, hasq: bool):
-    """The set-up kernel of one kind (:func:`_prep` without ``hasn``, ``hasq``), made on first
-    use: the flags are closure constants, so a 2-D or baseline run compiles none of the
-    N-face or quaternion code.  The phases run in order (M needs the lines, N needs M).
-    Serial: the work is O(surface), and a parallel kernel costs seconds more to compile."""
+def _prep_kernel(hasn: bool):
+    """The set-up kernel of one dimension (:func:`_prep` without ``hasn``), made on first
+    use: ``hasn`` is a closure constant, so a 2-D run compiles none of the N-face code (nor
+    the fallback it calls); ``hasq`` is an argument, tested per face column, so the
+    baseline and quaternion calls share one compiled kernel (two kernels cost a run that
+    uses both ~1 s more to compile; the baseline's set-up is O(surface)).  The phases run
+    in order (M needs the lines, N needs M).  Serial: the work is O(surface), and a
+    parallel kernel costs seconds more to compile."""
     @jit
-    def prep(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN, lineD, lineQ, gD, gQ, hD, hQ,
-             fbM, fbN):
+    def prep(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD,
+             hQ, fbM, fbN):
         for b in range(lineD.shape[1]):
             _prep_line(b, hasq, FL, QL, lineD, lineQ)
         for side in range(2):
