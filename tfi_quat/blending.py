@@ -55,7 +55,7 @@ AMAX = 1.0e3
 EXP_CUT = 6.5
 
 
-@jit(inline="always")
+@jit(forceinline=True)
 def _f(t, a):
     if a <= 0.0:
         return 1.0
@@ -123,7 +123,7 @@ def wall_layer_line(s, length, lam0, lam1) -> np.ndarray:
 
 
 
-@jit(inline="always")
+@jit(forceinline=True)
 def _needs_layer(lam0, lam1):
     """False where :func:`_layer_line` returns ``s`` whatever the length (lines of >= 2 points)."""
     return not (lam0 <= 0.0 and lam1 <= 0.0)
