@@ -411,54 +411,6 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     return w, x, y, z, good
 
 
-@jit
-def _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf):
-    """Row ``i`` of :func:`_motion_rows` (a separate compiled function: inlined into the
-    task kernel's IR it took three times as long to compile)."""
-    na = q.shape[0]
-    nb = q.shape[1]
-    have = False
-    p0 = 1.0
-    p1 = 0.0
-    p2 = 0.0
-    p3 = 0.0
-    for j in range(nb):
-        good = False
-        w = 1.0
-        x = 0.0
-        y = 0.0
-        z = 0.0
-        if surf is not None:
-            if 0 < i < na - 1 and 0 < j < nb - 1:
-                w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
-        if not good:
-            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, surf, e)
-        if good:
-            if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
-                w = -w
-                x = -x
-                y = -y
-                z = -z
-            have = True
-            p0 = w
-            p1 = x
-            p2 = y
-            p3 = z
-            ok[i, j] = 1
-        else:
-            ok[i, j] = 0
-        q[i, j, 0] = w
-        q[i, j, 1] = x
-        q[i, j, 2] = y
-        q[i, j, 3] = z
-        # delta = r_d - c - rot(q, r_u - c)
-        rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0],
-                            Pu[i + oi, j + oj, 1] - c[1], Pu[i + oi, j + oj, 2] - c[2])
-        delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
-        delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
-        delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
-
-
 @task_jit
 def _motion_rows(lo, hi, Pu, Pd, oi, oj, e, c, q, delta, ok, surf):
     """Q, delta and the defined flag at every point of the patch rows ``lo <= i < hi`` of a
@@ -466,10 +418,52 @@ def _motion_rows(lo, hi, Pu, Pd, oi, oj, e, c, q, delta, ok, surf):
     pruned before typing, so a run compiles the code of the walls it has only.
 
     Interior surface points try the straight-line :func:`_interior_quaternion`
-    first; within a row the sign of q follows the previous defined point.
+    first; within a row the sign of q follows the previous defined point.  (The row is
+    a loop here, not a compiled function of its own: one compiled level fewer.)
     """
     for i in range(lo, hi):
-        _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf)
+        na = q.shape[0]
+        nb = q.shape[1]
+        have = False
+        p0 = 1.0
+        p1 = 0.0
+        p2 = 0.0
+        p3 = 0.0
+        for j in range(nb):
+            good = False
+            w = 1.0
+            x = 0.0
+            y = 0.0
+            z = 0.0
+            if surf is not None:
+                if 0 < i < na - 1 and 0 < j < nb - 1:
+                    w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
+            if not good:
+                w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, surf, e)
+            if good:
+                if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
+                    w = -w
+                    x = -x
+                    y = -y
+                    z = -z
+                have = True
+                p0 = w
+                p1 = x
+                p2 = y
+                p3 = z
+                ok[i, j] = 1
+            else:
+                ok[i, j] = 0
+            q[i, j, 0] = w
+            q[i, j, 1] = x
+            q[i, j, 2] = y
+            q[i, j, 3] = z
+            # delta = r_d - c - rot(q, r_u - c)
+            rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0],
+                                Pu[i + oi, j + oj, 1] - c[1], Pu[i + oi, j + oj, 2] - c[2])
+            delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
+            delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
+            delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
 
 
 @jit

@@ -570,34 +570,6 @@ def _fields2(lo, hi, s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fb
 
 
 # =================================================================== arclength kernels
-@jit(inline="always")
-def _arc_tile_task(xyz, s, rtol, axis, t, nt):
-    """Task ``t`` of the direction-``axis`` pass (1: j, one task per k-plane and tile of
-    TILE lines i; 2: k, per j-slab and tile): the tile's parameters into ``s``."""
-    ni = xyz.shape[0]
-    n = xyz.shape[axis]
-    c = t // nt
-    i0 = (t % nt) * TILE
-    nw = min(TILE, ni - i0)
-    u0 = np.uint64(i0)
-    if n == 1:
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), 0, c)
-            s[i, j, k, axis] = 0.0
-        return
-    cum = np.empty((n, nw))
-    ln = np.empty(nw)
-    den = np.empty(nw)
-    arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
-    for m in range(n - 1):
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), m, c)
-            s[i, j, k, axis] = cum[m, w] / den[w]
-    for w in range(nw):
-        i, j, k = line_point(axis, at(u0, w), n - 1, c)
-        s[i, j, k, axis] = 1.0
-
-
 @task_jit
 def _arc_dir_i(lo, hi, xyz, s, rtol):
     """Direction i of :func:`arclength` (ni >= 2), the lines ``lo <= jk < hi`` (``j = jk %
@@ -617,13 +589,34 @@ def _arc_dir_i(lo, hi, xyz, s, rtol):
 def _arc_dir_jk(lo, hi, xyz, s, rtol, kdir):
     """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`arclength` (n >= 2), tasks
     ``lo <= t < hi``: one per plane of the third direction and tile of TILE lines i
-    (:func:`tfi_quat.kernels.by_direction`).
+    (:func:`tfi_quat.kernels.by_direction`), the tile's parameters into ``s``.
     Compiled once per direction, with the direction a constant, so the tile walker's index
     arithmetic folds away."""
+    ni = xyz.shape[0]
+    nt = (ni + TILE - 1) // TILE
     axis = 2 if kdir is not None else 1
-    nt = (xyz.shape[0] + TILE - 1) // TILE
+    n = xyz.shape[axis]
     for t in range(lo, hi):
-        _arc_tile_task(xyz, s, rtol, axis, t, nt)
+        c = t // nt
+        i0 = (t % nt) * TILE
+        nw = min(TILE, ni - i0)
+        u0 = np.uint64(i0)
+        if n == 1:
+            for w in range(nw):
+                i, j, k = line_point(axis, at(u0, w), 0, c)
+                s[i, j, k, axis] = 0.0
+            continue
+        cum = np.empty((n, nw))
+        ln = np.empty(nw)
+        den = np.empty(nw)
+        arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
+        for m in range(n - 1):
+            for w in range(nw):
+                i, j, k = line_point(axis, at(u0, w), m, c)
+                s[i, j, k, axis] = cum[m, w] / den[w]
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), n - 1, c)
+            s[i, j, k, axis] = 1.0
 
 
 @jit
