@@ -217,7 +217,7 @@ def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir):
     u0 = np.uint64(i0)
     if n == 1:
         for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), 0, c)
+            i, j, k = line_point(axis, at(u0, w), n - 1, c)
             out[i, j, k, axis] = 0.0
         return
     l0 = np.empty(nw)
@@ -351,7 +351,7 @@ def _arc_layer_jk(lo, hi, xyz, rtol, lam0, lam1, out, kdir):
         u0 = np.uint64(i0)
         if n == 1:
             for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), 0, c)
+                i, j, k = line_point(axis, at(u0, w), n - 1, c)
                 out[i, j, k, axis] = 0.0
             continue
         cum = np.empty((n, nw))

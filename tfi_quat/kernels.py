@@ -343,7 +343,8 @@ def arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den):
             cum[m, w] = ln[w]
     for w in range(nw):
         i = at(u0, w)
-        i0, j0, k0 = line_point(axis, i, 0, c)
+        i0, j0, k0 = line_point(axis, i, np.int64(0), c)       # int64 (a literal 0 would
+        # compile another specialisation of line_point)
         i1, j1, k1 = line_point(axis, i, n - 1, c)
         if not ln[w] > rtol * max_abs(xyz, i0, j0, k0, i1, j1, k1):
             for m in range(n):

@@ -501,15 +501,19 @@ def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
             else:                                       # 2-D: task p is the row j = p
                 j = p
                 nbad = 0
+                # z (0) and n2 (N = 2) as int64, not literals: the point and the formulas
+                # are then compiled with the 3-D kernels' and the set-up's argument types
+                z = np.int64(0)
+                n2 = np.int64(2)
                 if L == 0:
                     for i in range(ni):
-                        nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ,
-                                       j, 0, gD, gQ, i, 0, hD, hQ, 0, 0, lineB, gB, hB, qflag,
+                        nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ,
+                                       j, z, gD, gQ, i, z, hD, hQ, z, z, lineB, gB, hB, qflag,
                                        bflag)
                 else:
                     for i in range(ni):
-                        nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ,
-                                       i, 0, gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB, qflag,
+                        nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ,
+                                       i, z, gD, gQ, j, z, hD, hQ, z, z, lineB, gB, hB, qflag,
                                        bflag)
                 bad[j] = nbad > 0
 
@@ -603,7 +607,7 @@ def _arc_dir_jk(lo, hi, xyz, s, rtol, kdir):
         u0 = np.uint64(i0)
         if n == 1:
             for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), 0, c)
+                i, j, k = line_point(axis, at(u0, w), n - 1, c)
                 s[i, j, k, axis] = 0.0
             continue
         cum = np.empty((n, nw))
