@@ -300,10 +300,11 @@ def arc_line_i(xyz, rtol, j, k, buf):
     a = 0.0
     buf[0] = 0.0
     for i in range(1, ni):
-        a += dist(xyz, i - 1, j, k, i, j, k)
+        # i as uint64, as the tile walker's (at()): one compiled dist and max_abs for both
+        a += dist(xyz, np.uint64(i - 1), j, k, np.uint64(i), j, k)
         buf[i] = a
     length = a
-    if not a > rtol * max_abs(xyz, 0, j, k, ni - 1, j, k):
+    if not a > rtol * max_abs(xyz, np.uint64(0), j, k, np.uint64(ni - 1), j, k):
         for i in range(ni):
             buf[i] = i
         a = ni - 1.0
