@@ -375,17 +375,16 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
 
 # =================================================================== volume kernels
 # One definition for the fused volume stage, specialised at compile time by
-# three flags (2-D or 3-D, quaternion or displacement only, based or not): the
-# kernel made by :func:`_volume_kernel` holds them as closure constants (its
-# row loops), and :func:`_point` takes them as arguments, None (off) or True
-# (on), so that numba compiles the point once per kind with the other kinds'
+# three flags (2-D or 3-D, quaternion or displacement only, based or not):
+# :func:`_point` and :func:`_row` take them as arguments, None (off) or True
+# (on), so that numba compiles the row once per kind with the other kinds'
 # branches pruned before typing (bool flags compiled all eight kinds' code into
-# every kernel: three times the compile time).  The point is a separate
-# compiled function that LLVM inlines (``forceinline``): numba types it once per
-# kind although the kernel calls it at three places (one per role of direction
-# i; IR inlining typed every copy: twice the compile time, the same machine
-# code), and the per-point formulas it calls (:mod:`tfi_quat.kernels`) are
-# compiled once for all kinds.
+# every kernel: three times the compile time); the kernel made by
+# :func:`_volume_kernel` passes its kind's flags (closure constants) to the row.
+# The row and the point are separate compiled functions that LLVM inlines
+# (``forceinline``): numba types :func:`_point` once per kind although the row
+# calls it at three places (one per role of direction i; IR inlining typed
+# every copy: twice the compile time, the same machine code).
 
 @jit(inline="always")
 def _base_at(xyz, i, j, k, lineB, la, lb, t, gB, ma, mb, sm, hB, na, nb, sn):
@@ -406,8 +405,7 @@ def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, 
     ``hB``).  A point that needs the fallback is stored as ``R`` itself (the
     change scaled by 0, without a branch), so that :func:`_fix_rows` still
     finds ``R_u`` there when ``out`` is ``xyz`` (in-place update).  (A select
-    of Q = 1 and Δ = 0 instead cost 12 % of the loop's speed.)  ``hasq`` and ``based``
-    are None (off) or True (on): their types select the code.
+    of Q = 1 and Δ = 0 instead cost 12 % of the loop's speed.)
     """
     t = np.float64(s[i, j, k, L])
     sm = np.float64(s[i, j, k, M])
@@ -430,6 +428,59 @@ def _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, la, lb, gD, 
     _store_g_at(out, i, j, k, x0, y0, z0, cx, cy, cz, dx, dy, dz, qw * inv, qx * inv, qy * inv,
                 qz * inv, g)
     return 1 if n < QNORM_MIN else 0
+
+
+@jit(forceinline=True)
+def _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN,
+         lineB, gB, hB, hasn, hasq, based):
+    """Fused update of the row (j, k), i innermost (2-D: ``hasn`` None, k = 0, N = 2,
+    ``hD``/``hQ`` zero dummies read at (0, 0)).
+
+    The kind flags ``hasn``, ``hasq``, ``based`` are None (off) or True (on): their
+    types select the code, numba prunes the ``is None`` branches before typing, and a
+    row is compiled once per kind (flags taken as bool values compiled every kind's
+    code into every kernel).
+
+    The role whose direction is 0 (i) reads its table at a fixed (j, k); the
+    others read a contiguous run along i.  Returns the number of points whose
+    blended Q needs the fallback (:func:`_run_volume` has them redone by
+    :func:`_fix_rows`).
+    """
+    ni = xyz.shape[0]
+    nbad = 0
+    if hasn is not None:
+        if L == 0:
+            cm = k if M == 1 else j
+            cn = k if N == 1 else j
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, j, k,
+                               gD, gQ, i, cm, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
+        elif M == 0:
+            cl = k if L == 1 else j
+            cn = k if N == 1 else j
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
+                               gD, gQ, j, k, hD, hQ, i, cn, lineB, gB, hB, hasq, based)
+        else:
+            cl = k if L == 1 else j
+            cm = k if M == 1 else j
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
+                               gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB, hasq, based)
+    else:
+        # z (0) and n2 (N = 2) as int64, not literals: the point is then compiled with the
+        # 3-D kernels' argument types, and the formulas with the set-up's
+        z = np.int64(0)
+        n2 = np.int64(2)
+        if L == 0:
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ, j, z,
+                               gD, gQ, i, z, hD, hQ, z, z, lineB, gB, hB, hasq, based)
+        else:
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ, i, z,
+                               gD, gQ, j, z, hD, hQ, z, z, lineB, gB, hB, hasq, based)
+    return nbad
 
 
 def _volume_kernel(hasn: bool, hasq: bool, based: bool):
@@ -455,67 +506,24 @@ def _volume_kernel(hasn: bool, hasq: bool, based: bool):
 
 
 def _make_volume_kernel(hasn: bool, hasq: bool, based: bool):
-    # the flags are closure constants (numba keys its disk cache on them, and prunes the
-    # other kinds' branches before typing); the point takes them as None or True (a
-    # closure over a compiled function would not be cached).  The rows are loops of this
-    # kernel, not a compiled function of their own: one compiled level fewer (each level
-    # is optimised by LLVM again with everything inlined into it), ~15 % of the compile time
+    # the flags are closure constants (numba keys its disk cache on them); the row takes
+    # them as None or True (a closure over a compiled function would not be cached)
+    nflag = True if hasn else None
     qflag = True if hasq else None
     bflag = True if based else None
 
     @task_jit
     def volume(lo, hi, xyz, s, out, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, fbM,
                fbN, lineB, gB, hB, bad):
-        # row (j, k), i innermost.  The role whose direction is 0 (i) reads its table at a
-        # fixed (j, k); the others read a contiguous run along i.  bad[j + nj k]: some
-        # point of the row needs the fallback (_run_volume has them redone by _fix_rows)
-        ni = xyz.shape[0]
         nj = xyz.shape[1]
+        ninner = nj if hasn else 1
         for p in range(lo, hi):
-            if hasn:                                    # 3-D: task p is the k-plane p
-                k = p
-                for j in range(nj):
-                    nbad = 0
-                    if L == 0:
-                        cm = k if M == 1 else j
-                        cn = k if N == 1 else j
-                        for i in range(ni):
-                            nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD,
-                                           lineQ, j, k, gD, gQ, i, cm, hD, hQ, i, cn, lineB,
-                                           gB, hB, qflag, bflag)
-                    elif M == 0:
-                        cl = k if L == 1 else j
-                        cn = k if N == 1 else j
-                        for i in range(ni):
-                            nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD,
-                                           lineQ, i, cl, gD, gQ, j, k, hD, hQ, i, cn, lineB,
-                                           gB, hB, qflag, bflag)
-                    else:
-                        cl = k if L == 1 else j
-                        cm = k if M == 1 else j
-                        for i in range(ni):
-                            nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD,
-                                           lineQ, i, cl, gD, gQ, i, cm, hD, hQ, j, k, lineB,
-                                           gB, hB, qflag, bflag)
-                    bad[j + nj * k] = nbad > 0
-            else:                                       # 2-D: task p is the row j = p
-                j = p
-                nbad = 0
-                # z (0) and n2 (N = 2) as int64, not literals: the point and the formulas
-                # are then compiled with the 3-D kernels' and the set-up's argument types
-                z = np.int64(0)
-                n2 = np.int64(2)
-                if L == 0:
-                    for i in range(ni):
-                        nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ,
-                                       j, z, gD, gQ, i, z, hD, hQ, z, z, lineB, gB, hB, qflag,
-                                       bflag)
-                else:
-                    for i in range(ni):
-                        nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ,
-                                       i, z, gD, gQ, j, z, hD, hQ, z, z, lineB, gB, hB, qflag,
-                                       bflag)
-                bad[j] = nbad > 0
+            for q in range(ninner):
+                j = q if hasn else p
+                k = p if hasn else 0
+                bad[j + nj * k] = _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD,
+                                       gQ, hD, hQ, fbM, fbN, lineB, gB, hB, nflag, qflag,
+                                       bflag) > 0
 
     volume.__doc__ = (f"Fused {'3' if hasn else '2'}-D {'quaternion' if hasq else 'baseline'} "
                       f"update{' about R_u + TFI(B)' if based else ''} (:func:`_volume_kernel`).")
