@@ -3,7 +3,8 @@
 
 Every function here is a compiled helper inlined into the kernels that call it
 (:func:`fallback_q` is an ordinary compiled function on the rare path).  The
-face indexing and the arclength walkers are inlined by LLVM (``forceinline``):
+face indexing, the fallback's tangent-space maps and the arclength walkers
+are inlined by LLVM (``forceinline``):
 each is compiled once per argument types and shared by every kernel that calls
 it, where numba's own ``inline="always"`` typed a copy at every call site (~40 %
 of the line walkers' compile time).  The per-point TFI formulas and the slerp
