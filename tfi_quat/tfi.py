@@ -468,8 +468,8 @@ def _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, f
                 nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
                                gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB, hasq, based)
     else:
-        # z (0) and n2 (N = 2) as int64, not literals: the point is then compiled with the
-        # 3-D kernels' argument types, and the formulas with the set-up's
+        # z (0) and n2 (N = 2) as int64, not literals: the point then has the 3-D rows'
+        # argument types (one compilation per kind for a run with 2-D and 3-D blocks)
         z = np.int64(0)
         n2 = np.int64(2)
         if L == 0:
