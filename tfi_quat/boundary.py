@@ -182,7 +182,7 @@ def _angle_terms(ok, ex, ey, ez, fx, fy, fz, t1x, t1y, t1z, t2x, t2y, t2z,
     return (a1 * b2 - a2 * b1) * inv, (a1 * b1 + a2 * b2) * inv
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def _point_quaternion(Pu, Pd, ii, jj, surf, e):
     """Q = Q2 ⊗ Q1 at padded index (ii, jj); returns (w, x, y, z, defined).
 

@@ -59,17 +59,13 @@ __all__ = [
 
 
 # ------------------------------------------------------------------ kernels
-# The compiled helpers below are LLVM-inlined into the kernels that call them (forceinline:
-# each compiled once per argument types and shared by every kernel; numba's own
-# inline="always" typed a copy at every call site), but krotate, which is called with
-# arrays of several layouts (one compilation per layout as a separate function).
-@jit(forceinline=True)
+@jit(inline="always")
 def kdot(a, b):
     """4-D dot product of two quaternions."""
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kmul(a, b, out):
     """``out = a ⊗ b`` (Hamilton product).  ``out`` may alias ``a`` or ``b``."""
     w = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3]
@@ -82,7 +78,7 @@ def kmul(a, b, out):
     out[3] = z
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kconj(a, out):
     """``out = a*``."""
     out[0] = a[0]
@@ -91,7 +87,7 @@ def kconj(a, out):
     out[3] = -a[3]
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def knormalize(a, out):
     """``out = a / |a|``; returns ``|a|``.  A zero quaternion gives the identity.
 
@@ -150,7 +146,7 @@ def krotate(q, v, out):
     out[2] = vz + w * tz + (ux * ty - uy * tx)
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def _sinc(x):
     """sin(x)/x, accurate near 0."""
     if abs(x) < 1e-4:
@@ -158,7 +154,7 @@ def _sinc(x):
     return math.sin(x) / x
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kslerp(a, b, t, out):
     """Spherical linear interpolation of unit quaternions along the shortest arc.
 
@@ -209,7 +205,7 @@ def kslerp(a, b, t, out):
 
 
 # ------------------------------------------------------- scalar helpers
-@jit(forceinline=True)
+@jit(inline="always")
 def mul_s(a0, a1, a2, a3, b0, b1, b2, b3):
     """Hamilton product of two quaternions given as scalars; returns a 4-tuple."""
     return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3,
@@ -218,7 +214,7 @@ def mul_s(a0, a1, a2, a3, b0, b1, b2, b3):
             a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def log_s(w, x, y, z):
     """Shortest rotation vector ``angle * axis`` of a (not necessarily unit) quaternion.
 
@@ -242,7 +238,7 @@ def log_s(w, x, y, z):
     return x * f, y * f, z * f
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def exp_s(x, y, z):
     """Unit quaternion of the rotation vector ``(x, y, z)``; returns a 4-tuple."""
     t = math.sqrt(x * x + y * y + z * z)
@@ -251,7 +247,7 @@ def exp_s(x, y, z):
     return math.cos(h), x * s, y * s, z * s
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def from_two_units_s(ax, ay, az, bx, by, bz):
     """Minimal rotation taking unit vector ``a`` to unit vector ``b``; returns a 4-tuple.
 
@@ -302,7 +298,7 @@ def from_two_units_s(ax, ay, az, bx, by, bz):
     return w * inv, x * inv, y * inv, z * inv
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def from_two_vectors_s(ax, ay, az, bx, by, bz):
     """:func:`from_two_units_s` after normalising ``a`` and ``b``; a zero input gives the identity."""
     na = math.sqrt(ax * ax + ay * ay + az * az)
@@ -313,7 +309,7 @@ def from_two_vectors_s(ax, ay, az, bx, by, bz):
 
 
 # ------------------------------------------------------- more kernels
-@jit(forceinline=True)
+@jit(inline="always")
 def kfrom_axis_angle(axis, angle, out):
     """``out = [cos(angle/2), axis/|axis| sin(angle/2)]``; a zero axis gives the identity."""
     n = math.sqrt(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2])
@@ -331,7 +327,7 @@ def kfrom_axis_angle(axis, angle, out):
         out[3] = 0.0
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kto_axis_angle(q, out_axis):
     """Unit axis into ``out_axis`` (3,); returns the angle in ``[0, pi]``.
 
@@ -359,7 +355,7 @@ def kto_axis_angle(q, out_axis):
     return 0.0
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kto_matrix(q, out):
     """Rotation matrix ``out`` (3, 3) with ``out @ v == rot(q, v)``.
 
@@ -385,7 +381,7 @@ def kto_matrix(q, out):
     out[2, 2] = 1.0 - s * (x * x + y * y)
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kfrom_matrix(m, out):
     """Unit quaternion (``w >= 0``) of a rotation matrix ``m`` (3, 3), Shepperd's method.
 
@@ -440,7 +436,7 @@ def kfrom_matrix(m, out):
     out[3] = z / n
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kfrom_two_vectors(a, b, out):
     """Minimal rotation taking direction ``a`` (3,) to direction ``b`` (3,).
 
@@ -456,7 +452,7 @@ def kfrom_two_vectors(a, b, out):
     out[3] = z
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def klog(q, out3):
     """Rotation vector ``angle * axis`` of ``q`` into ``out3`` (3,), shortest (``|v| <= pi``)."""
     x, y, z = log_s(q[0], q[1], q[2], q[3])
@@ -465,7 +461,7 @@ def klog(q, out3):
     out3[2] = z
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kexp(v3, out):
     """Unit quaternion of the rotation vector ``v3`` (3,) (inverse of :func:`klog`)."""
     w, x, y, z = exp_s(v3[0], v3[1], v3[2])
@@ -480,7 +476,7 @@ def kexp(v3, out):
 BLEND_FALLBACK = 1e-6
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def kblend(qs, w, out):
     """Weighted blend of ``m`` unit quaternions ``qs`` (m, 4) with weights ``w`` (m,).
 
@@ -604,7 +600,7 @@ def _many(kernel, name: str):
     return jit(fn)
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def _kaxis_angle(q, out):
     """:func:`kto_axis_angle` packed as ``(axis, angle)`` into ``out`` (4,)."""
     out[3] = kto_axis_angle(q, out[:3])

@@ -43,7 +43,7 @@ def hermite(s: np.ndarray) -> np.ndarray:
 
 
 
-@jit(forceinline=True)
+@jit(inline="always")
 def fade_and_rebase(q, f, shift, k, r):
     """Two-level: ``q <- slerp(1, q, f)`` in place (exact at f = 0 and 1) and ``k += rot(q, shift)``
     (``k``, ``shift``: rows of K and of the re-basing shifts)."""
