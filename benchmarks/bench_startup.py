@@ -5,10 +5,15 @@ run starts from an empty folder (every kernel it uses is compiled and
 written there), the warm runs reuse that folder (every kernel is loaded from
 it).  ``--rounds`` cold/warm pairs are run in turn, each pair with a new
 cache folder, so that both sides see the same machine load; the script
-prints each run's wall time, the best of each side and their ratio.
+prints each run's wall time and CPU time (user + system, of the child
+process and its threads), the best of each side and their ratios.  On a
+loaded machine the CPU ratio is the steadier figure: waiting for a core
+counts in the wall time, not in the CPU time (contention for caches and
+memory still inflates both).
 
-Inside the child, numba's event API (``numba:compile``) records the time
-spent compiling each dispatcher, including the helpers compiled on the way
+Inside the child, numba's event API (``numba:compile``) records the CPU
+time spent compiling each dispatcher (process CPU time: the compiler runs on
+one thread while the others wait), including the helpers compiled on the way
 (inclusive times: a kernel's time contains that of the helpers it compiled
 first).  The cold run's most expensive kernels are listed (``--top``).
 
@@ -33,6 +38,11 @@ import subprocess
 import sys
 import tempfile
 import time
+
+try:
+    import resource                 # CPU seconds of the child processes (POSIX)
+except ImportError:                 # pragma: no cover
+    resource = None
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,13 +59,13 @@ class _Rec(event.Listener):
         self.open = {}
         self.done = []
     def on_start(self, ev):
-        self.open[id(ev.data["dispatcher"]), str(ev.data["args"])] = time.perf_counter()
+        self.open[id(ev.data["dispatcher"]), str(ev.data["args"])] = time.process_time()
     def on_end(self, ev):
         d = ev.data["dispatcher"]
         t0 = self.open.pop((id(d), str(ev.data["args"])), None)
         if t0 is not None:
             name = getattr(d.py_func, "__module__", "?") + "." + getattr(d.py_func, "__qualname__", "?")
-            self.done.append((name, t0, time.perf_counter()))
+            self.done.append((name, t0, time.process_time()))
 
 rec = _Rec()
 event.register("numba:compile", rec)
@@ -73,14 +83,20 @@ def run_demo(pkg_root: Path, cache: Path, work: Path) -> dict:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), TFI_QUAT_CACHE="1", TFI_QUAT_JIT="1")
     env.pop("PYTHONPATH", None)
     res_file = work / "events.json"
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN) if resource else None
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", _CHILD, str(pkg_root), str(work / "out"), str(res_file)],
                           cwd=pkg_root, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
+    cpu = float("nan")
+    if resource:
+        r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     if proc.returncode != 0:
         raise SystemExit(f"demo failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     data = json.loads(res_file.read_text())
     data["wall_s"] = wall
+    data["cpu_s"] = cpu
     return data
 
 
@@ -97,26 +113,32 @@ def main(argv=None) -> int:
     if not (pkg / "tfi_quat" / "__init__.py").exists():
         raise SystemExit(f"{pkg}: no tfi_quat package there")
     cold, warm, last_cold = [], [], None
+    cold_cpu, warm_cpu = [], []
     for r in range(args.rounds):
         with tempfile.TemporaryDirectory(prefix="bench-startup-") as tmp:
             tmp = Path(tmp)
             (tmp / "cache").mkdir()
             c = run_demo(pkg, tmp / "cache", tmp)
             cold.append(c["wall_s"])
+            cold_cpu.append(c["cpu_s"])
             last_cold = c
-            print(f"round {r + 1}: cold {c['wall_s']:7.2f} s (import {c['import_s']:.2f} s, "
-                  f"{len(c['compiles'])} compilations)", flush=True)
+            print(f"round {r + 1}: cold {c['wall_s']:7.2f} s, CPU {c['cpu_s']:7.2f} s (import "
+                  f"{c['import_s']:.2f} s, {len(c['compiles'])} compilations)", flush=True)
             for _ in range(args.warm):
                 w = run_demo(pkg, tmp / "cache", tmp)
                 warm.append(w["wall_s"])
-                print(f"round {r + 1}: warm {w['wall_s']:7.2f} s (import {w['import_s']:.2f} s, "
-                      f"{len(w['compiles'])} compilations)", flush=True)
+                warm_cpu.append(w["cpu_s"])
+                print(f"round {r + 1}: warm {w['wall_s']:7.2f} s, CPU {w['cpu_s']:7.2f} s (import "
+                      f"{w['import_s']:.2f} s, {len(w['compiles'])} compilations)", flush=True)
                 for name, t0, t1 in w["compiles"]:
                     print(f"    compiled when warm: {name} ({t1 - t0:.2f} s)")
     bc, bw = min(cold), min(warm)
     print(f"\npackage: {pkg}")
     print(f"cold (best of {len(cold)}): {bc:.2f} s   warm (best of {len(warm)}): {bw:.2f} s   "
           f"ratio cold/warm: {bc / bw:.1f}x")
+    cc, cw = min(cold_cpu), min(warm_cpu)
+    print(f"CPU seconds: cold {cc:.2f}   warm {cw:.2f}   ratio {cc / cw:.1f}x (steadier than the "
+          f"wall times on a loaded machine: a descheduled process uses no CPU)")
     comp = last_cold["compiles"]
     outer = _outermost(comp)
     agg: dict = {}
@@ -124,10 +146,10 @@ def main(argv=None) -> int:
         n, t, o = agg.get(name, (0, 0.0, 0.0))
         agg[name] = (n + 1, t + (t1 - t0), o + (t1 - t0 if (name, t0, t1) in outer else 0.0))
     print(f"\ncold run: {len(comp)} compilations of {len(agg)} dispatchers, "
-          f"{sum(t1 - t0 for _, t0, t1 in outer):.1f} s compiling in all (outermost events)")
+          f"{sum(t1 - t0 for _, t0, t1 in outer):.1f} CPU s compiling in all (outermost events)")
     print("inclusive: with the helpers compiled inside it; outermost: the part of it that was "
           "not inside another compilation")
-    print(f"{'dispatcher':60s} {'n':>3s} {'inclusive s':>11s} {'outermost s':>11s}")
+    print(f"{'dispatcher (CPU seconds)':60s} {'n':>3s} {'inclusive s':>11s} {'outermost s':>11s}")
     top = sorted(agg.items(), key=lambda kv: -kv[1][1])[:args.top]
     for name, (n, t, o) in top:
         print(f"{name[-60:]:60s} {n:3d} {t:11.2f} {o:11.2f}")
@@ -135,6 +157,7 @@ def main(argv=None) -> int:
         load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
         args.json.write_text(json.dumps({
             "package": str(pkg), "cold_s": cold, "warm_s": warm, "ratio": bc / bw,
+            "cold_cpu_s": cold_cpu, "warm_cpu_s": warm_cpu, "cpu_ratio": cc / cw,
             "compilations": len(comp), "compile_s": sum(t1 - t0 for _, t0, t1 in outer),
             "load_end": load,
             "kernels": [{"dispatcher": name, "n": n, "inclusive_s": t, "outermost_s": o}

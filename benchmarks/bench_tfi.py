@@ -33,6 +33,7 @@ Usage::
 
     python3 benchmarks/bench_tfi.py                 # 10.1 M points (216^3)
     python3 benchmarks/bench_tfi.py --old /tmp/old --points 2e6 --repeat 7
+    NUMBA_NUM_THREADS=1 python3 benchmarks/bench_tfi.py --old /tmp/old --cpu   # loaded machine
     python3 benchmarks/bench_tfi.py --points 2e5    # quick
     python3 benchmarks/bench_tfi.py --setup-wing 2.8 --repeat 9    # 10.9 M points, 4 blocks
 """
@@ -104,14 +105,18 @@ def best(fn, repeat):
     return min(t)
 
 
+#: the clock of best_interleaved: wall time, or with --cpu the calling thread's CPU time
+_CLOCK = time.perf_counter
+
+
 def best_interleaved(fns, repeat):
     """Best time of each function, the functions run in turn (A/B under the same load)."""
     t = [[] for _ in fns]
     for _ in range(repeat):
         for m, fn in enumerate(fns):
-            t0 = time.perf_counter()
+            t0 = _CLOCK()
             fn()
-            t[m].append(time.perf_counter() - t0)
+            t[m].append(_CLOCK() - t0)
     return [min(v) for v in t]
 
 
@@ -442,7 +447,8 @@ def side_by_side(path, points, repeat, order):
     n2 = max(4, int(round(points ** 0.5)))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"old: {os.path.dirname(old.__file__)}  new: {os.path.dirname(tfi.__file__)}")
-    print(f"3-D block {n3}^3, 2-D block {n2}^2 x 1; threads {threads()}; order {order}; "
+    clock = "CPU time" if _CLOCK is time.thread_time else "wall time"
+    print(f"3-D block {n3}^3, 2-D block {n2}^2 x 1; threads {threads()}; {clock}; order {order}; "
           f"best of {repeat}, old and new alternating; load average {load:.1f} on {os.cpu_count()} CPUs")
 
     def bfun(p):
@@ -532,7 +538,16 @@ def main(argv=None):
                     help="with --setup-wing: load (grid, patches, connectivity) from this pickle")
     ap.add_argument("--old", default=None, metavar="PATH",
                     help="time the volume kernels of the checkout at PATH and of this one side by side")
+    ap.add_argument("--cpu", action="store_true",
+                    help="with --old: time the calls by the calling thread's CPU time, on one "
+                         "thread (NUMBA_NUM_THREADS=1): steadier than wall time on a loaded "
+                         "machine, where a descheduled call waits without using CPU")
     args = ap.parse_args(argv)
+    if args.cpu:
+        global _CLOCK
+        if threads() != 1:
+            raise SystemExit("--cpu needs one thread: run with NUMBA_NUM_THREADS=1")
+        _CLOCK = time.thread_time
     if args.old is not None:
         return side_by_side(args.old, args.points, args.repeat,
                             tuple(int(v) for v in args.order.split(",")))

@@ -156,3 +156,42 @@ def test_results_do_not_depend_on_the_threads():
     for s, w in got[1:]:
         assert np.array_equal(s.view(np.int64), got[0][0].view(np.int64))
         assert np.array_equal(w.view(np.int64), got[0][1].view(np.int64))
+
+
+_SIGNATURES = r"""
+import io, contextlib, sys, tempfile
+import numba
+from tfi_quat.cli import main
+with contextlib.redirect_stdout(io.StringIO()):
+    rc = main(["demo", "-o", tempfile.mkdtemp(), "--force", "--no-figure"])
+assert rc == 0, rc
+seen = set()
+for name, mod in list(sys.modules.items()):
+    if not name.startswith("tfi_quat"):
+        continue
+    for attr, v in vars(mod).items():
+        if isinstance(v, numba.core.registry.CPUDispatcher) and id(v) not in seen:
+            seen.add(id(v))
+            if v.signatures:
+                print(f"{name}.{attr} {len(v.signatures)}")
+"""
+
+
+def test_demo_compiles_one_specialisation_per_kernel(tmp_path):
+    """A first run compiles what it uses once (docs/performance.md, *Cold start*): in the demo
+    (2-D, three methods) every module-level kernel and helper has one compiled signature (no
+    int32/int64, layout or literal-argument duplicates), but the volume row and point, one per
+    kind (baseline, quaternion, based); its point sets are small, so no point search is compiled.
+    Run cold (an empty numba cache: a kernel loaded from the cache does not load its helpers)."""
+    env = dict(os.environ, TFI_QUAT_JIT="1", NUMBA_CACHE_DIR=str(tmp_path))
+    out = subprocess.run([sys.executable, "-c", _SIGNATURES], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    counts = dict(line.rsplit(" ", 1) for line in out.stdout.splitlines() if line.strip())
+    counts = {k: int(v) for k, v in counts.items()}
+    per_kind = ("tfi_quat.tfi._point", "tfi_quat.tfi._row")
+    assert all(counts.get(k) == 3 for k in per_kind), counts
+    many = {k: n for k, n in counts.items() if n > 1 and k not in per_kind}
+    assert not many, f"compiled more than once: {many}"
+    searches = {k for k in counts if k.startswith("tfi_quat._points.")}
+    assert not searches, f"point searches compiled for the demo's small sets: {searches}"

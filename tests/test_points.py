@@ -66,6 +66,14 @@ def same(out, ref):
                              f"missing {sorted(b - a)[:5]}")
 
 
+@pytest.fixture(autouse=True)
+def compiled_searches(monkeypatch):
+    """Every test here runs the compiled searches (sweep, kd-tree) on its small sets, not the
+    direct numpy answer for sets below DIRECT_BELOW pairs; the ``direct`` tests at the end
+    compare the two."""
+    monkeypatch.setattr(_points, "DIRECT_BELOW", 0)
+
+
 @pytest.fixture
 def spy(monkeypatch):
     """Counts calls of the cKDTree fallback."""
@@ -1007,3 +1015,117 @@ def test_argsort_heapsort_sorts_any_keys(keys, s):
     idx = np.empty(e - s, dtype=np.int64)
     _points._argsort(ikey, s, e, idx)
     assert np.array_equal(ikey[s + idx], np.sort(ikey[s:]))
+
+
+# ================================================================ direct answers of small sets
+def _direct(mp, chunk):
+    """Switch the direct numpy answers on for every set (and chunk them ``chunk`` at a time);
+    the compiled searches must then not be called."""
+    mp.setattr(_points, "DIRECT_BELOW", 1 << 62)
+    mp.setattr(_points, "_DIRECT_CHUNK", chunk)
+
+    def never(*args):
+        raise AssertionError("a compiled search ran on a set below DIRECT_BELOW")
+    for name in ("_project", "_sort_by_projection", "_sweep", "_kd_build", "_kd_query"):
+        mp.setattr(_points, name, never)
+
+
+@given(seed=st.integers(0, 2**32 - 1), n0=st.integers(1, 60),
+       scale_exp=st.integers(-150, 100), offset=st.sampled_from([0.0, 1.0, -7.5, 1e3, 1e6]),
+       rel_tol=st.sampled_from([0.0, 1e-12, 1e-10, 1e-6, 1e-3, 0.05, 0.3]),
+       n_plant=st.integers(0, 40), along=st.booleans(), chunk=st.sampled_from([1, 7, 1 << 16]))
+@settings(max_examples=60, deadline=None)
+def test_direct_pairs_match_brute_force_and_sweep(seed, n0, scale_exp, offset, rel_tol, n_plant,
+                                                  along, chunk):
+    """The direct answer of a small set: the brute-force oracle's pairs and the sweep's, bit
+    for bit, in lexicographic order, with any chunking."""
+    P, tol = planted_cloud(seed, n0, 10.0 ** scale_exp, offset * 10.0 ** scale_exp, rel_tol,
+                           n_plant, NEAR, along)
+    swept = close_pairs(P, tol)                      # DIRECT_BELOW = 0 (the autouse fixture)
+    with pytest.MonkeyPatch.context() as mp:
+        _direct(mp, chunk)
+        out = close_pairs(P, tol)
+    check_form(out, len(P))
+    same(out, brute(P, tol))
+    same(out, swept)
+
+
+def test_direct_pairs_edge_cases():
+    """Duplicates only, a pole cluster, huge and tiny coordinates, bad input: as the sweep."""
+    rng = np.random.default_rng(11)
+    pole = np.tile([[0.25, -0.5, 0.125]], (60, 1))
+    P = np.concatenate([rng.uniform(-1, 1, size=(50, 3)), pole])
+    huge = rng.uniform(-1, 1, size=(40, 3)) * 1e307
+    huge = np.concatenate([huge, huge[:5]])
+    tiny = rng.uniform(-1, 1, size=(40, 3)) * 1e-300
+    cases = [(P, 1e-9), (P, 0.0), (np.zeros((5, 3)), 0.0), (huge, 1e150), (tiny, 1e-310),
+             (np.array([[0.0, 0.0, 0.0], [-0.0, 0.0, 0.0]]), 0.0)]
+    ref = [close_pairs(p, t) for p, t in cases]
+    with pytest.MonkeyPatch.context() as mp:
+        _direct(mp, 64)
+        for (p, t), r in zip(cases, ref):
+            same(close_pairs(p, t), r)
+            with np.errstate(over="ignore", under="ignore"):
+                same(close_pairs(p, t), brute(p, t))
+        bad = P.copy()
+        bad[57, 1] = np.nan
+        with pytest.raises(ValueError, match=r"non-finite.*first row 57"):
+            close_pairs(bad, 1e-9)
+        assert close_pairs(P[:1], 1.0).shape == (0, 2)
+
+
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(0, 90), n=st.integers(0, 60),
+       kind=st.sampled_from(["uniform", "clustered", "plane", "line", "point", "dups"]),
+       scale_exp=st.integers(-150, 100), offset=st.sampled_from([0.0, 1.0, -7.5, 1e3, 1e6]),
+       rel_bound=st.sampled_from(REL_BOUNDS), chunk=st.sampled_from([1, 13, 1 << 16]))
+@settings(max_examples=60, deadline=None)
+def test_direct_nearest_matches_brute_force_and_tree(seed, m, n, kind, scale_exp, offset,
+                                                     rel_bound, chunk):
+    """The direct answer of a small problem: the oracle's and the kd-tree's, bit for bit."""
+    rng = np.random.default_rng(seed)
+    scale = 10.0 ** scale_exp
+    R = _ref_cloud(rng, m, kind, scale, offset * scale)
+    Q = _queries(rng, R, n, scale, offset * scale)
+    bound = rel_bound * scale
+    tree = nearest_within(R, Q, bound)
+    with pytest.MonkeyPatch.context() as mp:
+        _direct(mp, chunk)
+        out = nearest_within(R, Q, bound)
+    check_nn_form(out, len(Q), m)
+    same_nn(out, nn_brute(R, Q, bound))
+    same_nn(out, tree)
+
+
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 60), n=st.integers(1, 60),
+       span=st.integers(1, 6), k=st.integers(-60, 60), b=st.sampled_from([0, 1, 2, 3, 5, 7, 9]))
+@settings(max_examples=40, deadline=None)
+def test_direct_nearest_exactly_at_bound_and_ties(seed, m, n, span, k, b):
+    """Lattices: distances exactly at the bound excluded, the smallest row among ties."""
+    rng = np.random.default_rng(seed)
+    h = 2.0 ** k
+    R = h * rng.integers(-span, span + 1, size=(m, 3)).astype(float)
+    Q = h * rng.integers(-span - 2, span + 3, size=(n, 3)).astype(float)
+    with pytest.MonkeyPatch.context() as mp:
+        _direct(mp, 17)
+        out = nearest_within(R, Q, b * h)
+    same_nn(out, nn_brute(R, Q, b * h))
+    check_ties(R, Q, b * h, out)
+
+
+def test_direct_used_below_the_threshold_only(monkeypatch):
+    """The default threshold: the demo's sizes are answered directly, larger sets compiled."""
+    monkeypatch.undo()
+    calls = []
+    real = _points._direct_pairs
+
+    def spy_direct(P, tol):
+        calls.append(len(P))
+        return real(P, tol)
+    monkeypatch.setattr(_points, "_direct_pairs", spy_direct)
+    rng = np.random.default_rng(5)
+    small = rng.uniform(-1, 1, size=(640, 3))
+    close_pairs(small, 1e-9)
+    assert calls == [640]
+    big = rng.uniform(-1, 1, size=(1 + int(np.sqrt(2 * _points.DIRECT_BELOW)), 3))
+    same(close_pairs(big, 0.01), kdtree(big, 0.01))
+    assert calls == [640]

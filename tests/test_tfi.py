@@ -414,10 +414,10 @@ def test_fused_kernels_uncompiled_equal_compiled(order):
     tfi._coherent.py_func(q0)
     QL[..., 0] = q0
     fs = tfi.face_params(s)
-    tfi._prep_kernel(True, True).py_func(
+    tfi._prep_kernel(True).py_func(
         tfi._pair(fs, M, 3), tfi._pair(fs, N, 3), dims[M], dims[N], L, M, N, tfi._pair(fdd, L, 3),
         tfi._pair(fdd, M, 3), tfi._pair(fdd, N, 3), QL, tfi._pair(fqq, M, 4), tfi._pair(fqq, N, 4),
-        *again)
+        True, *again)
     for x, y in zip(tables, again):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-15)
 
@@ -756,7 +756,8 @@ def test_volume_kernels_are_task_kernels_and_cached():
     kinds = [tfi._volume_kernel(*key) for key in itertools.product((True, False), repeat=3)]
     assert len({id(k) for k in kinds}) == 8
     assert tfi._volume_kernel(True, True, False) is tfi._volume_kernel(True, True, False)
-    serial = (tfi._prep_kernel(True, True), tfi._gather)   # O(surface): serial, one call
+    # O(surface): serial, one call
+    serial = (tfi._prep_kernel(True), tfi._prep_kernel(False), tfi._gather)
     for k in (*kinds, tfi._arc_dir_i, tfi._arc_dir_jk, tfi._fields2, *serial):
         if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
             assert k.py_func is k

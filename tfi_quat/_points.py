@@ -93,6 +93,13 @@ stretches of the queries alike (:func:`_chunk_order`); fewer than
 ``SERIAL_BELOW / _QUERY_WORK`` queries run on one thread.  The answer does not depend on the start nor on
 the order.
 
+Small sets
+----------
+Below :data:`DIRECT_BELOW` point pairs both functions compute every distance
+with numpy instead (the same float64 tests and the same answer): for a 2-D
+grid's boundary this is faster than loading the compiled searches from
+numba's cache, and a run that only meets small sets compiles none of them.
+
 *Exactness.*  The distance test is cKDTree's: with ``dx = r_x - q_x`` etc.
 in float64, a ref point is a candidate when ``dx*dx + dy*dy + dz*dz <
 bound*bound`` (strictly: a point exactly at ``bound`` is not returned, as in
@@ -441,6 +448,65 @@ def _lexsorted(first, second, m, n):
     return out
 
 
+# ---------------------------------------------------------------- small sets
+#: sets with fewer point pairs than this (``n (n - 1) / 2`` for :func:`close_pairs`,
+#: ``m n`` for :func:`nearest_within`) are answered by computing every distance with
+#: numpy (:func:`_direct_pairs`, :func:`_direct_nearest`), the same float64 test and
+#: the same answer as the compiled searches, with nothing to compile: a 2-D grid's
+#: boundary (the demo's 640 points) takes ~2 ms, where compiling the sweep and the
+#: kd-tree took ~7 s and loading them from numba's cache ~0.8 s
+DIRECT_BELOW = 1 << 20
+#: distances computed per numpy pass of the direct answers (bounds their memory: ~4 MB)
+_DIRECT_CHUNK = 1 << 16
+
+
+def _direct_pairs(P: np.ndarray, tol: float) -> np.ndarray:
+    """:func:`close_pairs` of a small set by all pairwise distances: rows of ``i`` against
+    every ``j > i``, cKDTree's test ``dx*dx + dy*dy + dz*dz <= tol*tol`` in float64
+    (``(-d)**2 == d**2`` exactly: the direction of the difference does not matter)."""
+    n = P.shape[0]
+    t2 = tol * tol
+    step = max(1, _DIRECT_CHUNK // n)
+    cols = np.arange(n)
+    parts = []
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        for a in range(0, n - 1, step):
+            b = min(n - 1, a + step)
+            dx = P[a:b, None, 0] - P[None, :, 0]
+            dy = P[a:b, None, 1] - P[None, :, 1]
+            dz = P[a:b, None, 2] - P[None, :, 2]
+            hit = dx * dx + dy * dy + dz * dz <= t2
+            hit &= cols[None, :] > np.arange(a, b)[:, None]
+            i, j = np.nonzero(hit)                   # row-major: lexicographic
+            if i.size:
+                parts.append(np.stack([i + a, j], axis=1))
+    if not parts:
+        return np.empty((0, 2), dtype=np.int64)
+    return np.ascontiguousarray(np.concatenate(parts).astype(np.int64, copy=False))
+
+
+def _direct_nearest(R: np.ndarray, Q: np.ndarray, bound2: float, dist: np.ndarray,
+                    idx: np.ndarray) -> None:
+    """:func:`nearest_within` of a small problem by all distances, into ``dist``, ``idx``:
+    ``d2 = dx*dx + dy*dy + dz*dz`` (``dx = r_x - q_x``), candidates ``d2 < bound2``, the
+    first of the smallest (``np.argmin``: the smallest row among equal sums)."""
+    m = R.shape[0]
+    step = max(1, _DIRECT_CHUNK // m)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        for a in range(0, Q.shape[0], step):
+            b = min(Q.shape[0], a + step)
+            dx = R[None, :, 0] - Q[a:b, 0, None]
+            dy = R[None, :, 1] - Q[a:b, 1, None]
+            dz = R[None, :, 2] - Q[a:b, 2, None]
+            d2 = dx * dx + dy * dy + dz * dz
+            d2[~(d2 < bound2)] = np.inf
+            k = np.argmin(d2, axis=1)
+            best = d2[np.arange(b - a), k]
+            has = best < np.inf
+            dist[a:b] = np.where(has, np.sqrt(best), np.inf)
+            idx[a:b] = np.where(has, k, m)
+
+
 # ---------------------------------------------------------------- public
 def _kdtree_pairs(P: np.ndarray, tol: float) -> np.ndarray:
     """The fallback: cKDTree's pairs, sorted lexicographically."""
@@ -466,7 +532,8 @@ def close_pairs(points, tol: float, *, budget: int | None = None) -> np.ndarray:
         How many candidate comparisons may fail the distance test before the
         sweep gives up and cKDTree answers instead (default ``32 * n + 1024``;
         ``0`` falls back at the first false candidate).  The answer is the
-        same either way.
+        same either way.  Sets of fewer than :data:`DIRECT_BELOW` pairs are
+        answered by computing every distance (no sweep, no budget).
 
     Returns
     -------
@@ -508,6 +575,12 @@ def close_pairs(points, tol: float, *, budget: int | None = None) -> np.ndarray:
         if n == 1 and not np.isfinite(P).all():
             raise ValueError("close_pairs: points contain a non-finite (NaN or infinite) coordinate")
         return np.empty((0, 2), dtype=np.int64)
+    if n * (n - 1) // 2 < DIRECT_BELOW:
+        bad = np.flatnonzero(~np.isfinite(P).all(axis=1))
+        if bad.size:
+            raise ValueError(f"close_pairs: points contain a non-finite (NaN or infinite) "
+                             f"coordinate ({bad.size} row(s), first row {int(bad[0])})")
+        return _direct_pairs(P, tol)
     p = np.empty(n)
     sc = 1.0
     # overflow and NaN are detected by _project itself (errstate: for the uncompiled kernel)
@@ -923,6 +996,9 @@ def nearest_within(ref, query, bound) -> tuple[np.ndarray, np.ndarray]:
         return dist, idx
     # squared distances may overflow (huge coordinates; never a candidate then) or underflow:
     # silence numpy's warnings for the uncompiled kernels (TFI_QUAT_JIT=0)
+    if m * n < DIRECT_BELOW:
+        _direct_nearest(R, Q, bound2, dist, idx)
+        return dist, idx
     with np.errstate(over="ignore", under="ignore"):
         tree = _kd_build(R, LEAF)
         with serial_below(_QUERY_WORK * n):

@@ -55,7 +55,7 @@ AMAX = 1.0e3
 EXP_CUT = 6.5
 
 
-@jit(inline="always")
+@jit(forceinline=True)
 def _f(t, a):
     if a <= 0.0:
         return 1.0
@@ -123,7 +123,7 @@ def wall_layer_line(s, length, lam0, lam1) -> np.ndarray:
 
 
 
-@jit(inline="always")
+@jit(forceinline=True)
 def _needs_layer(lam0, lam1):
     """False where :func:`_layer_line` returns ``s`` whatever the length (lines of >= 2 points)."""
     return not (lam0 <= 0.0 and lam1 <= 0.0)
@@ -217,7 +217,7 @@ def _layer_task_jk(xyz, s, lam0, lam1, out, t, nt, kdir):
     u0 = np.uint64(i0)
     if n == 1:
         for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), 0, c)
+            i, j, k = line_point(axis, at(u0, w), n - 1, c)
             out[i, j, k, axis] = 0.0
         return
     l0 = np.empty(nw)
@@ -333,42 +333,37 @@ def _arc_layer_i(lo, hi, xyz, rtol, lam0, lam1, out):
             out[ni - 1, j, k, 0] = 1.0
 
 
-@jit
-def _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir):
-    """Task ``t`` of direction j (``kdir`` None) or k (``kdir`` True) of
-    :func:`wall_layer_arclength`: the plane ``t // nt`` of the third direction and tile
-    ``t % nt`` of TILE lines i (as :func:`_layer_task_jk`)."""
-    ni = xyz.shape[0]
-    axis = 2 if kdir is not None else 1
-    n = xyz.shape[axis]
-    c = t // nt
-    i0 = (t % nt) * TILE
-    nw = min(TILE, ni - i0)
-    u0 = np.uint64(i0)
-    if n == 1:
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), 0, c)
-            out[i, j, k, axis] = 0.0
-        return
-    cum = np.empty((n, nw))
-    col = np.empty((n, nw))
-    ln = np.empty(nw)
-    den = np.empty(nw)
-    arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
-    _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c)
-    for m in range(n):
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), m, c)
-            out[i, j, k, axis] = col[m, w]
-
-
 @task_jit
 def _arc_layer_jk(lo, hi, xyz, rtol, lam0, lam1, out, kdir):
     """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`wall_layer_arclength`: the
-    tiles ``lo <= t < hi`` (as :func:`_layer_dir_jk`)."""
-    nt = (xyz.shape[0] + TILE - 1) // TILE
+    tiles ``lo <= t < hi``, tile ``t``: the plane ``t // nt`` of the third direction and the
+    tile ``t % nt`` of TILE lines i (as :func:`_layer_dir_jk`); compiled once per direction,
+    with the direction a constant, so the index arithmetic folds away.  (The tile is a loop
+    of this kernel, not a compiled function of its own: one compiled level fewer.)"""
+    ni = xyz.shape[0]
+    nt = (ni + TILE - 1) // TILE
+    axis = 2 if kdir is not None else 1
+    n = xyz.shape[axis]
     for t in range(lo, hi):
-        _arc_layer_task_jk(xyz, rtol, lam0, lam1, out, t, nt, kdir)
+        c = t // nt
+        i0 = (t % nt) * TILE
+        nw = min(TILE, ni - i0)
+        u0 = np.uint64(i0)
+        if n == 1:
+            for w in range(nw):
+                i, j, k = line_point(axis, at(u0, w), n - 1, c)
+                out[i, j, k, axis] = 0.0
+            continue
+        cum = np.empty((n, nw))
+        col = np.empty((n, nw))
+        ln = np.empty(nw)
+        den = np.empty(nw)
+        arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
+        _arc_tile_layer(col, cum, den, nw, ln, lam0, lam1, u0, c)
+        for m in range(n):
+            for w in range(nw):
+                i, j, k = line_point(axis, at(u0, w), m, c)
+                out[i, j, k, axis] = col[m, w]
 
 
 def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:

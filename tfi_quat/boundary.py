@@ -63,22 +63,20 @@ def _valid(P, ii, jj):
 
 
 @jit
-def _edge(P, ii, jj, di, dj):
-    """Edge vector ``P[ii+di, jj+dj] - P[ii, jj]``; returns (x, y, z, exists)."""
-    a = ii + di
-    b = jj + dj
+def _edge(P, ii, jj, a, b):
+    """Edge vector ``P[a, b] - P[ii, jj]`` to a neighbour (a, b); returns (x, y, z, exists).
+    (The neighbour as an index, not an offset: constant offsets would be typed as literals,
+    one compilation per offset.)"""
     if not _valid(P, a, b):
         return 0.0, 0.0, 0.0, False
     return P[a, b, 0] - P[ii, jj, 0], P[a, b, 1] - P[ii, jj, 1], P[a, b, 2] - P[ii, jj, 2], True
 
 
 @jit
-def _edge_if(P, ii, jj, di, dj, ok):
-    """Edge vector ``P[ii+di, jj+dj] - P[ii, jj]`` where ``ok`` is already known; else zero."""
+def _edge_if(P, ii, jj, a, b, ok):
+    """Edge vector ``P[a, b] - P[ii, jj]`` where ``ok`` is already known; else zero."""
     if not ok:
         return 0.0, 0.0, 0.0
-    a = ii + di
-    b = jj + dj
     return P[a, b, 0] - P[ii, jj, 0], P[a, b, 1] - P[ii, jj, 1], P[a, b, 2] - P[ii, jj, 2]
 
 
@@ -121,16 +119,16 @@ def _unit_normal(ax, ay, az, bx, by, bz, curve):
 @jit
 def _normal(P, ii, jj, curve, e):
     """Unit normal at padded index (ii, jj); returns (nx, ny, nz, defined)."""
-    px, py, pz, pok = _edge(P, ii, jj, 1, 0)
-    mx, my, mz, mok = _edge(P, ii, jj, -1, 0)
+    px, py, pz, pok = _edge(P, ii, jj, ii + 1, jj)
+    mx, my, mz, mok = _edge(P, ii, jj, ii - 1, jj)
     ax, ay, az = _diff(px, py, pz, pok, mx, my, mz, mok)
     if curve:
         bx = e[0]
         by = e[1]
         bz = e[2]
     else:
-        px, py, pz, pok = _edge(P, ii, jj, 0, 1)
-        mx, my, mz, mok = _edge(P, ii, jj, 0, -1)
+        px, py, pz, pok = _edge(P, ii, jj, ii, jj + 1)
+        mx, my, mz, mok = _edge(P, ii, jj, ii, jj - 1)
         bx, by, bz = _diff(px, py, pz, pok, mx, my, mz, mok)
     return _unit_normal(ax, ay, az, bx, by, bz, curve)
 
@@ -193,10 +191,10 @@ def _point_quaternion(Pu, Pd, ii, jj, surf, e):
     driver), so an edge exists in both or in neither.
     """
     # edges to the four neighbours, undeformed (e*) and deformed (f*)
-    e1x, e1y, e1z, ok1 = _edge(Pu, ii, jj, 1, 0)
-    e2x, e2y, e2z, ok2 = _edge(Pu, ii, jj, -1, 0)
-    f1x, f1y, f1z = _edge_if(Pd, ii, jj, 1, 0, ok1)
-    f2x, f2y, f2z = _edge_if(Pd, ii, jj, -1, 0, ok2)
+    e1x, e1y, e1z, ok1 = _edge(Pu, ii, jj, ii + 1, jj)
+    e2x, e2y, e2z, ok2 = _edge(Pu, ii, jj, ii - 1, jj)
+    f1x, f1y, f1z = _edge_if(Pd, ii, jj, ii + 1, jj, ok1)
+    f2x, f2y, f2z = _edge_if(Pd, ii, jj, ii - 1, jj, ok2)
     if surf is None:
         e3x, e3y, e3z, ok3 = 0.0, 0.0, 0.0, False
         e4x, e4y, e4z, ok4 = 0.0, 0.0, 0.0, False
@@ -205,10 +203,10 @@ def _point_quaternion(Pu, Pd, ii, jj, surf, e):
         bux, buy, buz = e[0], e[1], e[2]
         bdx, bdy, bdz = e[0], e[1], e[2]
     else:
-        e3x, e3y, e3z, ok3 = _edge(Pu, ii, jj, 0, 1)
-        e4x, e4y, e4z, ok4 = _edge(Pu, ii, jj, 0, -1)
-        f3x, f3y, f3z = _edge_if(Pd, ii, jj, 0, 1, ok3)
-        f4x, f4y, f4z = _edge_if(Pd, ii, jj, 0, -1, ok4)
+        e3x, e3y, e3z, ok3 = _edge(Pu, ii, jj, ii, jj + 1)
+        e4x, e4y, e4z, ok4 = _edge(Pu, ii, jj, ii, jj - 1)
+        f3x, f3y, f3z = _edge_if(Pd, ii, jj, ii, jj + 1, ok3)
+        f4x, f4y, f4z = _edge_if(Pd, ii, jj, ii, jj - 1, ok4)
         bux, buy, buz = _diff(e3x, e3y, e3z, ok3, e4x, e4y, e4z, ok4)
         bdx, bdy, bdz = _diff(f3x, f3y, f3z, ok3, f4x, f4y, f4z, ok4)
     aux, auy, auz = _diff(e1x, e1y, e1z, ok1, e2x, e2y, e2z, ok2)
@@ -244,10 +242,13 @@ def _point_quaternion(Pu, Pd, ii, jj, surf, e):
                           T1x, T1y, T1z, T2x, T2y, T2z)
     s2, c2 = _angle_terms(ok2, e2x, e2y, e2z, f2x, f2y, f2z, t1x, t1y, t1z, t2x, t2y, t2z,
                           T1x, T1y, T1z, T2x, T2y, T2z)
-    s3, c3 = _angle_terms(ok3, e3x, e3y, e3z, f3x, f3y, f3z, t1x, t1y, t1z, t2x, t2y, t2z,
-                          T1x, T1y, T1z, T2x, T2y, T2z)
-    s4, c4 = _angle_terms(ok4, e4x, e4y, e4z, f4x, f4y, f4z, t1x, t1y, t1z, t2x, t2y, t2z,
-                          T1x, T1y, T1z, T2x, T2y, T2z)
+    if surf is None:                       # no edges 3, 4 (what _angle_terms gives for them)
+        s3, c3, s4, c4 = 0.0, 0.0, 0.0, 0.0
+    else:
+        s3, c3 = _angle_terms(ok3, e3x, e3y, e3z, f3x, f3y, f3z, t1x, t1y, t1z, t2x, t2y, t2z,
+                              T1x, T1y, T1z, T2x, T2y, T2z)
+        s4, c4 = _angle_terms(ok4, e4x, e4y, e4z, f4x, f4y, f4z, t1x, t1y, t1z, t2x, t2y, t2z,
+                              T1x, T1y, T1z, T2x, T2y, T2z)
     ss = s1 + s2 + s3 + s4
     cc = c1 + c2 + c3 + c4
     # Q2 = [cos(theta/2), n_d sin(theta/2)], theta = atan2(ss, cc), without trigonometry:
@@ -410,54 +411,6 @@ def _interior_quaternion(Pu, Pd, ii, jj):
     return w, x, y, z, good
 
 
-@jit
-def _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf):
-    """Row ``i`` of :func:`_motion_rows` (a separate compiled function: inlined into the
-    task kernel's IR it took three times as long to compile)."""
-    na = q.shape[0]
-    nb = q.shape[1]
-    have = False
-    p0 = 1.0
-    p1 = 0.0
-    p2 = 0.0
-    p3 = 0.0
-    for j in range(nb):
-        good = False
-        w = 1.0
-        x = 0.0
-        y = 0.0
-        z = 0.0
-        if surf is not None:
-            if 0 < i < na - 1 and 0 < j < nb - 1:
-                w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
-        if not good:
-            w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, surf, e)
-        if good:
-            if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
-                w = -w
-                x = -x
-                y = -y
-                z = -z
-            have = True
-            p0 = w
-            p1 = x
-            p2 = y
-            p3 = z
-            ok[i, j] = 1
-        else:
-            ok[i, j] = 0
-        q[i, j, 0] = w
-        q[i, j, 1] = x
-        q[i, j, 2] = y
-        q[i, j, 3] = z
-        # delta = r_d - c - rot(q, r_u - c)
-        rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0],
-                            Pu[i + oi, j + oj, 1] - c[1], Pu[i + oi, j + oj, 2] - c[2])
-        delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
-        delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
-        delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
-
-
 @task_jit
 def _motion_rows(lo, hi, Pu, Pd, oi, oj, e, c, q, delta, ok, surf):
     """Q, delta and the defined flag at every point of the patch rows ``lo <= i < hi`` of a
@@ -465,10 +418,52 @@ def _motion_rows(lo, hi, Pu, Pd, oi, oj, e, c, q, delta, ok, surf):
     pruned before typing, so a run compiles the code of the walls it has only.
 
     Interior surface points try the straight-line :func:`_interior_quaternion`
-    first; within a row the sign of q follows the previous defined point.
+    first; within a row the sign of q follows the previous defined point.  (The row is
+    a loop here, not a compiled function of its own: one compiled level fewer.)
     """
     for i in range(lo, hi):
-        _motion_row(Pu, Pd, oi, oj, e, c, q, delta, ok, i, surf)
+        na = q.shape[0]
+        nb = q.shape[1]
+        have = False
+        p0 = 1.0
+        p1 = 0.0
+        p2 = 0.0
+        p3 = 0.0
+        for j in range(nb):
+            good = False
+            w = 1.0
+            x = 0.0
+            y = 0.0
+            z = 0.0
+            if surf is not None:
+                if 0 < i < na - 1 and 0 < j < nb - 1:
+                    w, x, y, z, good = _interior_quaternion(Pu, Pd, i + oi, j + oj)
+            if not good:
+                w, x, y, z, good = _point_quaternion(Pu, Pd, i + oi, j + oj, surf, e)
+            if good:
+                if have and w * p0 + x * p1 + y * p2 + z * p3 < 0.0:
+                    w = -w
+                    x = -x
+                    y = -y
+                    z = -z
+                have = True
+                p0 = w
+                p1 = x
+                p2 = y
+                p3 = z
+                ok[i, j] = 1
+            else:
+                ok[i, j] = 0
+            q[i, j, 0] = w
+            q[i, j, 1] = x
+            q[i, j, 2] = y
+            q[i, j, 3] = z
+            # delta = r_d - c - rot(q, r_u - c)
+            rx, ry, rz = _rot_s(w, x, y, z, Pu[i + oi, j + oj, 0] - c[0],
+                                Pu[i + oi, j + oj, 1] - c[1], Pu[i + oi, j + oj, 2] - c[2])
+            delta[i, j, 0] = Pd[i + oi, j + oj, 0] - c[0] - rx
+            delta[i, j, 1] = Pd[i + oi, j + oj, 1] - c[1] - ry
+            delta[i, j, 2] = Pd[i + oi, j + oj, 2] - c[2] - rz
 
 
 @jit

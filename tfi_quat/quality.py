@@ -336,19 +336,20 @@ def _quad_areas(lo, hi, x, out):
 
 
 @task_jit
-def _ratio_rows(lo_k, hi_k, x, xr, ndim, neg, low, first):
+def _ratio_rows(lo_k, hi_k, x, xr, hexa, neg, low, first):
     """Cell-volume ratios ``x`` / ``xr`` of one block reduced over each row of cells (fixed j, k),
     without storing them: row ``r = j + (nj - 1) k`` writes ``neg[r]`` (ratios <= 0),
     ``low[r]`` (the smallest ratio, or the first NaN) and ``first[r]`` (its first i; -1 when
     every ratio of the row is infinite).  A ratio is ``v / vr`` (volumes, areas in 2-D), infinite
     where ``vr == 0``, as :func:`volume_ratio_summary` defines it.  Task: the cell planes
-    ``lo_k <= k < hi_k``."""
+    ``lo_k <= k < hi_k``.  ``hexa`` True: 3-D cells, None: 2-D (the other's code is pruned
+    before typing, so a 2-D run compiles no hexahedron volumes)."""
     nci = x.shape[0] - 1
     ncj = x.shape[1] - 1
     for k in range(lo_k, hi_k):
         q = np.empty(nci)
         for j in range(ncj):
-            if ndim == 3:
+            if hexa is not None:
                 for i in range(nci):
                     vr = _hex_volume_inline(xr, i, j, k)
                     q[i] = _hex_volume_inline(x, i, j, k) / vr if vr != 0.0 else np.inf
@@ -1543,7 +1544,7 @@ def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
         cnt = np.empty(nrows, dtype=np.int64)
         low = np.empty(nrows)
         first = np.empty(nrows, dtype=np.int64)
-        parallel_for(_ratio_rows, nck, x, xr, grid.ndim, cnt, low, first)
+        parallel_for(_ratio_rows, nck, x, xr, True if grid.ndim == 3 else None, cnt, low, first)
         neg += int(cnt.sum())
         if np.isnan(low).any():
             continue                                # NaN < best is False: as np.argmin's NaN

@@ -300,21 +300,24 @@ def _prep(SM, SN, nm, nn, L, M, N, hasn, FL, FM, FN, QL, QM, QN, hasq, lineD, li
     arclength parameters ``SM``, ``SN`` (na, nb, 3, 2) on the M and N faces;
     ``nm``, ``nn``: the block's point counts along M and N.
     ``hasn`` False: 2-D (no N faces); ``hasq`` False: baseline.  Runs the
-    kernel of that kind (:func:`_prep_kernel`).
+    kernel of that dimension (:func:`_prep_kernel`).
     """
-    _prep_kernel(bool(hasn), bool(hasq))(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN,
-                                         lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
+    _prep_kernel(bool(hasn))(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN, bool(hasq),
+                             lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
 
 
 @functools.lru_cache(maxsize=None)
-def _prep_kernel(hasn: bool, hasq: bool):
-    """The set-up kernel of one kind (:func:`_prep` without ``hasn``, ``hasq``), made on first
-    use: the flags are closure constants, so a 2-D or baseline run compiles none of the
-    N-face or quaternion code.  The phases run in order (M needs the lines, N needs M).
-    Serial: the work is O(surface), and a parallel kernel costs seconds more to compile."""
+def _prep_kernel(hasn: bool):
+    """The set-up kernel of one dimension (:func:`_prep` without ``hasn``), made on first
+    use: ``hasn`` is a closure constant, so a 2-D run compiles none of the N-face code (nor
+    the fallback it calls); ``hasq`` is an argument, tested per face column, so the
+    baseline and quaternion calls share one compiled kernel (two kernels cost a run that
+    uses both ~1 s more to compile; the baseline's set-up is O(surface)).  The phases run
+    in order (M needs the lines, N needs M).  Serial: the work is O(surface), and a
+    parallel kernel costs seconds more to compile."""
     @jit
-    def prep(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN, lineD, lineQ, gD, gQ, hD, hQ,
-             fbM, fbN):
+    def prep(SM, SN, nm, nn, L, M, N, FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD,
+             hQ, fbM, fbN):
         for b in range(lineD.shape[1]):
             _prep_line(b, hasq, FL, QL, lineD, lineQ)
         for side in range(2):
@@ -464,14 +467,19 @@ def _row(xyz, s, out, j, k, cx, cy, cz, L, M, N, lineD, lineQ, gD, gQ, hD, hQ, f
             for i in range(ni):
                 nbad += _point(xyz, s, out, i, j, k, cx, cy, cz, L, M, N, lineD, lineQ, i, cl,
                                gD, gQ, i, cm, hD, hQ, j, k, lineB, gB, hB, hasq, based)
-    elif L == 0:
-        for i in range(ni):
-            nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, j, 0,
-                           gD, gQ, i, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
     else:
-        for i in range(ni):
-            nbad += _point(xyz, s, out, i, j, 0, cx, cy, cz, L, M, 2, lineD, lineQ, i, 0,
-                           gD, gQ, j, 0, hD, hQ, 0, 0, lineB, gB, hB, hasq, based)
+        # z (0) and n2 (N = 2) as int64, not literals: the point then has the 3-D rows'
+        # argument types (one compilation per kind for a run with 2-D and 3-D blocks)
+        z = np.int64(0)
+        n2 = np.int64(2)
+        if L == 0:
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ, j, z,
+                               gD, gQ, i, z, hD, hQ, z, z, lineB, gB, hB, hasq, based)
+        else:
+            for i in range(ni):
+                nbad += _point(xyz, s, out, i, j, z, cx, cy, cz, L, M, n2, lineD, lineQ, i, z,
+                               gD, gQ, j, z, hD, hQ, z, z, lineB, gB, hB, hasq, based)
     return nbad
 
 
@@ -574,34 +582,6 @@ def _fields2(lo, hi, s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fb
 
 
 # =================================================================== arclength kernels
-@jit(inline="always")
-def _arc_tile_task(xyz, s, rtol, axis, t, nt):
-    """Task ``t`` of the direction-``axis`` pass (1: j, one task per k-plane and tile of
-    TILE lines i; 2: k, per j-slab and tile): the tile's parameters into ``s``."""
-    ni = xyz.shape[0]
-    n = xyz.shape[axis]
-    c = t // nt
-    i0 = (t % nt) * TILE
-    nw = min(TILE, ni - i0)
-    u0 = np.uint64(i0)
-    if n == 1:
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), 0, c)
-            s[i, j, k, axis] = 0.0
-        return
-    cum = np.empty((n, nw))
-    ln = np.empty(nw)
-    den = np.empty(nw)
-    arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
-    for m in range(n - 1):
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), m, c)
-            s[i, j, k, axis] = cum[m, w] / den[w]
-    for w in range(nw):
-        i, j, k = line_point(axis, at(u0, w), n - 1, c)
-        s[i, j, k, axis] = 1.0
-
-
 @task_jit
 def _arc_dir_i(lo, hi, xyz, s, rtol):
     """Direction i of :func:`arclength` (ni >= 2), the lines ``lo <= jk < hi`` (``j = jk %
@@ -621,13 +601,34 @@ def _arc_dir_i(lo, hi, xyz, s, rtol):
 def _arc_dir_jk(lo, hi, xyz, s, rtol, kdir):
     """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`arclength` (n >= 2), tasks
     ``lo <= t < hi``: one per plane of the third direction and tile of TILE lines i
-    (:func:`tfi_quat.kernels.by_direction`).
+    (:func:`tfi_quat.kernels.by_direction`), the tile's parameters into ``s``.
     Compiled once per direction, with the direction a constant, so the tile walker's index
     arithmetic folds away."""
+    ni = xyz.shape[0]
+    nt = (ni + TILE - 1) // TILE
     axis = 2 if kdir is not None else 1
-    nt = (xyz.shape[0] + TILE - 1) // TILE
+    n = xyz.shape[axis]
     for t in range(lo, hi):
-        _arc_tile_task(xyz, s, rtol, axis, t, nt)
+        c = t // nt
+        i0 = (t % nt) * TILE
+        nw = min(TILE, ni - i0)
+        u0 = np.uint64(i0)
+        if n == 1:
+            for w in range(nw):
+                i, j, k = line_point(axis, at(u0, w), n - 1, c)
+                s[i, j, k, axis] = 0.0
+            continue
+        cum = np.empty((n, nw))
+        ln = np.empty(nw)
+        den = np.empty(nw)
+        arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
+        for m in range(n - 1):
+            for w in range(nw):
+                i, j, k = line_point(axis, at(u0, w), m, c)
+                s[i, j, k, axis] = cum[m, w] / den[w]
+        for w in range(nw):
+            i, j, k = line_point(axis, at(u0, w), n - 1, c)
+            s[i, j, k, axis] = 1.0
 
 
 @jit
