@@ -415,6 +415,43 @@ def test_check_raise_names_the_cells_and_leaves_the_buffers_alone():
         d.deform(ok, check="yes")
 
 
+def test_checks_overlapped_on_a_second_thread_report_what_serial_checks_report(monkeypatch):
+    """With two threads, small blocks are checked on a second thread while the next block
+    is made: the reports (the merged one and every field) and the grids are those of one
+    thread, for every buffer layout and check="raise"; a failing check still fails the step."""
+    grid, walls, sym, fixed = G.box_pair()
+    one = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, threads=1)
+    two = Deformer(grid, walls=walls, symmetry=sym, fixed=fixed, threads=2)
+    submitted = []
+    real = two._checker
+
+    def spy():
+        ex = real()
+        submitted.append(ex)
+        return ex
+    monkeypatch.setattr(two, "_checker", spy)
+    for angle in (5.0, 150.0):
+        move = _fold(one, angle)
+        want = one.deform(move, check=True)
+        got = two.deform(move, check=True)
+        _same(want, got)
+        assert got.quality == want.quality and two.quality == one.quality
+        for out in _layouts(two).values():
+            if angle > 90.0:
+                with pytest.raises(DeformationError, match="invalid cells"):
+                    two.deform(move, out=out, check="raise")
+            else:
+                two.deform(move, out=out, check="raise")
+                assert two.quality == want.quality
+    assert len(submitted) >= 2 * len(grid)          # the overlapped path ran
+
+    def broken(*a, **k):
+        raise RuntimeError("check failed on the second thread")
+    monkeypatch.setattr("tfi_quat.deform.deformer.check_block", broken)
+    with pytest.raises(RuntimeError, match="second thread"):
+        two.deform(_fold(one, 5.0), check=True)
+
+
 # ------------------------------------------------------------------ threads=, velocity
 def test_threads_apply_inside_the_deformers_calls_only(monkeypatch):
     from tfi_quat import _jit

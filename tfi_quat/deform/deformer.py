@@ -33,13 +33,14 @@ import os
 import threading
 import time
 import warnings
+from concurrent import futures
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
 from .. import quaternion as qa
-from .._jit import serial_below, use_threads
+from .._jit import SERIAL_BELOW, serial_below, threads, use_threads
 from ..errors import CaseError, DeformationError
 from ..grid import Block, Grid
 from ..quality import CellCheck, check_block, check_reference
@@ -338,6 +339,7 @@ class Deformer:
         #: sign of its volumes), made by the first check (a pass over the block) and kept:
         #: later checks skip the reference volumes
         self._check_refs = [None] * len(grid)
+        self._check_thread = None
         #: the check of the last :meth:`deform` call (:class:`tfi_quat.quality.CellCheck`, also
         #: of one that raised for invalid cells), or None when it was not checked
         self.quality = None
@@ -454,8 +456,10 @@ class Deformer:
             smallest corner-Jacobian ratio, negative and negative-Jacobian
             cells, their first locations): one more pass over each block
             while it is in memory, allocating nothing grid-sized; it costs
-            about as much as the block kernels (0.6-0.8 x on the 501 k-point
-            wing, measured on a loaded machine; ``timings.check``).  The report
+            about 0.4 of a bare step's CPU time on the 501 k-point wing
+            (``timings.check``).  With two threads or more, blocks small
+            enough to run on one thread are checked on a second thread while
+            the next block is made (same report).  The report
             (:class:`tfi_quat.quality.CellCheck`) is the result grid's
             ``quality`` and the Deformer's :attr:`quality`.  ``"raise"``:
             a :class:`DeformationError` naming the first invalid cells when
@@ -611,52 +615,26 @@ class Deformer:
         reference), every boundary copy from the positions, into the buffers ``dests``
         (:func:`.buffers.check_out`; None: new arrays), each block checked after it is made when
         ``check``; returns the result grid."""
-        sk = self.skeleton
         grid = self.grid
-        pos = self._work.pos
         total = len(grid) * sum(p is not None for p in passes)
-        done = 0
         arrays = []
         # check="raise" into buffers: every block into the kept scratch first, so that a
         # folded grid leaves the buffers as they were
         hold = check == "raise" and dests is not None
+        # with two threads or more, a block small enough to run on one thread is checked on
+        # the second while the next block is made (the same computation, the same report)
+        overlap = bool(check) and threads() > 1
         reports = []
-        for n, (b, blk) in enumerate(zip(self.blocks, grid)):
-            dest = None if dests is None else dests[n]
-            if dest is None:
-                dst = np.empty_like(blk.xyz, order="F")
-            elif hold:
-                dst = self._scratch.grid()[n]
-            elif buffers.is_kernel_array(dest):
-                dst = dest
-            else:
-                dst = self._scratch.block(n)
-            base = blk.xyz
-            for p in passes:
-                if p is None:
-                    np.copyto(dst, base)
-                else:
-                    gd, gq, c, tables = p
-                    stages.volume(sk, self._all, b, base, gd, gq, c, dst,
-                                  None if tables is None else tables[b])
-                    done += 1
-                    if callback is not None:
-                        callback(done, total)
-                base = dst
-            local, gid = sk.scatter[b]
-            stages.scatter_rows(pos, gid, local, dst.reshape(-1, 3, order="F"))
-            if sk.ndim == 2:
-                dst[..., 2] = 0.0
-            if check:
+        try:
+            self._block_loop(passes, dests, hold, check, overlap, callback, total, arrays, reports)
+        finally:
+            # every check finished (or failed) before the buffers are used or the step ends;
+            # timings.check: the checks on this thread and the wait for the others
+            if overlap:
                 tc = time.perf_counter()
-                with serial_below(blk.npoints):
-                    if self._check_refs[b] is None:
-                        self._check_refs[b] = check_reference(blk.xyz, sk.ndim)
-                    reports.append(check_block(dst, self._check_refs[b], sk.ndim, b))
+                futures.wait([r for r in reports if isinstance(r, futures.Future)])
+                reports[:] = [r.result() if isinstance(r, futures.Future) else r for r in reports]
                 self._check_seconds += time.perf_counter() - tc
-            if dst is not dest and dest is not None and not hold:
-                buffers.copy_out(dst, dest)
-            arrays.append(dst if dest is None else dest)
         report = self._report(list(zip(self.blocks, reports)), check)
         self.quality = report
         if check == "raise" and not report.ok:
@@ -676,6 +654,66 @@ class Deformer:
                           connectivity=grid.connectivity)
         result.quality = report
         return result
+
+    def _block_loop(self, passes, dests, hold, check, overlap, callback, total, arrays, reports):
+        """The block loop of :meth:`_volumes`: appends each block's array to ``arrays`` and its
+        check (a report, or a future of one when ``overlap``) to ``reports``."""
+        sk = self.skeleton
+        grid = self.grid
+        pos = self._work.pos
+        done = [0]
+        for n, (b, blk) in enumerate(zip(self.blocks, grid)):
+            dest = None if dests is None else dests[n]
+            if dest is None:
+                dst = np.empty_like(blk.xyz, order="F")
+            elif hold:
+                dst = self._scratch.grid()[n]
+            elif buffers.is_kernel_array(dest):
+                dst = dest
+            else:
+                dst = self._scratch.block(n)
+            base = blk.xyz
+            for p in passes:
+                if p is None:
+                    np.copyto(dst, base)
+                else:
+                    gd, gq, c, tables = p
+                    stages.volume(sk, self._all, b, base, gd, gq, c, dst,
+                                  None if tables is None else tables[b])
+                    done[0] += 1
+                    if callback is not None:
+                        callback(done[0], total)
+                base = dst
+            local, gid = sk.scatter[b]
+            stages.scatter_rows(pos, gid, local, dst.reshape(-1, 3, order="F"))
+            if sk.ndim == 2:
+                dst[..., 2] = 0.0
+            if check:
+                # not the block scratch: it is reused by the next block
+                reused = dest is not None and not hold and not buffers.is_kernel_array(dest)
+                if overlap and not reused and blk.npoints < SERIAL_BELOW:
+                    reports.append(self._checker().submit(self._check_one, b, blk, dst))
+                else:
+                    tc = time.perf_counter()
+                    reports.append(self._check_one(b, blk, dst))
+                    self._check_seconds += time.perf_counter() - tc
+            if dst is not dest and dest is not None and not hold:
+                buffers.copy_out(dst, dest)
+            arrays.append(dst if dest is None else dest)
+
+    def _check_one(self, b, blk, dst):
+        """:func:`tfi_quat.quality.check_block` of block ``b`` (its reference made once and kept)."""
+        with serial_below(blk.npoints):
+            if self._check_refs[b] is None:
+                self._check_refs[b] = check_reference(blk.xyz, self.skeleton.ndim)
+            return check_block(dst, self._check_refs[b], self.skeleton.ndim, b)
+
+    def _checker(self):
+        """The thread that checks small blocks while the next one is made (made on first use;
+        idle, it waits without spinning)."""
+        if self._check_thread is None:
+            self._check_thread = futures.ThreadPoolExecutor(1, thread_name_prefix="tfi-quat-check")
+        return self._check_thread
 
     #: the rigid fits' collective (:func:`twolevel.fit_bodies`' ``gather``; None: serial)
     _gather_parts = None
