@@ -576,14 +576,33 @@ def _kernel(kind, hasn, hasq, based, extra):
                 for q in range(nj if hasn else 1):
                     j = q if hasn else p
                     k = p if hasn else 0
-                    for i in range(ni):
-                        la, lb = face_coords(i, j, k, L)
-                        ma, mb = face_coords(i, j, k, M)
-                        na, nb = face_coords(i, j, k, N)
-                        nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz, L, M, N,
-                                           lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb,
-                                           dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB,
-                                           nflag, qflag, bflag, xflag)
+                    # as the forward rows (tfi._row): the role whose direction is i reads
+                    # one table entry all along the row, the others a run along i; the
+                    # branch is taken once per row, not per point
+                    if hasn:
+                        cl = k if L == 1 else j
+                        cm = k if M == 1 else j
+                        cn = k if N == 1 else j
+                    else:
+                        cl = cm = cn = 0
+                    if L == 0:
+                        for i in range(ni):
+                            nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz,
+                                               L, M, N, lineD, lineQ, j, k, gD, gQ, i, cm, hD,
+                                               hQ, i, cn, dlineD, dlineQ, dgD, dgQ, dhD, dhQ,
+                                               lineB, gB, hB, nflag, qflag, bflag, xflag)
+                    elif M == 0:
+                        for i in range(ni):
+                            nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz,
+                                               L, M, N, lineD, lineQ, i, cl, gD, gQ, j, k, hD,
+                                               hQ, i, cn, dlineD, dlineQ, dgD, dgQ, dhD, dhQ,
+                                               lineB, gB, hB, nflag, qflag, bflag, xflag)
+                    else:
+                        for i in range(ni):
+                            nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz,
+                                               L, M, N, lineD, lineQ, i, cl, gD, gQ, i, cm, hD,
+                                               hQ, j, k, dlineD, dlineQ, dgD, dgQ, dhD, dhQ,
+                                               lineB, gB, hB, nflag, qflag, bflag, xflag)
                 bad[p] = nbad
         return jvp
 
