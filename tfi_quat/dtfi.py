@@ -109,12 +109,11 @@ def _du_q(lineQ, dlineQ, la, lb, t):
 
 
 @jit(inline="always")
-def _du_q_bar(lineQ, lbar, la, lb, t, bw, bx, by, bz, ba=-1, bb=-1):
+def _du_q_bar(lineQ, lbar, la, lb, t, bw, bx, by, bz):
     """Adjoint of :func:`_du_q`: ``(bw, bx, by, bz)``, the bar of ``U``, accumulated into the
-    line's bar (``q0``, ``q1``, ``ω²`` at 0:4, 4:8, 8) at ``(ba, bb)`` (default: ``(la, lb)``)."""
-    if ba < 0:
-        ba = la
-        bb = lb
+    line's bar (``q0``, ``q1``, ``ω²`` at 0:4, 4:8, 8) at ``(la, lb)``."""
+    ba = la
+    bb = lb
     w2 = lineQ[la, lb, 8]
     sw = lineQ[la, lb, 9]
     wa, wb = slerp_weights(t, w2, sw)
