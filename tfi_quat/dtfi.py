@@ -109,12 +109,11 @@ def _du_q(lineQ, dlineQ, la, lb, t):
 
 
 @jit(inline="always")
-def _du_q_bar(lineQ, lbar, la, lb, t, bw, bx, by, bz, ba=-1, bb=-1):
+def _du_q_bar(lineQ, lbar, la, lb, t, bw, bx, by, bz):
     """Adjoint of :func:`_du_q`: ``(bw, bx, by, bz)``, the bar of ``U``, accumulated into the
-    line's bar (``q0``, ``q1``, ``ω²`` at 0:4, 4:8, 8) at ``(ba, bb)`` (default: ``(la, lb)``)."""
-    if ba < 0:
-        ba = la
-        bb = lb
+    line's bar (``q0``, ``q1``, ``ω²`` at 0:4, 4:8, 8) at ``(la, lb)``."""
+    ba = la
+    bb = lb
     w2 = lineQ[la, lb, 8]
     sw = lineQ[la, lb, 9]
     wa, wb = slerp_weights(t, w2, sw)
@@ -436,11 +435,14 @@ def _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz, L, M, N, lineD, lin
 
 @jit(forceinline=True)
 def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, gQ, ma, mb,
-               hQ, na, nb, lineB, gB, hB, bLD, bLQ, bMD, bMQ, bND, bNQ, kla, klb, kma, kmb,
-               kna, knb, hasn, hasq, based, rbar):
-    """Adjoint of :func:`_jvp_point`: the bar of ``out`` at the point into the table bars
-    (``bLD``... the chunk's, at ``(kla, klb)``, ``(kma, kmb)``, ``(kna, knb)``: the table
-    indices, or (0, 0) of a row's accumulator) and ``xbar``; returns 1 below QNORM_MIN."""
+               hQ, na, nb, lineB, gB, hB, scr, hasn, hasq, based, rbar):
+    """Adjoint of :func:`_jvp_point`, the point-wise part: the bar ``o`` of ``out`` at the
+    point (read before ``xbar``, which may be ``obar``, is written), the bar of ``W`` and the
+    line's slerp terms into the row's scratch ``scr[:, i]`` (``o`` at 7:10; with ``hasq``:
+    ``W_bar`` at 0:4, the slerp weights at 4, 5, the bar of ω² at 6), the base points' bar
+    into ``xbar``.  The tables' bars are added from the scratch afterwards (:func:`_bar_run`,
+    :func:`_bar_fixed`): the point loop writes two arrays only, so that it vectorises.
+    Returns 1 below QNORM_MIN."""
     t = s[i, j, k, L]
     sm = s[i, j, k, M]
     if hasn is not None:
@@ -449,19 +451,12 @@ def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, 
         sn = 0.0
         na = 0
         nb = 0
-    um = 1.0 - sm
-    un = 1.0 - sn
     ox = obar[i, j, k, 0]
     oy = obar[i, j, k, 1]
     oz = obar[i, j, k, 2]
-    # Δ (linear in the D tables)
-    _d_bar(bLD, kla, klb, 0, 1.0 - t, ox, oy, oz)
-    _d_bar(bLD, kla, klb, 3, t, ox, oy, oz)
-    _d_bar(bMD, kma, kmb, 0, um, ox, oy, oz)
-    _d_bar(bMD, kma, kmb, 3, sm, ox, oy, oz)
-    if hasn is not None:
-        _d_bar(bND, kna, knb, 0, un, ox, oy, oz)
-        _d_bar(bND, kna, knb, 3, sn, ox, oy, oz)
+    scr[7, i] = ox
+    scr[8, i] = oy
+    scr[9, i] = oz
     if hasq is None:
         if rbar is not None:
             xbar[i, j, k, 0] = ox
@@ -508,28 +503,120 @@ def _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M, N, lineQ, la, lb, 
     wx = (bx_ - qx * pr) * inv
     wy = (by_ - qy * pr) * inv
     wz = (bz_ - qz * pr) * inv
-    _du_q_bar(lineQ, bLQ, la, lb, t, ww, wx, wy, wz, kla, klb)
-    _q_bar(bMQ, kma, kmb, 0, um, ww, wx, wy, wz)
-    _q_bar(bMQ, kma, kmb, 4, sm, ww, wx, wy, wz)
-    if hasn is not None:
-        _q_bar(bNQ, kna, knb, 0, un, ww, wx, wy, wz)
-        _q_bar(bNQ, kna, knb, 4, sn, ww, wx, wy, wz)
+    scr[0, i] = ww
+    scr[1, i] = wx
+    scr[2, i] = wy
+    scr[3, i] = wz
+    # the slerp of the line (:func:`_du_q_bar`, the same sums)
+    w2 = lineQ[la, lb, 8]
+    sw = lineQ[la, lb, 9]
+    wa, wb = slerp_weights(t, w2, sw)
+    da, db = dslerp_weights(t, w2, sw)
+    scr[4, i] = wa
+    scr[5, i] = wb
+    scr[6, i] = (da * (lineQ[la, lb, 0] * ww + lineQ[la, lb, 1] * wx + lineQ[la, lb, 2] * wy +
+                       lineQ[la, lb, 3] * wz) +
+                 db * (lineQ[la, lb, 4] * ww + lineQ[la, lb, 5] * wx + lineQ[la, lb, 6] * wy +
+                       lineQ[la, lb, 7] * wz))
     return 1 if n < QNORM_MIN else 0
 
 
-@jit(inline="always")
-def _flush(accD, accQ, tD, tQ, a, b, hasq):
-    """Add a row's accumulated bars to the entry ``(a, b)`` of the tables ``tD`` and (with
-    ``hasq``; else ``tQ`` is a dummy) ``tQ``, and zero the accumulators (``tQ`` has 8 or 10
-    components: the rest of ``accQ`` is 0)."""
-    for c in range(6):
-        tD[a, b, c] += accD[0, 0, c]
-        accD[0, 0, c] = 0.0
+@jit(forceinline=True)
+def _bar_run(tD, tQ, c, s, scr, j, k, d, ni, line, hasq):
+    """The bars of a row's points added into the tables ``tD``, ``tQ`` of a role whose
+    entries run along i (entry ``(i, c)``; ``d`` the role's direction): the weights
+    ``(1 - s_d, s_d)``, for the Q of the line role (``line`` True) the slerp weights and
+    the bar of ω² (``scr``: :func:`_vjp_point`)."""
+    for i in range(ni):
+        t = s[i, j, k, d]
+        u = 1.0 - t
+        ox = scr[7, i]
+        oy = scr[8, i]
+        oz = scr[9, i]
+        tD[i, c, 0] += u * ox
+        tD[i, c, 1] += u * oy
+        tD[i, c, 2] += u * oz
+        tD[i, c, 3] += t * ox
+        tD[i, c, 4] += t * oy
+        tD[i, c, 5] += t * oz
+        if hasq is not None:
+            if line:
+                wa = scr[4, i]
+                wb = scr[5, i]
+            else:
+                wa = u
+                wb = t
+            ww = scr[0, i]
+            wx = scr[1, i]
+            wy = scr[2, i]
+            wz = scr[3, i]
+            tQ[i, c, 0] += wa * ww
+            tQ[i, c, 1] += wa * wx
+            tQ[i, c, 2] += wa * wy
+            tQ[i, c, 3] += wa * wz
+            tQ[i, c, 4] += wb * ww
+            tQ[i, c, 5] += wb * wx
+            tQ[i, c, 6] += wb * wy
+            tQ[i, c, 7] += wb * wz
+            if line:
+                tQ[i, c, 8] += scr[6, i]
+
+
+@jit(forceinline=True)
+def _bar_fixed(tD, tQ, s, scr, j, k, d, ni, line, hasq):
+    """As :func:`_bar_run` for the role whose direction is i: every point of the row reads
+    its entry ``(j, k)``; the row's sum (in the order of i) is added once."""
+    a0 = a1 = a2 = a3 = a4 = a5 = 0.0
+    q0 = q1 = q2 = q3 = q4 = q5 = q6 = q7 = q8 = 0.0
+    for i in range(ni):
+        t = s[i, j, k, d]
+        u = 1.0 - t
+        ox = scr[7, i]
+        oy = scr[8, i]
+        oz = scr[9, i]
+        a0 += u * ox
+        a1 += u * oy
+        a2 += u * oz
+        a3 += t * ox
+        a4 += t * oy
+        a5 += t * oz
+        if hasq is not None:
+            if line:
+                wa = scr[4, i]
+                wb = scr[5, i]
+                q8 += scr[6, i]
+            else:
+                wa = u
+                wb = t
+            ww = scr[0, i]
+            wx = scr[1, i]
+            wy = scr[2, i]
+            wz = scr[3, i]
+            q0 += wa * ww
+            q1 += wa * wx
+            q2 += wa * wy
+            q3 += wa * wz
+            q4 += wb * ww
+            q5 += wb * wx
+            q6 += wb * wy
+            q7 += wb * wz
+    tD[j, k, 0] += a0
+    tD[j, k, 1] += a1
+    tD[j, k, 2] += a2
+    tD[j, k, 3] += a3
+    tD[j, k, 4] += a4
+    tD[j, k, 5] += a5
     if hasq is not None:
-        for c in range(tQ.shape[2]):
-            tQ[a, b, c] += accQ[0, 0, c]
-        for c in range(10):
-            accQ[0, 0, c] = 0.0
+        tQ[j, k, 0] += q0
+        tQ[j, k, 1] += q1
+        tQ[j, k, 2] += q2
+        tQ[j, k, 3] += q3
+        tQ[j, k, 4] += q4
+        tQ[j, k, 5] += q5
+        tQ[j, k, 6] += q6
+        tQ[j, k, 7] += q7
+        if line:
+            tQ[j, k, 8] += q8
 
 
 def _jvp_kernel(hasn: bool, hasq: bool, based: bool, dbased: bool):
@@ -576,14 +663,33 @@ def _kernel(kind, hasn, hasq, based, extra):
                 for q in range(nj if hasn else 1):
                     j = q if hasn else p
                     k = p if hasn else 0
-                    for i in range(ni):
-                        la, lb = face_coords(i, j, k, L)
-                        ma, mb = face_coords(i, j, k, M)
-                        na, nb = face_coords(i, j, k, N)
-                        nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz, L, M, N,
-                                           lineD, lineQ, la, lb, gD, gQ, ma, mb, hD, hQ, na, nb,
-                                           dlineD, dlineQ, dgD, dgQ, dhD, dhQ, lineB, gB, hB,
-                                           nflag, qflag, bflag, xflag)
+                    # as the forward rows (tfi._row): the role whose direction is i reads
+                    # one table entry all along the row, the others a run along i; the
+                    # branch is taken once per row, not per point
+                    if hasn:
+                        cl = k if L == 1 else j
+                        cm = k if M == 1 else j
+                        cn = k if N == 1 else j
+                    else:
+                        cl = cm = cn = 0
+                    if L == 0:
+                        for i in range(ni):
+                            nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz,
+                                               L, M, N, lineD, lineQ, j, k, gD, gQ, i, cm, hD,
+                                               hQ, i, cn, dlineD, dlineQ, dgD, dgQ, dhD, dhQ,
+                                               lineB, gB, hB, nflag, qflag, bflag, xflag)
+                    elif M == 0:
+                        for i in range(ni):
+                            nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz,
+                                               L, M, N, lineD, lineQ, i, cl, gD, gQ, j, k, hD,
+                                               hQ, i, cn, dlineD, dlineQ, dgD, dgQ, dhD, dhQ,
+                                               lineB, gB, hB, nflag, qflag, bflag, xflag)
+                    else:
+                        for i in range(ni):
+                            nbad += _jvp_point(xyz, dxyz, s, out, dout, i, j, k, cx, cy, cz,
+                                               L, M, N, lineD, lineQ, i, cl, gD, gQ, i, cm, hD,
+                                               hQ, j, k, dlineD, dlineQ, dgD, dgQ, dhD, dhQ,
+                                               lineB, gB, hB, nflag, qflag, bflag, xflag)
                 bad[p] = nbad
         return jvp
 
@@ -599,42 +705,45 @@ def _kernel(kind, hasn, hasq, based, extra):
             bMQ = bgQ[:, :, :, ch if share[1] else 0]
             bND = bhD[:, :, :, ch if share[2] else 0]
             bNQ = bhQ[:, :, :, ch if share[2] else 0]
-            accD = np.zeros((1, 1, 6))
-            accQ = np.zeros((1, 1, 10))
+            scr = np.empty((10, ni))
             nbad = 0
             for p in range(p0[ch], p0[ch + 1]):
                 for q in range(nj if hasn else 1):
                     j = q if hasn else p
                     k = p if hasn else 0
-                    # the role whose direction is i reads one table entry all along
-                    # the row: its bars go to the row's accumulators, added once after
-                    if hasn:
-                        cl = k if L == 1 else j
-                        cm = k if M == 1 else j
-                        cn = k if N == 1 else j
-                    else:
-                        cl = cm = cn = 0
+                    cl = k if L == 1 else j
+                    cm = k if M == 1 else j
+                    cn = k if N == 1 else j
                     if L == 0:
                         for i in range(ni):
                             nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
                                                N, lineQ, j, k, gQ, i, cm, hQ, i, cn, lineB,
-                                               gB, hB, accD, accQ, bMD, bMQ, bND, bNQ,
-                                               0, 0, i, cm, i, cn, nflag, qflag, bflag, xflag)
-                        _flush(accD, accQ, bLD, bLQ, j, k, qflag)
+                                               gB, hB, scr, nflag, qflag, bflag, xflag)
                     elif M == 0:
                         for i in range(ni):
                             nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
                                                N, lineQ, i, cl, gQ, j, k, hQ, i, cn, lineB,
-                                               gB, hB, bLD, bLQ, accD, accQ, bND, bNQ,
-                                               i, cl, 0, 0, i, cn, nflag, qflag, bflag, xflag)
-                        _flush(accD, accQ, bMD, bMQ, j, k, qflag)
+                                               gB, hB, scr, nflag, qflag, bflag, xflag)
                     else:
                         for i in range(ni):
                             nbad += _vjp_point(xyz, s, obar, xbar, i, j, k, cx, cy, cz, L, M,
                                                N, lineQ, i, cl, gQ, i, cm, hQ, j, k, lineB,
-                                               gB, hB, bLD, bLQ, bMD, bMQ, accD, accQ,
-                                               i, cl, i, cm, 0, 0, nflag, qflag, bflag, xflag)
-                        _flush(accD, accQ, bND, bNQ, j, k, qflag)
+                                               gB, hB, scr, nflag, qflag, bflag, xflag)
+                    # the tables' bars, role by role (the role whose direction is i: a
+                    # sum along the row into one entry)
+                    if L == 0:
+                        _bar_fixed(bLD, bLQ, s, scr, j, k, L, ni, True, qflag)
+                    else:
+                        _bar_run(bLD, bLQ, cl, s, scr, j, k, L, ni, True, qflag)
+                    if M == 0:
+                        _bar_fixed(bMD, bMQ, s, scr, j, k, M, ni, False, qflag)
+                    else:
+                        _bar_run(bMD, bMQ, cm, s, scr, j, k, M, ni, False, qflag)
+                    if hasn:
+                        if N == 0:
+                            _bar_fixed(bND, bNQ, s, scr, j, k, N, ni, False, qflag)
+                        else:
+                            _bar_run(bND, bNQ, cn, s, scr, j, k, N, ni, False, qflag)
             bad[ch] = nbad
     return vjp
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import dtfi, tfi
-from .._jit import serial_below
+from .._jit import jit, serial_below
 from ..errors import DeformationError
 from . import buffers
 
@@ -108,6 +108,30 @@ def volume_jvp(deformer, passes, tangents, dpos, out) -> list:
     return result
 
 
+@jit
+def _copy_tiled(src, dst):
+    """``dst[...] = src`` for 3-D arrays of one shape, ``dst`` Fortran-ordered and ``src`` of any
+    layout, in tiles of 32 x 32 points of each (i, k) plane: a bar in C order (a solver's
+    own arrays) copied by numpy ran at a sixth of the speed of a Fortran one."""
+    ni, nj, nk = src.shape
+    for j in range(nj):
+        for k0 in range(0, nk, 32):
+            k1 = min(k0 + 32, nk)
+            for i0 in range(0, ni, 32):
+                i1 = min(i0 + 32, ni)
+                for k in range(k0, k1):
+                    for i in range(i0, i1):
+                        dst[i, j, k] = src[i, j, k]
+
+
+def _copy_part(part, dst):
+    """One component of a bar into the kernel's Fortran buffer ``dst``."""
+    if part.flags.f_contiguous:
+        dst[...] = part
+    else:
+        _copy_tiled(np.asarray(part, dtype=np.float64), dst)
+
+
 def volume_vjp(deformer, passes, dxv) -> tuple:
     """The volume level's adjoint: for the bars ``dxv`` of every block (any layout
     :meth:`Deformer.deform` writes), the bars of the passes ``[(D_bar, Q_bar), ...]`` and of
@@ -127,7 +151,7 @@ def volume_vjp(deformer, passes, dxv) -> tuple:
         ob = buf_o[:3 * blk.npoints].reshape(shape, order="F")
         src = bars_in[b]
         for c, part in enumerate(buffers.parts(src)):
-            ob[..., c] = part
+            _copy_part(part, ob[..., c])
         if not np.isfinite(np.sum(ob)) and not np.all(np.isfinite(ob)):    # (sum: no temporary)
             raise DeformationError(f"dxv[{b}] holds non-finite values")
         if sk.ndim == 2:
