@@ -12,22 +12,18 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
-import signal
 import subprocess
 import sys
-import sysconfig
 from pathlib import Path
 
 import pytest
 from _mpi_job import make_grid
+from _mpi_run import EPOCH, ROOT, launch, mpiexec
 
 import tfi_quat as tq
 from tfi_quat.errors import ParallelError
 
 JOB = Path(__file__).with_name("_mpi_job.py")
-ROOT = JOB.parent.parent
-EPOCH = "1700000000"
 TIMEOUT = 240           # seconds for one job: a hang fails the test instead of the suite
 
 VARIANTS = {
@@ -41,36 +37,11 @@ VARIANTS = {
 }
 
 
-def mpiexec() -> str:
-    """The ``mpiexec`` of the installed ``mpi`` extra: next to this Python, else on PATH."""
-    here = Path(sysconfig.get_path("scripts")) / "mpiexec"
-    found = str(here) if here.exists() else shutil.which("mpiexec")
-    assert found, 'mpiexec not found: install the mpi extra (pip install "tfi_quat[mpi]")'
-    return found
-
-
 def run_job(tmp_path, nranks: int, spec: dict) -> dict[int, list[str]]:
     """Run one job; for each write, the outcome on each rank ("OK" or "ERROR Type: message")."""
     spec_path = tmp_path / "spec.json"
     spec_path.write_text(json.dumps(spec), encoding="utf-8")
-    env = dict(os.environ, SOURCE_DATE_EPOCH=EPOCH, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1",
-               NUMBA_NUM_THREADS="1")
-    proc = subprocess.Popen([mpiexec(), "-n", str(nranks), sys.executable, str(JOB), str(spec_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=tmp_path, start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=TIMEOUT)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        pytest.fail(f"MPI job hung (killed after {TIMEOUT} s):\n{out}\n{err}")
-    assert proc.returncode == 0, f"mpiexec failed ({proc.returncode}):\n{out}\n{err}"
-    reports = []
-    for r in range(nranks):
-        report = Path(f"{spec_path}.rank{r}")
-        assert report.exists(), f"rank {r} did not finish:\n{out}\n{err}"
-        reports.append(json.loads(report.read_text(encoding="utf-8")))
-        report.unlink()
+    reports = launch(JOB, spec_path, nranks, tmp_path, TIMEOUT)
     return {i: [rep[i] for rep in reports] for i in range(len(spec["writes"]))}
 
 

@@ -11,17 +11,13 @@ blocks (one reversed) so that its interfaces cross ranks.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import signal
-import subprocess
 import sys
-import sysconfig
 from pathlib import Path
 
 import numpy as np
 import pytest
 from _mpi_deform_job import motion
+from _mpi_run import EPOCH, ROOT, launch
 
 import tfi_quat as tq
 from tfi_quat import Block, Grid
@@ -29,40 +25,15 @@ from tfi_quat.case import load_case
 from tfi_quat.deform import Deformer
 
 JOB = Path(__file__).with_name("_mpi_deform_job.py")
-ROOT = JOB.parent.parent
 GRIDS = ROOT / "grids"
-EPOCH = "1700000000"
 TIMEOUT = 300           # seconds for one job: a hang fails the test instead of the suite
-
-
-def mpiexec() -> str:
-    here = Path(sysconfig.get_path("scripts")) / "mpiexec"
-    found = str(here) if here.exists() else shutil.which("mpiexec")
-    assert found, 'mpiexec not found: install the mpi extra (pip install "tfi_quat[mpi]")'
-    return found
 
 
 def run_job(tmp_path, nranks: int, cases: list) -> list[list[dict]]:
     """Run one job; per case, the result dict of each rank."""
     spec_path = tmp_path / f"spec{nranks}.json"
     spec_path.write_text(json.dumps({"cases": cases}), encoding="utf-8")
-    env = dict(os.environ, SOURCE_DATE_EPOCH=EPOCH, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1",
-               NUMBA_NUM_THREADS="1")
-    proc = subprocess.Popen([mpiexec(), "-n", str(nranks), sys.executable, str(JOB), str(spec_path)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-                            cwd=tmp_path, start_new_session=True)
-    try:
-        out, err = proc.communicate(timeout=TIMEOUT)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        pytest.fail(f"MPI job hung (killed after {TIMEOUT} s):\n{out}\n{err}")
-    assert proc.returncode == 0, f"mpiexec failed ({proc.returncode}):\n{out}\n{err}"
-    reports = []
-    for r in range(nranks):
-        report = Path(f"{spec_path}.rank{r}")
-        assert report.exists(), f"rank {r} did not finish:\n{out}\n{err}"
-        reports.append(json.loads(report.read_text(encoding="utf-8")))
+    reports = launch(JOB, spec_path, nranks, tmp_path, TIMEOUT)
     return [[rep[i] for rep in reports] for i in range(len(cases))]
 
 
