@@ -60,7 +60,7 @@ from .. import tfi
 from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp",
+           "fit_jacobian", "forward_record", "wall_jacobian", "wall_ops", "patch_ops", "RotOp", "PatchOp",
            "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
 
 #: a patch point's tangent or adjoint costs about as much as this many volume points (the
@@ -765,6 +765,23 @@ def _self(rows):
     return np.asarray(rows, dtype=np.int64)[:, None]
 
 
+def wall_ops(out, o0, idx, i0, J):
+    """The wall quaternions' block op (:func:`wall_jacobian`'s ``idx`` (n, k), ``J``
+    (n, 4, 3 k)) stored compactly: the rows with at most the usual 5 reads (the stencil) in
+    one op of width 5, the few with more (corners, merged copies) in one of their own width
+    (the rows are disjoint and the reads precede -1 padding, so the sums and their order are
+    those of the single op)."""
+    cnt = np.count_nonzero(idx >= 0, axis=1)
+    k = idx.shape[1]
+    kc = min(k, 5)
+    small = cnt <= kc
+    ops = []
+    for sel, w in ((small, kc), (~small, k)):
+        if sel.any():
+            ops.append(Op(out[sel], o0, 4, idx[sel, :w], i0, 3, J[sel, :, :3 * w]))
+    return ops
+
+
 def _copy_op(rows, o0, i0, n):
     rows = np.asarray(rows, dtype=np.int64)
     return Op(rows, o0, n, _self(rows), i0, n, np.ones((rows.size, 1)), diag=True)
@@ -1395,10 +1412,11 @@ def _wall_jacobian(sk, rd_in, centre):
         Jb = Jc.reshape(-1, 4, 5, 3)
         mm = mirr >= 0
         if mm.any():                         # mirrored halo points: X -> (I - 2 n n^T) X
-            M = np.broadcast_to(ident, (I.size, 5, 3, 3)).copy()
+            Jb = Jb.copy()
             nn = pts.plane_n[mirr[mm]]
-            M[mm] = ident - 2.0 * nn[:, :, None] * nn[:, None, :]
-            Jb = np.einsum("nakc,nkcd->nakd", Jb, M)
+            M = ident - 2.0 * nn[:, :, None] * nn[:, None, :]
+            mi, mk = np.nonzero(mm)
+            Jb[mi, :, mk] = np.matmul(Jb[mi, :, mk], M)
         qcur = np.where(good[:, None], qc, np.nan)
         rows = _Rows(gids, Jb)
         _fill_rows(qcur, rows, good, na, nb)
@@ -1440,7 +1458,7 @@ def _wall_jacobian(sk, rd_in, centre):
     rg = np.concatenate(r_g) if r_g else np.zeros(0, np.int64)
     rb = np.concatenate(r_b) if r_b else np.zeros((0, 4, 3))
     rw = cw[rc]
-    rb = np.einsum("nab,nbc->nac", Pm[rw], rb * csg[rc, None, None])
+    rb = np.matmul(Pm[rw], rb * csg[rc, None, None])
     key, inv = np.unique(rw * (pts.n_global + 1) + rg, return_inverse=True)
     blocks = np.zeros((key.size, 4, 3))
     np.add.at(blocks, inv, rb)
@@ -1691,7 +1709,7 @@ def _build(deformer, rd):
         Dpre, Qpre = rec["pre"]
         if use_q:
             idx, Jw = wall_jacobian(sk, rd, c)
-            ops.append(Op(wall, P0, 4, idx, RD, 3, Jw))
+            ops += wall_ops(wall, P0, idx, RD, Jw)
             ops.append(RotOp(wall, D0, RD, P0, -1, -1.0, Qpre[wall], P[wall] - c))
         else:
             ops.append(_copy_op(wall, D0, RD, 3))
@@ -1746,7 +1764,7 @@ def _build(deformer, rd):
     ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), BQ, width, Jfull))
     # residual pass
     idx, Jw = wall_jacobian(sk, y, c)
-    ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
+    ops += wall_ops(wall, Q0, idx, Y, Jw)
     ops.append(_copy_op(wall, K0, Y, 3))
     ops += _vertex_ops(sk, qlpre, K0, Q0, two)
     if sk.vertices.idw is not None:
