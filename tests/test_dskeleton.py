@@ -263,6 +263,46 @@ def test_wall_ops_compact(kind):
     _dot_test(ops, d.n_global, 0, rng)
 
 
+def test_pullback_jacobian():
+    """The closed-form Jacobian of y = rot(q*, rd - t) against the complex step of its
+    numpy transcription (q not normalised: the formula is the polynomial's)."""
+    rng = np.random.default_rng(11)
+    n = 40
+    X = rng.standard_normal((n, 10))
+
+    def fy(X):
+        qc = X[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
+        u, v = qc[:, 1:], X[:, 7:10] - X[:, 4:7]
+        t = 2.0 * np.cross(u, v)
+        return v + qc[:, :1] * t + np.cross(u, t)
+    J = ds.pullback_jacobian(X[:, :4], X[:, 7:10] - X[:, 4:7])
+    ref = ds.cs_jacobian(fy, X)
+    assert np.abs(J - ref).max() <= 1e-13 * np.abs(ref).max()
+    h = 1e-6                                   # and central differences (independent of cs)
+    for j in range(10):
+        Xp, Xm = X.copy(), X.copy()
+        Xp[:, j] += h
+        Xm[:, j] -= h
+        fd = (fy(Xp) - fy(Xm)) / (2 * h)
+        assert np.abs(J[:, :, j] - fd).max() <= 1e-7 * max(np.abs(fd).max(), 1.0)
+
+
+def test_linearisation_after_next_step():
+    """The linearisation may hold the step's own buffers: after another step the
+    derivatives are those at the new step (same as a fresh Deformer's)."""
+    d = _deformer("box", "samareh")
+    e = _deformer("box", "samareh")
+    f1, f2 = _motion(d), _motion(d, amp=0.04, rot=-5.0)
+    u = np.random.default_rng(5).standard_normal(d.surface_points().shape) * 0.01
+    d.deform(f1)
+    d.jvp(u)
+    d.deform(f2)
+    e.deform(f2)
+    for a, b in zip(d.jvp(u), e.jvp(u)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(d.vjp(d.jvp(u)), e.vjp(e.jvp(u)))
+
+
 @pytest.mark.parametrize("two", [False, True])
 def test_patch_stage(two):
     """The derived patches' Δ/K and Q (normalised Soni blend of slerps, two-level fade and

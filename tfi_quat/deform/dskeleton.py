@@ -60,8 +60,9 @@ from .. import tfi
 from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "wall_jacobian", "wall_ops", "patch_ops", "RotOp", "PatchOp",
-           "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "wall_ops", "pullback_jacobian",
+           "patch_ops", "RotOp", "PatchOp", "SymOp", "ExpOp", "chain_forward", "chain_backward",
+           "Op"]
 
 #: a patch point's tangent or adjoint costs about as much as this many volume points (the
 #: patch kernels run on the threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
@@ -801,6 +802,28 @@ def cs_jacobian(f, X, *args):
     Xc[np.arange(k * n), np.repeat(np.arange(k), n)] += 1j * _H
     out = np.asarray(f(Xc, *[_tile(a, n, k) for a in args])).imag / _H
     return np.moveaxis(out.reshape(k, n, -1), 0, 2)
+
+
+def pullback_jacobian(q, v):
+    """The Jacobian (n, 3, 10) of the two-level pull-back ``y = rot(q*, rd - t)`` in
+    ``(q, t, rd)`` at ``q`` (n, 4), ``v = rd - t`` (n, 3), closed form: ``∂y/∂rd = R(q*)``,
+    ``∂y/∂t = -R(q*)`` and, with ``q* = (w, u)``, ``T = u x v``, the derivative along
+    ``q*``'s component ``d = (d0, du)`` ``2 (d0 T + w du x v + du x T + u x (du x v))``."""
+    n = q.shape[0]
+    qc = q * np.array([1.0, -1.0, -1.0, -1.0])
+    w, u = qc[:, :1], qc[:, 1:]
+    J = np.empty((n, 3, 10))
+    T = _cross(u, v)
+    J[:, :, 0] = 2.0 * T
+    for i in range(3):
+        e = np.zeros((n, 3))
+        e[:, i] = 1.0
+        col = _rot(qc, e)
+        J[:, :, 7 + i] = col
+        J[:, :, 4 + i] = -col
+        s = _cross(e, v)                    # q's vector part enters q* negated
+        J[:, :, 1 + i] = -2.0 * (w * s + _cross(e, T) + _cross(u, s))
+    return J
 
 
 def _tile(a, n, k):
@@ -1745,17 +1768,13 @@ def _build(deformer, rd):
     for b, body in enumerate(two.bodies):
         bwall[pos_w[body.gids]] = b
 
-    def fy(X):
-        qc = X[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
-        return _rot(qc, X[:, 7:10] - X[:, 4:7])
-
-    Xy = np.zeros((wall.size, 10))
+    qw = np.zeros((wall.size, 4))
+    vw = rd[wall]
     for b, (q, t) in enumerate(fits):
         sel = bwall == b
-        Xy[sel, :4] = q
-        Xy[sel, 4:7] = t
-    Xy[:, 7:10] = rd[wall]
-    Jy = cs_jacobian(fy, Xy)
+        qw[sel] = q
+        vw[sel] -= t
+    Jy = pullback_jacobian(qw, vw)
     # reads columns BQ:RD+3 of the body row ((q, t)) and of the point row (rd)
     width = RD + 3 - BQ
     Jfull = np.zeros((wall.size, 3, 2 * width))
