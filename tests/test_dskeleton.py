@@ -263,28 +263,39 @@ def test_wall_ops_compact(kind):
     _dot_test(ops, d.n_global, 0, rng)
 
 
-def test_pullback_jacobian():
-    """The closed-form Jacobian of y = rot(q*, rd - t) against the complex step of its
-    numpy transcription (q not normalised: the formula is the polynomial's)."""
+def test_pull_op():
+    """The two-level pull-back y = rot(q*, rd - t) (ds.PullOp, derivative on the fly) against
+    the complex step of its numpy transcription (q not normalised: the formula is the
+    polynomial's) and central differences; its transpose by the dot-product test."""
     rng = np.random.default_rng(11)
-    n = 40
-    X = rng.standard_normal((n, 10))
+    n, nb = 40, 2
+    body = np.arange(n) % nb
+    qb = rng.standard_normal((nb, 4))
+    tb = rng.standard_normal((nb, 3))
+    rd = rng.standard_normal((n, 3))
 
     def fy(X):
         qc = X[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
         u, v = qc[:, 1:], X[:, 7:10] - X[:, 4:7]
         t = 2.0 * np.cross(u, v)
         return v + qc[:, :1] * t + np.cross(u, t)
-    J = ds.pullback_jacobian(X[:, :4], X[:, 7:10] - X[:, 4:7])
-    ref = ds.cs_jacobian(fy, X)
-    assert np.abs(J - ref).max() <= 1e-13 * np.abs(ref).max()
-    h = 1e-6                                   # and central differences (independent of cs)
-    for j in range(10):
-        Xp, Xm = X.copy(), X.copy()
-        Xp[:, j] += h
-        Xm[:, j] -= h
-        fd = (fy(Xp) - fy(Xm)) / (2 * h)
-        assert np.abs(J[:, :, j] - fd).max() <= 1e-7 * max(np.abs(fd).max(), 1.0)
+    X = np.concatenate([qb[body], tb[body], rd], axis=1)
+    op = ds.PullOp(np.arange(n), n + body, qb[body] * np.array([1.0, -1.0, -1.0, -1.0]),
+                   rd - tb[body])
+    Z = rng.standard_normal((n + nb, ds.NCOL))
+    dX = np.concatenate([Z[n + body, ds.BQ:ds.BQ + 7], Z[:n, ds.RD:ds.RD + 3]], axis=1)
+    Jz = Z.copy()
+    ds.chain_forward([op], Jz)
+    ref = np.einsum("nak,nk->na", ds.cs_jacobian(fy, X), dX)
+    got = Jz[:n, ds.Y:ds.Y + 3]
+    assert np.abs(got - ref).max() <= 1e-13 * np.abs(ref).max()
+    h = 1e-6
+    fd = (fy(X + h * dX) - fy(X - h * dX)) / (2 * h)
+    assert np.abs(got - fd).max() <= 1e-7 * np.abs(fd).max()
+    others = np.ones(ds.NCOL, dtype=bool)
+    others[ds.Y:ds.Y + 3] = False
+    assert np.array_equal(Jz[:, others], Z[:, others])
+    _dot_test([op], n, nb, rng)
 
 
 def test_linearisation_after_next_step():

@@ -60,9 +60,8 @@ from .. import tfi
 from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "wall_jacobian", "wall_ops", "pullback_jacobian",
-           "patch_ops", "RotOp", "PatchOp", "SymOp", "ExpOp", "chain_forward", "chain_backward",
-           "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "wall_ops", "patch_ops", "RotOp",
+           "PatchOp", "SymOp", "ExpOp", "PullOp", "chain_forward", "chain_backward", "Op"]
 
 #: a patch point's tangent or adjoint costs about as much as this many volume points (the
 #: patch kernels run on the threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
@@ -728,6 +727,69 @@ class ExpOp:
         return self.rows, self.i0, self.o0, self.v
 
 
+@jit
+def pull_forward(Z, out, body, q, v):
+    """Apply a :class:`PullOp` to the tangents ``Z`` in place: ``dy = ∂_q rot(q*, v) dq* +
+    rot(q*, drd - dt)``, ``(dq, dt)`` from the body row's columns ``BQ:BQ+7``."""
+    for m in range(out.shape[0]):
+        o, b = out[m], body[m]
+        a0, a1, a2 = rot_dq(q[m], v[m], Z[b, BQ], -Z[b, BQ + 1], -Z[b, BQ + 2], -Z[b, BQ + 3])
+        x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, RD] - Z[b, BQ + 4],
+                         Z[o, RD + 1] - Z[b, BQ + 5], Z[o, RD + 2] - Z[b, BQ + 6])
+        Z[o, Y] = a0 + x
+        Z[o, Y + 1] = a1 + y
+        Z[o, Y + 2] = a2 + z
+
+
+@jit
+def pull_backward(Zb, out, body, q, v):
+    """The transpose of :func:`pull_forward` in place (items reversed)."""
+    for m in range(out.shape[0] - 1, -1, -1):
+        o, b = out[m], body[m]
+        bx, by, bz = Zb[o, Y], Zb[o, Y + 1], Zb[o, Y + 2]
+        Zb[o, Y] = 0.0
+        Zb[o, Y + 1] = 0.0
+        Zb[o, Y + 2] = 0.0
+        for j in range(4):
+            e0 = 1.0 if j == 0 else 0.0
+            e1 = 1.0 if j == 1 else 0.0
+            e2 = 1.0 if j == 2 else 0.0
+            e3 = 1.0 if j == 3 else 0.0
+            a, c, d = rot_dq(q[m], v[m], e0, e1, e2, e3)
+            g = a * bx + c * by + d * bz
+            Zb[b, BQ + j] += g if j == 0 else -g
+        x, y, z = rot_sv(q[m, 0], -q[m, 1], -q[m, 2], -q[m, 3], bx, by, bz)
+        Zb[o, RD] += x
+        Zb[o, RD + 1] += y
+        Zb[o, RD + 2] += z
+        Zb[b, BQ + 4] -= x
+        Zb[b, BQ + 5] -= y
+        Zb[b, BQ + 6] -= z
+
+
+class PullOp:
+    """The two-level pull-back ``y = rot(q*, rd - t)`` of the wall rows ``out`` (column
+    ``Y``) from their ``rd`` and their body rows' fit ``(q, t)`` (``body``): ``q*`` (n, 4)
+    and ``v = rd - t`` (n, 3) stored, the derivative computed on the fly
+    (:func:`pull_forward`, :func:`pull_backward`)."""
+
+    __slots__ = ("out", "body", "q", "v")
+    diag = False
+
+    def __init__(self, out, body, q, v):
+        self.out = np.ascontiguousarray(out, dtype=np.int64)
+        self.body = np.ascontiguousarray(body, dtype=np.int64)
+        self.q = np.ascontiguousarray(q, dtype=np.float64)
+        self.v = np.ascontiguousarray(v, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return self.out.nbytes + self.body.nbytes + self.q.nbytes + self.v.nbytes
+
+    def args(self):
+        return self.out, self.body, self.q, self.v
+
+
 def chain_forward(ops, Z):
     """Run the ops on the tangent state ``Z`` in place."""
     for op in ops:
@@ -739,6 +801,8 @@ def chain_forward(ops, Z):
             sym_forward(Z, *op.args())
         elif isinstance(op, ExpOp):
             exp_forward(Z, *op.args())
+        elif isinstance(op, PullOp):
+            pull_forward(Z, *op.args())
         elif op.diag:
             op_forward_diag(Z, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -756,6 +820,8 @@ def chain_backward(ops, Zb):
             sym_backward(Zb, *op.args())
         elif isinstance(op, ExpOp):
             exp_backward(Zb, *op.args())
+        elif isinstance(op, PullOp):
+            pull_backward(Zb, *op.args())
         elif op.diag:
             op_backward_diag(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -802,28 +868,6 @@ def cs_jacobian(f, X, *args):
     Xc[np.arange(k * n), np.repeat(np.arange(k), n)] += 1j * _H
     out = np.asarray(f(Xc, *[_tile(a, n, k) for a in args])).imag / _H
     return np.moveaxis(out.reshape(k, n, -1), 0, 2)
-
-
-def pullback_jacobian(q, v):
-    """The Jacobian (n, 3, 10) of the two-level pull-back ``y = rot(q*, rd - t)`` in
-    ``(q, t, rd)`` at ``q`` (n, 4), ``v = rd - t`` (n, 3), closed form: ``∂y/∂rd = R(q*)``,
-    ``∂y/∂t = -R(q*)`` and, with ``q* = (w, u)``, ``T = u x v``, the derivative along
-    ``q*``'s component ``d = (d0, du)`` ``2 (d0 T + w du x v + du x T + u x (du x v))``."""
-    n = q.shape[0]
-    qc = q * np.array([1.0, -1.0, -1.0, -1.0])
-    w, u = qc[:, :1], qc[:, 1:]
-    J = np.empty((n, 3, 10))
-    T = _cross(u, v)
-    J[:, :, 0] = 2.0 * T
-    for i in range(3):
-        e = np.zeros((n, 3))
-        e[:, i] = 1.0
-        col = _rot(qc, e)
-        J[:, :, 7 + i] = col
-        J[:, :, 4 + i] = -col
-        s = _cross(e, v)                    # q's vector part enters q* negated
-        J[:, :, 1 + i] = -2.0 * (w * s + _cross(e, T) + _cross(u, s))
-    return J
 
 
 def _tile(a, n, k):
@@ -1772,15 +1816,9 @@ def _build(deformer, rd):
     vw = rd[wall]
     for b, (q, t) in enumerate(fits):
         sel = bwall == b
-        qw[sel] = q
+        qw[sel] = q * np.array([1.0, -1.0, -1.0, -1.0])
         vw[sel] -= t
-    Jy = pullback_jacobian(qw, vw)
-    # reads columns BQ:RD+3 of the body row ((q, t)) and of the point row (rd)
-    width = RD + 3 - BQ
-    Jfull = np.zeros((wall.size, 3, 2 * width))
-    Jfull[:, :, :7] = Jy[:, :, :7]
-    Jfull[:, :, width + RD - BQ:width + RD - BQ + 3] = Jy[:, :, 7:10]
-    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), BQ, width, Jfull))
+    ops.append(PullOp(wall, G + bwall, qw, vw))
     # residual pass
     idx, Jw = wall_jacobian(sk, y, c)
     ops += wall_ops(wall, Q0, idx, Y, Jw)
