@@ -22,15 +22,16 @@ stage what its tangent needs:
 * the derived patches: indices and blending parameters only; the tangent and
   adjoint of the normalised Soni blend of slerps, of the two-level fade and of
   the re-basing are hand-derived compiled kernels (:class:`PatchOp`);
-* rotations of positions and re-basings, the rigid blend's exp: the rotation
-  and its hand-derived derivative computed on the fly (:class:`RotOp`,
-  :class:`ExpOp`);
+* rotations of positions and re-basings, the two-level pull-back, the rigid
+  blend's exp: the rotation and its hand-derived derivative computed on the fly
+  (:class:`RotOp`, :class:`PullOp`, :class:`ExpOp`);
 * the wall quaternions (normals, two-step rotation, mean angle, mirrored halos,
   the filling of undefined normals, the merge of copies) and the symmetry twist:
   complex-step derivatives of compiled complex transcriptions of the kernels
   (:func:`wall_jacobian`, :class:`SymOp`), exact to round-off (no difference is
-  taken); the few small point-wise stages left (vertex and gap slerps, the fits'
-  pull-back and log) by the complex step on numpy transcriptions
+  taken; the wall blocks stored without padding, :func:`wall_ops`); the few small
+  point-wise stages left (vertex and gap slerps, the bodies' log) by the complex
+  step on numpy transcriptions
   (:func:`cs_jacobian`).  The branches (hemisphere signs, one-sided differences,
   fallbacks) are those of the real values, i.e. of the step's.
 
