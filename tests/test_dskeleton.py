@@ -263,6 +263,47 @@ def test_wall_ops_compact(kind):
     _dot_test(ops, d.n_global, 0, rng)
 
 
+@pytest.mark.parametrize("curve", [False, True])
+def test_wall_copy_tangent(curve):
+    """The hand-derived tangent of one wall point copy's quaternion (ds.wall_q_tan: normals,
+    two-step rotation, mean edge angle) against central differences of its own value, on
+    random stencils with and without missing neighbours (one-sided differences)."""
+    rng = np.random.default_rng(21 + curve)
+    e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
+    n = 60
+    pu = rng.standard_normal((n, 5, 3)) * 0.3
+    pu[:, 1:] += np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]]) + pu[:, :1]
+    if curve:
+        pu[:, :, 2] = 0.0
+        pu[:, 3:] = 0.0
+    R = rigid_motion(25.0, axis=(0.3, 0.2, 1.0) if not curve else (0, 0, 1))
+    pd = R(pu.reshape(-1, 3)).reshape(pu.shape) + 0.1 * rng.standard_normal(pu.shape) * (
+        np.array([1.0, 1.0, 0.0 if curve else 1.0]))
+    ok = np.ones((n, 5), dtype=bool)
+    if curve:
+        ok[:, 3:] = False
+    ok[np.arange(n // 2, n), rng.integers(1, 3 if curve else 5, n - n // 2)] = False  # 1-sided
+    qc = np.empty((n, 4))
+    Jc = np.empty((n, 4, 15))
+    good = np.empty(n, dtype=bool)
+    ds.wall_copies_tan(0, n, pu, pd, ok, e, curve, qc, Jc, good)
+    assert good.sum() >= n - 3 and (~ok[good]).any()
+
+    def q_of(x, m):
+        out, dout = np.empty(4), np.empty(4)
+        w = [np.empty((4, 3)), np.empty((4, 3))] + [np.empty(3) for _ in range(6)]
+        assert ds.wall_q_tan(pu[m], x, ok[m], e, curve, np.zeros((4, 3)), out, dout, *w)
+        return out
+    h = 1e-6
+    for m in np.flatnonzero(good):
+        dp = rng.standard_normal((5, 3)) * ok[m][:, None]
+        if curve:
+            dp[:, 2] = 0.0
+        fd = (q_of(pd[m] + h * dp, m) - q_of(pd[m] - h * dp, m)) / (2 * h)
+        assert np.abs(qc[m] - q_of(pd[m], m)).max() == 0.0
+        assert np.abs(Jc[m] @ dp.ravel() - fd).max() <= 1e-7 * max(np.abs(fd).max(), 1.0)
+
+
 def test_pull_op():
     """The two-level pull-back y = rot(q*, rd - t) (ds.PullOp, derivative on the fly) against
     the complex step of its numpy transcription (q not normalised: the formula is the
