@@ -233,6 +233,128 @@ def test_wall_quaternion_stage(kind):
     _dot_test([op], d.n_global, 0, rng)
 
 
+@pytest.mark.parametrize("kind", ["ogrid3d", "box"])
+def test_wall_ops_compact(kind):
+    """The wall op stored compactly (ds.wall_ops: the stencil rows at width 5, the rest at
+    their own width) gives the padded single op's tangent (same bits) and adjoint."""
+    d = _deformer(kind, "samareh")
+    d.deform(_motion(d))
+    sk = d.skeleton
+    idx, Jw = ds.wall_jacobian(sk, d.last_targets, d.centre)
+    wall = sk.points.wall
+    one = ds.Op(wall, ds.P0, 4, idx, ds.RD, 3, Jw)
+    ops = ds.wall_ops(wall, ds.P0, idx, ds.RD, Jw)
+    assert sum(op.out.size for op in ops) == wall.size
+    assert sum(op.nbytes for op in ops) <= one.nbytes
+    if kind == "box":                       # corners: rows with more reads than the stencil
+        assert len(ops) == 2 and ops[0].idx.shape[1] == 5 < ops[1].idx.shape[1]
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((d.n_global, ds.NCOL))
+    a, b = x.copy(), x.copy()
+    ds.chain_forward([one], a)
+    ds.chain_forward(ops, b)
+    assert np.array_equal(a, b)
+    a, b = x.copy(), x.copy()
+    ds.chain_backward([one], a)
+    ds.chain_backward(ops, b)
+    # the adjoint's scatter visits the rows in another order: the same to round-off
+    assert np.abs(a - b).max() <= 1e-14 * np.abs(a).max()
+    assert not np.array_equal(a, x)
+    _dot_test(ops, d.n_global, 0, rng)
+
+
+@pytest.mark.parametrize("curve", [False, True])
+def test_wall_copy_tangent(curve):
+    """The hand-derived tangent of one wall point copy's quaternion (ds.wall_q_tan: normals,
+    two-step rotation, mean edge angle) against central differences of its own value, on
+    random stencils with and without missing neighbours (one-sided differences)."""
+    rng = np.random.default_rng(21 + curve)
+    e = np.array([0.0, 0.0, 1.0]) if curve else np.zeros(3)
+    n = 60
+    pu = rng.standard_normal((n, 5, 3)) * 0.3
+    pu[:, 1:] += np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]]) + pu[:, :1]
+    if curve:
+        pu[:, :, 2] = 0.0
+        pu[:, 3:] = 0.0
+    R = rigid_motion(25.0, axis=(0.3, 0.2, 1.0) if not curve else (0, 0, 1))
+    pd = R(pu.reshape(-1, 3)).reshape(pu.shape) + 0.1 * rng.standard_normal(pu.shape) * (
+        np.array([1.0, 1.0, 0.0 if curve else 1.0]))
+    ok = np.ones((n, 5), dtype=bool)
+    if curve:
+        ok[:, 3:] = False
+    ok[np.arange(n // 2, n), rng.integers(1, 3 if curve else 5, n - n // 2)] = False  # 1-sided
+    qc = np.empty((n, 4))
+    Jc = np.empty((n, 4, 15))
+    good = np.empty(n, dtype=bool)
+    ds.wall_copies_tan(0, n, pu, pd, ok, e, curve, qc, Jc, good)
+    assert good.sum() >= n - 3 and (~ok[good]).any()
+
+    def q_of(x, m):
+        out, dout = np.empty(4), np.empty(4)
+        w = [np.empty((4, 3)), np.empty((4, 3))] + [np.empty(3) for _ in range(6)]
+        assert ds.wall_q_tan(pu[m], x, ok[m], e, curve, np.zeros((4, 3)), out, dout, *w)
+        return out
+    h = 1e-6
+    for m in np.flatnonzero(good):
+        dp = rng.standard_normal((5, 3)) * ok[m][:, None]
+        if curve:
+            dp[:, 2] = 0.0
+        fd = (q_of(pd[m] + h * dp, m) - q_of(pd[m] - h * dp, m)) / (2 * h)
+        assert np.abs(qc[m] - q_of(pd[m], m)).max() == 0.0
+        assert np.abs(Jc[m] @ dp.ravel() - fd).max() <= 1e-7 * max(np.abs(fd).max(), 1.0)
+
+
+def test_pull_op():
+    """The two-level pull-back y = rot(q*, rd - t) (ds.PullOp, derivative on the fly) against
+    the complex step of its numpy transcription (q not normalised: the formula is the
+    polynomial's) and central differences; its transpose by the dot-product test."""
+    rng = np.random.default_rng(11)
+    n, nb = 40, 2
+    body = np.arange(n) % nb
+    qb = rng.standard_normal((nb, 4))
+    tb = rng.standard_normal((nb, 3))
+    rd = rng.standard_normal((n, 3))
+
+    def fy(X):
+        qc = X[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
+        u, v = qc[:, 1:], X[:, 7:10] - X[:, 4:7]
+        t = 2.0 * np.cross(u, v)
+        return v + qc[:, :1] * t + np.cross(u, t)
+    X = np.concatenate([qb[body], tb[body], rd], axis=1)
+    op = ds.PullOp(np.arange(n), n + body, qb[body] * np.array([1.0, -1.0, -1.0, -1.0]),
+                   rd - tb[body])
+    Z = rng.standard_normal((n + nb, ds.NCOL))
+    dX = np.concatenate([Z[n + body, ds.BQ:ds.BQ + 7], Z[:n, ds.RD:ds.RD + 3]], axis=1)
+    Jz = Z.copy()
+    ds.chain_forward([op], Jz)
+    ref = np.einsum("nak,nk->na", ds.cs_jacobian(fy, X), dX)
+    got = Jz[:n, ds.Y:ds.Y + 3]
+    assert np.abs(got - ref).max() <= 1e-13 * np.abs(ref).max()
+    h = 1e-6
+    fd = (fy(X + h * dX) - fy(X - h * dX)) / (2 * h)
+    assert np.abs(got - fd).max() <= 1e-7 * np.abs(fd).max()
+    others = np.ones(ds.NCOL, dtype=bool)
+    others[ds.Y:ds.Y + 3] = False
+    assert np.array_equal(Jz[:, others], Z[:, others])
+    _dot_test([op], n, nb, rng)
+
+
+def test_linearisation_after_next_step():
+    """The linearisation may hold the step's own buffers: after another step the
+    derivatives are those at the new step (same as a fresh Deformer's)."""
+    d = _deformer("box", "samareh")
+    e = _deformer("box", "samareh")
+    f1, f2 = _motion(d), _motion(d, amp=0.04, rot=-5.0)
+    u = np.random.default_rng(5).standard_normal(d.surface_points().shape) * 0.01
+    d.deform(f1)
+    d.jvp(u)
+    d.deform(f2)
+    e.deform(f2)
+    for a, b in zip(d.jvp(u), e.jvp(u)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(d.vjp(d.jvp(u)), e.vjp(e.jvp(u)))
+
+
 @pytest.mark.parametrize("two", [False, True])
 def test_patch_stage(two):
     """The derived patches' Δ/K and Q (normalised Soni blend of slerps, two-level fade and

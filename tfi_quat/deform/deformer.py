@@ -530,13 +530,33 @@ class Deformer:
         with self._lock, use_threads(self.threads):
             if self._linear is None:
                 self._linear = linearise(self, self.last_targets)
+                self._share_passes(self._linear)
             return self._linear
+
+    def _share_passes(self, lin):
+        """Where the linearisation's pass values are those the step left in its buffers (same
+        bits: linearised at the step's targets), hold the buffers instead of copies (the next
+        step drops the linearisation before it writes them)."""
+        w = self._work
+        kept = [w.K, w.ql, w.gd, w.qg]
+        values = []
+        for p in lin.values:
+            p = list(p)
+            for i in (0, 1):
+                for b in kept:
+                    if (p[i] is not None and b is not None and b.shape == p[i].shape
+                            and np.array_equal(b, p[i])):
+                        p[i] = b
+                        break
+            values.append(tuple(p))
+        lin.values = values
 
     def linear_passes(self):
         """The volume passes ``(Δ or K, Q, centre, tables)`` at the linearisation point (the
         last step's targets): always both passes for ``"two-level"`` (residual, then rigid),
         one for the others (``Q`` None for ``"tfi"``).  O(surface) arrays held by the
-        linearisation (:meth:`linearisation`): do not modify them."""
+        linearisation (:meth:`linearisation`; where they are the step's own, its buffers):
+        do not modify them; valid until the next step."""
         return self.linearisation().values
 
     def _samareh_fields(self, rd):

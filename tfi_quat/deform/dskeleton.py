@@ -22,15 +22,17 @@ stage what its tangent needs:
 * the derived patches: indices and blending parameters only; the tangent and
   adjoint of the normalised Soni blend of slerps, of the two-level fade and of
   the re-basing are hand-derived compiled kernels (:class:`PatchOp`);
-* rotations of positions and re-basings, the rigid blend's exp: the rotation
-  and its hand-derived derivative computed on the fly (:class:`RotOp`,
-  :class:`ExpOp`);
+* rotations of positions and re-basings, the two-level pull-back, the rigid
+  blend's exp: the rotation and its hand-derived derivative computed on the fly
+  (:class:`RotOp`, :class:`PullOp`, :class:`ExpOp`);
 * the wall quaternions (normals, two-step rotation, mean angle, mirrored halos,
-  the filling of undefined normals, the merge of copies) and the symmetry twist:
-  complex-step derivatives of compiled complex transcriptions of the kernels
-  (:func:`wall_jacobian`, :class:`SymOp`), exact to round-off (no difference is
-  taken); the few small point-wise stages left (vertex and gap slerps, the fits'
-  pull-back and log) by the complex step on numpy transcriptions
+  the filling of undefined normals, the merge of copies): a compiled hand-derived
+  tangent of the copy's kernel (:func:`wall_q_tan`, one per neighbour coordinate),
+  then the filling and merge on the stored blocks (:func:`wall_jacobian`, stored
+  without padding, :func:`wall_ops`); the symmetry twist: hand-derived
+  (:class:`SymOp`); the few small
+  point-wise stages left (vertex and gap slerps, the bodies' log) by the complex
+  step on numpy transcriptions
   (:func:`cs_jacobian`).  The branches (hemisphere signs, one-sided differences,
   fallbacks) are those of the real values, i.e. of the step's.
 
@@ -51,7 +53,6 @@ the least-squares (pseudo-inverse) rotation tangent.
 
 from __future__ import annotations
 
-import cmath
 import math
 
 import numpy as np
@@ -60,13 +61,13 @@ from .. import tfi
 from .._jit import jit, parallel_for, serial_below, task_jit
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
-           "fit_jacobian", "forward_record", "wall_jacobian", "patch_ops", "RotOp", "PatchOp",
-           "SymOp", "ExpOp", "chain_forward", "chain_backward", "Op"]
+           "fit_jacobian", "forward_record", "wall_jacobian", "wall_ops", "patch_ops", "RotOp",
+           "PatchOp", "SymOp", "ExpOp", "PullOp", "chain_forward", "chain_backward", "Op"]
 
 #: a patch point's tangent or adjoint costs about as much as this many volume points (the
 #: patch kernels run on the threads when that work reaches tfi_quat._jit.SERIAL_BELOW)
 PATCH_WORK = 32
-#: the same for a wall point copy's complex steps
+#: the same for a wall point copy's 12 tangents
 WALL_WORK = 64
 
 # columns of the state Z (rows: boundary points, then one per wall body)
@@ -727,6 +728,69 @@ class ExpOp:
         return self.rows, self.i0, self.o0, self.v
 
 
+@jit
+def pull_forward(Z, out, body, q, v):
+    """Apply a :class:`PullOp` to the tangents ``Z`` in place: ``dy = ∂_q rot(q*, v) dq* +
+    rot(q*, drd - dt)``, ``(dq, dt)`` from the body row's columns ``BQ:BQ+7``."""
+    for m in range(out.shape[0]):
+        o, b = out[m], body[m]
+        a0, a1, a2 = rot_dq(q[m], v[m], Z[b, BQ], -Z[b, BQ + 1], -Z[b, BQ + 2], -Z[b, BQ + 3])
+        x, y, z = rot_sv(q[m, 0], q[m, 1], q[m, 2], q[m, 3], Z[o, RD] - Z[b, BQ + 4],
+                         Z[o, RD + 1] - Z[b, BQ + 5], Z[o, RD + 2] - Z[b, BQ + 6])
+        Z[o, Y] = a0 + x
+        Z[o, Y + 1] = a1 + y
+        Z[o, Y + 2] = a2 + z
+
+
+@jit
+def pull_backward(Zb, out, body, q, v):
+    """The transpose of :func:`pull_forward` in place (items reversed)."""
+    for m in range(out.shape[0] - 1, -1, -1):
+        o, b = out[m], body[m]
+        bx, by, bz = Zb[o, Y], Zb[o, Y + 1], Zb[o, Y + 2]
+        Zb[o, Y] = 0.0
+        Zb[o, Y + 1] = 0.0
+        Zb[o, Y + 2] = 0.0
+        for j in range(4):
+            e0 = 1.0 if j == 0 else 0.0
+            e1 = 1.0 if j == 1 else 0.0
+            e2 = 1.0 if j == 2 else 0.0
+            e3 = 1.0 if j == 3 else 0.0
+            a, c, d = rot_dq(q[m], v[m], e0, e1, e2, e3)
+            g = a * bx + c * by + d * bz
+            Zb[b, BQ + j] += g if j == 0 else -g
+        x, y, z = rot_sv(q[m, 0], -q[m, 1], -q[m, 2], -q[m, 3], bx, by, bz)
+        Zb[o, RD] += x
+        Zb[o, RD + 1] += y
+        Zb[o, RD + 2] += z
+        Zb[b, BQ + 4] -= x
+        Zb[b, BQ + 5] -= y
+        Zb[b, BQ + 6] -= z
+
+
+class PullOp:
+    """The two-level pull-back ``y = rot(q*, rd - t)`` of the wall rows ``out`` (column
+    ``Y``) from their ``rd`` and their body rows' fit ``(q, t)`` (``body``): ``q*`` (n, 4)
+    and ``v = rd - t`` (n, 3) stored, the derivative computed on the fly
+    (:func:`pull_forward`, :func:`pull_backward`)."""
+
+    __slots__ = ("out", "body", "q", "v")
+    diag = False
+
+    def __init__(self, out, body, q, v):
+        self.out = np.ascontiguousarray(out, dtype=np.int64)
+        self.body = np.ascontiguousarray(body, dtype=np.int64)
+        self.q = np.ascontiguousarray(q, dtype=np.float64)
+        self.v = np.ascontiguousarray(v, dtype=np.float64)
+
+    @property
+    def nbytes(self):
+        return self.out.nbytes + self.body.nbytes + self.q.nbytes + self.v.nbytes
+
+    def args(self):
+        return self.out, self.body, self.q, self.v
+
+
 def chain_forward(ops, Z):
     """Run the ops on the tangent state ``Z`` in place."""
     for op in ops:
@@ -738,6 +802,8 @@ def chain_forward(ops, Z):
             sym_forward(Z, *op.args())
         elif isinstance(op, ExpOp):
             exp_forward(Z, *op.args())
+        elif isinstance(op, PullOp):
+            pull_forward(Z, *op.args())
         elif op.diag:
             op_forward_diag(Z, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -755,6 +821,8 @@ def chain_backward(ops, Zb):
             sym_backward(Zb, *op.args())
         elif isinstance(op, ExpOp):
             exp_backward(Zb, *op.args())
+        elif isinstance(op, PullOp):
+            pull_backward(Zb, *op.args())
         elif op.diag:
             op_backward_diag(Zb, op.out, op.o0, op.no, op.idx, op.i0, op.J)
         else:
@@ -763,6 +831,23 @@ def chain_backward(ops, Zb):
 
 def _self(rows):
     return np.asarray(rows, dtype=np.int64)[:, None]
+
+
+def wall_ops(out, o0, idx, i0, J):
+    """The wall quaternions' block op (:func:`wall_jacobian`'s ``idx`` (n, k), ``J``
+    (n, 4, 3 k)) stored compactly: the rows with at most the usual 5 reads (the stencil) in
+    one op of width 5, the few with more (corners, merged copies) in one of their own width
+    (the rows are disjoint and the reads precede -1 padding, so the sums and their order are
+    those of the single op)."""
+    cnt = np.count_nonzero(idx >= 0, axis=1)
+    k = idx.shape[1]
+    kc = min(k, 5)
+    small = cnt <= kc
+    ops = []
+    for sel, w in ((small, kc), (~small, k)):
+        if sel.any():
+            ops.append(Op(out[sel], o0, 4, idx[sel, :w], i0, 3, J[sel, :, :3 * w]))
+    return ops
 
 
 def _copy_op(rows, o0, i0, n):
@@ -1041,26 +1126,12 @@ def _c3(ax, ay, az, bx, by, bz):
     return ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
 
 
-@jit(inline="always")
-def _cunit(x, y, z):
-    n = cmath.sqrt(x * x + y * y + z * z)
-    return x / n, y / n, z / n
-
-
-@jit(inline="always")
-def _catan2(y, x):
-    yr, xr = y.real, x.real
-    d = xr * xr + yr * yr
-    if d == 0.0:
-        d = 1.0
-    return math.atan2(yr, xr) + 1j * ((xr * y.imag - yr * x.imag) / d)
-
-
 @jit
-def wall_q_cs(pu, pd, ok, e, curve, out, E, F, au, ad, bu, bd):
-    """The quaternion of one wall point copy (boundary._point_quaternion) on its complex
-    deformed stencil ``pd`` (5, 3) (centre, +a, -a, +b, -b): the quaternion
-    into ``out`` (4, complex); returns False where a normal is undefined."""
+def wall_q_tan(pu, pd, ok, e, curve, dF, out, dout, E, F, au, ad, bu, bd, dad, dbd):
+    """The quaternion of one wall point copy (boundary._point_quaternion) on the deformed
+    stencil ``pd`` (5, 3) into ``out`` (4) and its hand-derived tangent along the edge
+    tangents ``dF`` (4, 3) (edge k: neighbour 1 + k minus the centre) into ``dout`` (4);
+    returns False where a normal is undefined."""
     for k in range(4):
         for c in range(3):
             if ok[1 + k]:
@@ -1074,136 +1145,200 @@ def wall_q_cs(pu, pd, ok, e, curve, out, E, F, au, ad, bu, bd):
         ad[c] = 0.0
         bu[c] = 0.0
         bd[c] = 0.0
+        dad[c] = 0.0
+        dbd[c] = 0.0
         if ok[1] and ok[2]:
             au[c] = E[0, c] - E[1, c]
             ad[c] = F[0, c] - F[1, c]
+            dad[c] = dF[0, c] - dF[1, c]
         elif ok[1]:
             au[c] = E[0, c]
             ad[c] = F[0, c]
+            dad[c] = dF[0, c]
         elif ok[2]:
             au[c] = -E[1, c]
             ad[c] = -F[1, c]
+            dad[c] = -dF[1, c]
         if curve:
             bu[c] = e[c]
             bd[c] = e[c]
         elif ok[3] and ok[4]:
             bu[c] = E[2, c] - E[3, c]
             bd[c] = F[2, c] - F[3, c]
+            dbd[c] = dF[2, c] - dF[3, c]
         elif ok[3]:
             bu[c] = E[2, c]
             bd[c] = F[2, c]
+            dbd[c] = dF[2, c]
         elif ok[4]:
             bu[c] = -E[3, c]
             bd[c] = -F[3, c]
+            dbd[c] = -dF[3, c]
     nx, ny, nz = _c3(au[0], au[1], au[2], bu[0], bu[1], bu[2])
     nn = nx * nx + ny * ny + nz * nz
     mx, my, mz = _c3(ad[0], ad[1], ad[2], bd[0], bd[1], bd[2])
+    p1 = _c3(dad[0], dad[1], dad[2], bd[0], bd[1], bd[2])
+    p2 = _c3(ad[0], ad[1], ad[2], dbd[0], dbd[1], dbd[2])
+    dmx, dmy, dmz = p1[0] + p2[0], p1[1] + p2[1], p1[2] + p2[2]
     mn = mx * mx + my * my + mz * mz
     la = au[0] * au[0] + au[1] * au[1] + au[2] * au[2]
     lb = bu[0] * bu[0] + bu[1] * bu[1] + bu[2] * bu[2]
-    ma = (ad[0] * ad[0] + ad[1] * ad[1] + ad[2] * ad[2]).real
-    mb = (bd[0] * bd[0] + bd[1] * bd[1] + bd[2] * bd[2]).real
+    ma = ad[0] * ad[0] + ad[1] * ad[1] + ad[2] * ad[2]
+    mb = bd[0] * bd[0] + bd[1] * bd[1] + bd[2] * bd[2]
     d2 = 1e-20
     if not (la > 0.0 and lb > 0.0 and nn > d2 * la * lb and ma > 0.0 and mb > 0.0
-            and mn.real > d2 * ma * mb):
+            and mn > d2 * ma * mb):
         return False
     if not curve and (la <= d2 * lb or lb <= d2 * la or ma <= d2 * mb or mb <= d2 * ma):
         return False
-    ux, uy, uz = _cunit(nx + 0j, ny + 0j, nz + 0j)
-    dx, dy, dz = _cunit(mx, my, mz)
+    sn = math.sqrt(nn)
+    ux, uy, uz = nx / sn, ny / sn, nz / sn
+    sm = math.sqrt(mn)
+    dx, dy, dz = mx / sm, my / sm, mz / sm
+    pr = dx * dmx + dy * dmy + dz * dmz
+    ddx, ddy, ddz = (dmx - dx * pr) / sm, (dmy - dy * pr) / sm, (dmz - dz * pr) / sm
     if curve:
         cx, cy, cz = _c3(ux, uy, uz, dx, dy, dz)
-        h = 0.5 * _catan2(e[0] * cx + e[1] * cy + e[2] * cz, ux * dx + uy * dy + uz * dz)
-        sh = cmath.sin(h)
-        a0, a1, a2, a3 = cmath.cos(h), e[0] * sh, e[1] * sh, e[2] * sh
+        dcx, dcy, dcz = _c3(ux, uy, uz, ddx, ddy, ddz)
+        y = e[0] * cx + e[1] * cy + e[2] * cz
+        x = ux * dx + uy * dy + uz * dz
+        dy_ = e[0] * dcx + e[1] * dcy + e[2] * dcz
+        dx_ = ux * ddx + uy * ddy + uz * ddz
+        den = x * x + y * y
+        if den == 0.0:
+            den = 1.0
+        h = 0.5 * math.atan2(y, x)
+        dh = 0.5 * (x * dy_ - y * dx_) / den
+        sh, ch = math.sin(h), math.cos(h)
+        a0, a1, a2, a3 = ch, e[0] * sh, e[1] * sh, e[2] * sh
+        da0, da1, da2, da3 = -sh * dh, e[0] * ch * dh, e[1] * ch * dh, e[2] * ch * dh
     else:
         cc_ = ux * dx + uy * dy + uz * dz
+        dcc_ = ux * ddx + uy * ddy + uz * ddz
         vx, vy, vz = _c3(ux, uy, uz, dx, dy, dz)
+        dvx, dvy, dvz = _c3(ux, uy, uz, ddx, ddy, ddz)
         w = 1.0 + cc_
-        n = cmath.sqrt(w * w + vx * vx + vy * vy + vz * vz)
+        n = math.sqrt(w * w + vx * vx + vy * vy + vz * vz)
         a0, a1, a2, a3 = w / n, vx / n, vy / n, vz / n
-    t1x, t1y, t1z = _cunit(au[0] + 0j, au[1] + 0j, au[2] + 0j)
+        dn = (w * dcc_ + vx * dvx + vy * dvy + vz * dvz) / n
+        da0, da1, da2, da3 = ((dcc_ - a0 * dn) / n, (dvx - a1 * dn) / n, (dvy - a2 * dn) / n,
+                              (dvz - a3 * dn) / n)
+    st = math.sqrt(au[0] * au[0] + au[1] * au[1] + au[2] * au[2])
+    t1x, t1y, t1z = au[0] / st, au[1] / st, au[2] / st
     t2x, t2y, t2z = _c3(ux, uy, uz, t1x, t1y, t1z)
-    # T1 = rot(Q1, t1)
     qx = 2.0 * (a2 * t1z - a3 * t1y)
     qy = 2.0 * (a3 * t1x - a1 * t1z)
     qz = 2.0 * (a1 * t1y - a2 * t1x)
+    dqx = 2.0 * (da2 * t1z - da3 * t1y)
+    dqy = 2.0 * (da3 * t1x - da1 * t1z)
+    dqz = 2.0 * (da1 * t1y - da2 * t1x)
     T1x = t1x + a0 * qx + (a2 * qz - a3 * qy)
     T1y = t1y + a0 * qy + (a3 * qx - a1 * qz)
     T1z = t1z + a0 * qz + (a1 * qy - a2 * qx)
+    dT1x = da0 * qx + a0 * dqx + (da2 * qz + a2 * dqz - da3 * qy - a3 * dqy)
+    dT1y = da0 * qy + a0 * dqy + (da3 * qx + a3 * dqx - da1 * qz - a1 * dqz)
+    dT1z = da0 * qz + a0 * dqz + (da1 * qy + a1 * dqy - da2 * qx - a2 * dqx)
     T2x, T2y, T2z = _c3(dx, dy, dz, T1x, T1y, T1z)
-    ss = 0j
-    cc = 0j
+    r1 = _c3(ddx, ddy, ddz, T1x, T1y, T1z)
+    r2 = _c3(dx, dy, dz, dT1x, dT1y, dT1z)
+    dT2x, dT2y, dT2z = r1[0] + r2[0], r1[1] + r2[1], r1[2] + r2[2]
+    ss = 0.0
+    cc = 0.0
+    dss = 0.0
+    dcc = 0.0
     for k in range(4):
         if not ok[1 + k]:
             continue
         ex, ey, ez = E[k, 0], E[k, 1], E[k, 2]
         fx, fy, fz = F[k, 0], F[k, 1], F[k, 2]
+        gx, gy, gz = dF[k, 0], dF[k, 1], dF[k, 2]
         a1_ = ex * t1x + ey * t1y + ez * t1z
         a2_ = ex * t2x + ey * t2y + ez * t2z
         b1 = fx * T1x + fy * T1y + fz * T1z
         b2 = fx * T2x + fy * T2y + fz * T2z
+        db1 = gx * T1x + gy * T1y + gz * T1z + fx * dT1x + fy * dT1y + fz * dT1z
+        db2 = gx * T2x + gy * T2y + gz * T2z + fx * dT2x + fy * dT2y + fz * dT2z
         la2 = a1_ * a1_ + a2_ * a2_
         lb2 = b1 * b1 + b2 * b2
-        if not (la2.real > d2 * (ex * ex + ey * ey + ez * ez) and
-                lb2.real > d2 * (fx * fx + fy * fy + fz * fz).real):
+        if not (la2 > d2 * (ex * ex + ey * ey + ez * ez) and
+                lb2 > d2 * (fx * fx + fy * fy + fz * fz)):
             continue
-        inv = 1.0 / cmath.sqrt(la2 * lb2)
-        ss += (a1_ * b2 - a2_ * b1) * inv
-        cc += (a1_ * b1 + a2_ * b2) * inv
-    r = cmath.sqrt(ss * ss + cc * cc)
-    if cc.real >= 0.0:
-        hw = r + cc
-        hs = ss
+        inv = 1.0 / math.sqrt(la2 * lb2)
+        dinv = -inv * (b1 * db1 + b2 * db2) / lb2
+        s_ = a1_ * b2 - a2_ * b1
+        c_ = a1_ * b1 + a2_ * b2
+        ss += s_ * inv
+        cc += c_ * inv
+        dss += (a1_ * db2 - a2_ * db1) * inv + s_ * dinv
+        dcc += (a1_ * db1 + a2_ * db2) * inv + c_ * dinv
+    r = math.sqrt(ss * ss + cc * cc)
+    dr = (ss * dss + cc * dcc) / r
+    if cc >= 0.0:
+        hw, hs = r + cc, ss
+        dhw, dhs = dr + dcc, dss
     else:
-        hw = ss
-        hs = r - cc
-        if hw.real < 0.0:
-            hw = -hw
-            hs = -hs
-    hn = cmath.sqrt(hw * hw + hs * hs)
+        hw, hs = ss, r - cc
+        dhw, dhs = dss, dr - dcc
+        if hw < 0.0:
+            hw, hs, dhw, dhs = -hw, -hs, -dhw, -dhs
+    hn = math.sqrt(hw * hw + hs * hs)
     hw = hw / hn
     hs = hs / hn
+    dhn = hw * dhw + hs * dhs
+    dhw = (dhw - hw * dhn) / hn
+    dhs = (dhs - hs * dhn) / hn
     b0, b1_, b2_, b3 = hw, dx * hs, dy * hs, dz * hs
+    db0, db1_, db2_, db3 = dhw, ddx * hs + dx * dhs, ddy * hs + dy * dhs, ddz * hs + dz * dhs
     out[0] = b0 * a0 - b1_ * a1 - b2_ * a2 - b3 * a3
     out[1] = b0 * a1 + b1_ * a0 + b2_ * a3 - b3 * a2
     out[2] = b0 * a2 - b1_ * a3 + b2_ * a0 + b3 * a1
     out[3] = b0 * a3 + b1_ * a2 - b2_ * a1 + b3 * a0
+    dout[0] = (db0 * a0 - db1_ * a1 - db2_ * a2 - db3 * a3
+               + b0 * da0 - b1_ * da1 - b2_ * da2 - b3 * da3)
+    dout[1] = (db0 * a1 + db1_ * a0 + db2_ * a3 - db3 * a2
+               + b0 * da1 + b1_ * da0 + b2_ * da3 - b3 * da2)
+    dout[2] = (db0 * a2 - db1_ * a3 + db2_ * a0 + db3 * a1
+               + b0 * da2 - b1_ * da3 + b2_ * da0 + b3 * da1)
+    dout[3] = (db0 * a3 + db1_ * a2 - db2_ * a1 + db3 * a0
+               + b0 * da3 + b1_ * da2 - b2_ * da1 + b3 * da0)
     return True
 
 
 @task_jit
-def wall_copies_cs(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
+def wall_copies_tan(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
     """The copies ``lo <= m < hi`` of a wall patch: the quaternion ``qc`` (n, 4), its
-    complex-step Jacobian ``Jc`` (n, 4, 15) in the deformed stencil and the defined flag
-    ``good`` (independent items)."""
-    pd = np.empty((5, 3), dtype=np.complex128)
-    out = np.empty(4, dtype=np.complex128)
+    Jacobian ``Jc`` (n, 4, 15) in the deformed stencil (hand-derived tangents of
+    :func:`wall_q_tan`, one per neighbour coordinate) and the defined flag ``good``
+    (independent items)."""
+    out = np.empty(4)
+    dout = np.empty(4)
+    dF = np.zeros((4, 3))
     E = np.empty((4, 3))
-    F = np.empty((4, 3), dtype=np.complex128)
+    F = np.empty((4, 3))
     au = np.empty(3)
-    ad = np.empty(3, dtype=np.complex128)
+    ad = np.empty(3)
     bu = np.empty(3)
-    bd = np.empty(3, dtype=np.complex128)
-    h = 1e-30
+    bd = np.empty(3)
+    dad = np.empty(3)
+    dbd = np.empty(3)
     for m in range(lo, hi):
-        for s in range(5):
-            for c in range(3):
-                pd[s, c] = pd_s[m, s, c]
-        good[m] = wall_q_cs(pu_s[m], pd, ok[m], e, curve, out, E, F, au, ad, bu, bd)
+        g = wall_q_tan(pu_s[m], pd_s[m], ok[m], e, curve, dF, out, dout, E, F, au, ad, bu,
+                       bd, dad, dbd)
+        good[m] = g
         for c in range(4):
-            qc[m, c] = out[c].real if good[m] else np.nan
+            qc[m, c] = out[c] if g else np.nan
         for j in range(3, 15):
             s, c0 = j // 3, j % 3
-            if not (good[m] and ok[m, s]):
+            if not (g and ok[m, s]):
                 for c in range(4):
                     Jc[m, c, j] = 0.0
                 continue
-            pd[s, c0] = pd_s[m, s, c0] + 1j * h
-            wall_q_cs(pu_s[m], pd, ok[m], e, curve, out, E, F, au, ad, bu, bd)
-            pd[s, c0] = pd_s[m, s, c0]
+            dF[s - 1, c0] = 1.0
+            wall_q_tan(pu_s[m], pd_s[m], ok[m], e, curve, dF, out, dout, E, F, au, ad, bu,
+                       bd, dad, dbd)
+            dF[s - 1, c0] = 0.0
             for c in range(4):
-                Jc[m, c, j] = out[c].imag / h
+                Jc[m, c, j] = dout[c]
         # q depends on the stencil through its edges only: the centre's column is minus
         # the sum of the neighbours'
         for c in range(4):
@@ -1389,16 +1524,17 @@ def _wall_jacobian(sk, rd_in, centre):
         Jc = np.empty((I.size, 4, 15))
         good = np.empty(I.size, dtype=np.bool_)
         with serial_below(WALL_WORK * I.size):
-            parallel_for(wall_copies_cs, I.size, pu_s, pd_s, ok, e, curve, qc, Jc, good)
+            parallel_for(wall_copies_tan, I.size, pu_s, pd_s, ok, e, curve, qc, Jc, good)
         # defined normals; the others the step fills from their neighbours (below)
         good &= np.all(np.isfinite(qc), axis=1) & (np.abs(np.sum(qc * qf, axis=1)) > 1.0 - 1e-8)
         Jb = Jc.reshape(-1, 4, 5, 3)
         mm = mirr >= 0
         if mm.any():                         # mirrored halo points: X -> (I - 2 n n^T) X
-            M = np.broadcast_to(ident, (I.size, 5, 3, 3)).copy()
+            Jb = Jb.copy()
             nn = pts.plane_n[mirr[mm]]
-            M[mm] = ident - 2.0 * nn[:, :, None] * nn[:, None, :]
-            Jb = np.einsum("nakc,nkcd->nakd", Jb, M)
+            M = ident - 2.0 * nn[:, :, None] * nn[:, None, :]
+            mi, mk = np.nonzero(mm)
+            Jb[mi, :, mk] = np.matmul(Jb[mi, :, mk], M)
         qcur = np.where(good[:, None], qc, np.nan)
         rows = _Rows(gids, Jb)
         _fill_rows(qcur, rows, good, na, nb)
@@ -1440,7 +1576,7 @@ def _wall_jacobian(sk, rd_in, centre):
     rg = np.concatenate(r_g) if r_g else np.zeros(0, np.int64)
     rb = np.concatenate(r_b) if r_b else np.zeros((0, 4, 3))
     rw = cw[rc]
-    rb = np.einsum("nab,nbc->nac", Pm[rw], rb * csg[rc, None, None])
+    rb = np.matmul(Pm[rw], rb * csg[rc, None, None])
     key, inv = np.unique(rw * (pts.n_global + 1) + rg, return_inverse=True)
     blocks = np.zeros((key.size, 4, 3))
     np.add.at(blocks, inv, rb)
@@ -1691,7 +1827,7 @@ def _build(deformer, rd):
         Dpre, Qpre = rec["pre"]
         if use_q:
             idx, Jw = wall_jacobian(sk, rd, c)
-            ops.append(Op(wall, P0, 4, idx, RD, 3, Jw))
+            ops += wall_ops(wall, P0, idx, RD, Jw)
             ops.append(RotOp(wall, D0, RD, P0, -1, -1.0, Qpre[wall], P[wall] - c))
         else:
             ops.append(_copy_op(wall, D0, RD, 3))
@@ -1727,26 +1863,16 @@ def _build(deformer, rd):
     for b, body in enumerate(two.bodies):
         bwall[pos_w[body.gids]] = b
 
-    def fy(X):
-        qc = X[:, :4] * np.array([1.0, -1.0, -1.0, -1.0])
-        return _rot(qc, X[:, 7:10] - X[:, 4:7])
-
-    Xy = np.zeros((wall.size, 10))
+    qw = np.zeros((wall.size, 4))
+    vw = rd[wall]
     for b, (q, t) in enumerate(fits):
         sel = bwall == b
-        Xy[sel, :4] = q
-        Xy[sel, 4:7] = t
-    Xy[:, 7:10] = rd[wall]
-    Jy = cs_jacobian(fy, Xy)
-    # reads columns BQ:RD+3 of the body row ((q, t)) and of the point row (rd)
-    width = RD + 3 - BQ
-    Jfull = np.zeros((wall.size, 3, 2 * width))
-    Jfull[:, :, :7] = Jy[:, :, :7]
-    Jfull[:, :, width + RD - BQ:width + RD - BQ + 3] = Jy[:, :, 7:10]
-    ops.append(Op(wall, Y, 3, np.stack([G + bwall, wall], 1), BQ, width, Jfull))
+        qw[sel] = q * np.array([1.0, -1.0, -1.0, -1.0])
+        vw[sel] -= t
+    ops.append(PullOp(wall, G + bwall, qw, vw))
     # residual pass
     idx, Jw = wall_jacobian(sk, y, c)
-    ops.append(Op(wall, Q0, 4, idx, Y, 3, Jw))
+    ops += wall_ops(wall, Q0, idx, Y, Jw)
     ops.append(_copy_op(wall, K0, Y, 3))
     ops += _vertex_ops(sk, qlpre, K0, Q0, two)
     if sk.vertices.idw is not None:
