@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
-from tfi_quat import GridValueError, tfi
+from tfi_quat import GridValueError, blending, tfi
 from tfi_quat import quaternion as qa
 from tfi_quat.grid import Block
 from tfi_quat._jit import parallel_for
@@ -166,10 +166,13 @@ def test_arclength_kernel_uncompiled_equals_compiled():
     xyz[:, 0, :, :] = xyz[:1, 0, :, :]
     a = np.empty_like(xyz)
     b = np.empty_like(xyz)
+    # arclength runs the wall-layer arclength kernels with no layer (zero thicknesses)
     for d in range(3):
-        by_direction(tfi._arc_dir_i, tfi._arc_dir_jk, d, xyz, a, tfi.ZERO_LENGTH_RTOL)
-        by_direction(tfi._arc_dir_i.py_func, tfi._arc_dir_jk.py_func, d, xyz, b,
-                     tfi.ZERO_LENGTH_RTOL)
+        zero = np.zeros(tuple(xyz.shape[m] for m in range(3) if m != d))
+        by_direction(blending._arc_layer_i, blending._arc_layer_jk, d, xyz,
+                     tfi.ZERO_LENGTH_RTOL, zero, zero, a)
+        by_direction(blending._arc_layer_i.py_func, blending._arc_layer_jk.py_func, d, xyz,
+                     tfi.ZERO_LENGTH_RTOL, zero, zero, b)
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a, tfi.arclength(xyz))
 
@@ -758,7 +761,7 @@ def test_volume_kernels_are_task_kernels_and_cached():
     assert tfi._volume_kernel(True, True, False) is tfi._volume_kernel(True, True, False)
     # O(surface): serial, one call
     serial = (tfi._prep_kernel(True), tfi._prep_kernel(False), tfi._gather)
-    for k in (*kinds, tfi._arc_dir_i, tfi._arc_dir_jk, tfi._fields2, *serial):
+    for k in (*kinds, blending._arc_layer_i, blending._arc_layer_jk, tfi._fields2, *serial):
         if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
             assert k.py_func is k
             continue

@@ -74,9 +74,8 @@ import numpy as np
 from ._jit import jit, parallel_for, task_jit
 from .errors import GridValueError
 from .grid import FACES
-from .kernels import (QNORM_MIN, TILE, arc_line_i, arc_tile, at, by_direction, face_coords,
-                      face_point, fallback_q, line_point, slerp_angle, slerp_weights, u_d, u_q,
-                      v_d, v_q, w_d, w_q)
+from .kernels import (QNORM_MIN, face_coords, face_point, fallback_q, slerp_angle, slerp_weights,
+                      u_d, u_q, v_d, v_q, w_d, w_q)
 
 __all__ = [
     "S_DTYPE", "QNORM_MIN", "ZERO_LENGTH_RTOL",
@@ -581,56 +580,6 @@ def _fields2(lo, hi, s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fb
                 outQ[i, j, 3] = qz / n
 
 
-# =================================================================== arclength kernels
-@task_jit
-def _arc_dir_i(lo, hi, xyz, s, rtol):
-    """Direction i of :func:`arclength` (ni >= 2), the lines ``lo <= jk < hi`` (``j = jk %
-    nj``, ``k = jk // nj``; contiguous in memory)."""
-    ni, nj = xyz.shape[0], xyz.shape[1]
-    buf = np.empty(ni)
-    for jk in range(lo, hi):
-        j = jk % nj
-        k = jk // nj
-        _, a = arc_line_i(xyz, rtol, j, k, buf)
-        for i in range(ni - 1):
-            s[i, j, k, 0] = buf[i] / a
-        s[ni - 1, j, k, 0] = 1.0
-
-
-@task_jit
-def _arc_dir_jk(lo, hi, xyz, s, rtol, kdir):
-    """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`arclength` (n >= 2), tasks
-    ``lo <= t < hi``: one per plane of the third direction and tile of TILE lines i
-    (:func:`tfi_quat.kernels.by_direction`), the tile's parameters into ``s``.
-    Compiled once per direction, with the direction a constant, so the tile walker's index
-    arithmetic folds away."""
-    ni = xyz.shape[0]
-    nt = (ni + TILE - 1) // TILE
-    axis = 2 if kdir is not None else 1
-    n = xyz.shape[axis]
-    for t in range(lo, hi):
-        c = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if n == 1:
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), n - 1, c)
-                s[i, j, k, axis] = 0.0
-            continue
-        cum = np.empty((n, nw))
-        ln = np.empty(nw)
-        den = np.empty(nw)
-        arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
-        for m in range(n - 1):
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), m, c)
-                s[i, j, k, axis] = cum[m, w] / den[w]
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), n - 1, c)
-            s[i, j, k, axis] = 1.0
-
-
 @jit
 def _segment_q(q0, q1, s, out):
     """Slerp along a segment: ``out[m] = slerp(q0, q1, s[m])``, shortest arc, exact at s = 0 and 1."""
@@ -818,13 +767,10 @@ def arclength(xyz, *, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
         Wrong shape, dtype or memory order of ``xyz``.
     """
     check_xyz(xyz, "xyz")
-    s = np.empty(xyz.shape, dtype=S_DTYPE, order="F")
-    for d in range(3):
-        if xyz.shape[d] == 1:
-            s[..., d] = 0.0
-        else:
-            by_direction(_arc_dir_i, _arc_dir_jk, d, xyz, s, float(rtol))
-    return s
+    # the one arclength kernel family: the wall-layer arclength with no layer (blending
+    # imports this module, hence the import here); a run compiles it once for both
+    from .blending import wall_layer_arclength
+    return wall_layer_arclength(xyz, (), ndim=0, rtol=rtol)
 
 
 def arclength_curve(r) -> np.ndarray:
