@@ -1041,6 +1041,49 @@ def test_gather_kernel_uncompiled_equals_compiled():
     np.testing.assert_array_equal(a[3][..., 0], q0)
 
 
+@given(st.integers(1, 9), st.integers(1, 4), st.integers(1, 9), st.integers(1, 30),
+       st.integers(0, 3), st.booleans(), st.integers(0, 2 ** 32 - 1))
+def test_small_2d_gather_with_numpy_is_the_compiled_gather(na, nb, ma, G, extra, hasq, seed):
+    """A small 2-D plan's tables are gathered with numpy (no compiled gather in the demo):
+    the same bits as the compiled :func:`tfi._gather`, sign-coherent quaternions included."""
+    rng = np.random.default_rng(seed)
+    gd = rng.normal(size=(G, 3))
+    gq = rng.normal(size=(G, 4)) if hasq else np.zeros((1, 4))
+    iL = rng.integers(0, G, size=(na + extra, nb, 2))
+    iM = rng.integers(0, G, size=(ma + extra, nb, 2))
+    iN = np.zeros((2, 2, 2), dtype=np.int64)
+
+    def tables():
+        F = (np.full((na, nb, 3, 2), np.nan, order="F"), np.full((ma, nb, 3, 2), np.nan, order="F"),
+             np.zeros((2, 2, 3, 2), order="F"))
+        Q = ((np.full((na, nb, 4, 2), np.nan, order="F"), np.full((ma, nb, 4, 2), np.nan, order="F"))
+             if hasq else (np.zeros((2, 2, 4, 2), order="F"),) * 2) + (np.zeros((2, 2, 4, 2), order="F"),)
+        return F + Q
+
+    a, b = tables(), tables()
+    assert 2 * (na * nb + ma * nb) < tfi._GATHER_NUMPY_BELOW      # the numpy path
+    tfi._gather_tables(gd, gq, hasq, False, iL, iM, iN, *a)
+    tfi._gather(gd, gq, hasq, False, iL, iM, iN, *b)
+    for x, y in zip(a, b):
+        assert x.tobytes() == y.tobytes()
+    np.testing.assert_array_equal(a[0][..., 1], gd[iL[:na, :, 1]])    # an independent check
+    assert not np.isnan(a[1]).any()
+
+
+def test_large_2d_and_3d_gathers_are_compiled(monkeypatch):
+    """Above the threshold and in 3-D the compiled gather runs (its answer is checked above)."""
+    calls = []
+    monkeypatch.setattr(tfi, "_gather", lambda *args: calls.append(args[3]))
+    na = tfi._GATHER_NUMPY_BELOW // 4 + 1
+    F, Q = np.zeros((na, 1, 3, 2), order="F"), np.zeros((na, 1, 4, 2), order="F")
+    idx = np.zeros((na, 1, 2), dtype=np.int64)
+    gd, gq = np.zeros((1, 3)), np.zeros((1, 4))
+    tfi._gather_tables(gd, gq, True, False, idx, idx, idx, F, F, F, Q, Q, Q)      # large 2-D
+    tfi._gather_tables(gd, gq, True, True, idx[:2], idx[:2], idx[:2], F[:2], F[:2], F[:2],
+                       Q[:2], Q[:2], Q[:2])                                      # small 3-D
+    assert calls == [False, True]
+
+
 def test_gather_plan_and_deform_block_gathered_validate_arguments():
     xyz = warped_block((4, 3, 2), 0)
     s = tfi.arclength(xyz)

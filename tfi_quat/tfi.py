@@ -372,6 +372,29 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
     if hasq:
         _coherent(QL[:, :, :, 0])
 
+#: face points (both faces of both directions) of a 2-D plan below which
+#: :func:`_gather_tables` copies with numpy rather than the compiled :func:`_gather` (the same
+#: values: copies; slower, but a 2-D plan's faces are lines): a run that only meets small 2-D
+#: blocks, as the demo, does not compile the gather
+_GATHER_NUMPY_BELOW = 1 << 12
+
+
+def _gather_tables(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN) -> None:
+    """:func:`_gather` (same arguments, same result), with numpy for small 2-D plans."""
+    if hasn or 2 * (FL.shape[0] * FL.shape[1] + FM.shape[0] * FM.shape[1]) >= _GATHER_NUMPY_BELOW:
+        _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN)
+        return
+    for idx, F, Q in ((iL, FL, QL), (iM, FM, QM)):
+        rows = idx[:F.shape[0], :F.shape[1]]
+        for c in range(3):
+            F[:, :, c, :] = gd[:, c][rows]
+        if hasq:
+            for c in range(4):
+                Q[:, :, c, :] = gq[:, c][rows]
+    if hasq:
+        _coherent(QL[:, :, :, 0])
+
+
 # =================================================================== volume kernels
 # One definition for the fused volume stage, specialised at compile time by
 # three flags (2-D or 3-D, quaternion or displacement only, based or not):
@@ -1268,7 +1291,8 @@ class GatherPlan:
         (FL, FM, FN, lineD, gD, hD), (QL, QM, QN, lineQ, gQ, hQ, fbM, fbN) = self._tables(hasq)
         L, M, N = self._o3()
         iL, iM, iN = self._index
-        _gather(gd, gq if hasq else _NO_Q, hasq, self._hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN)
+        _gather_tables(gd, gq if hasq else _NO_Q, hasq, self._hasn, iL, iM, iN, FL, FM, FN, QL, QM,
+                       QN)
         _prep(self._SM, self._SN, self.dims[M], self.dims[N], L, M, N, self._hasn,
               FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
         return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN
