@@ -1070,6 +1070,18 @@ def test_small_2d_gather_with_numpy_is_the_compiled_gather(na, nb, ma, G, extra,
     assert not np.isnan(a[1]).any()
 
 
+@given(st.integers(1, 12), st.integers(1, 4), st.integers(0, 2 ** 32 - 1))
+def test_coherent_with_numpy_is_the_compiled_kernel(na, nb, seed):
+    """The same sign flips, with zero and NaN dot products (no flip there) and -0.0 entries."""
+    rng = np.random.default_rng(seed)
+    q = rng.choice([-1.0, -0.5, -0.0, 0.0, 0.5, 1.0, np.nan], p=[.2, .15, .1, .1, .15, .2, .1],
+                   size=(na, nb, 4))
+    a, b = q.copy(), q.copy()
+    tfi._coherent_numpy(a)
+    tfi._coherent(b)
+    assert a.tobytes() == b.tobytes()
+
+
 def test_large_2d_and_3d_gathers_are_compiled(monkeypatch):
     """Above the threshold and in 3-D the compiled gather runs (its answer is checked above)."""
     calls = []

@@ -392,7 +392,31 @@ def _gather_tables(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN) -> No
             for c in range(4):
                 Q[:, :, c, :] = gq[:, c][rows]
     if hasq:
-        _coherent(QL[:, :, :, 0])
+        _coherent_numpy(QL[:, :, :, 0])
+
+
+def _coherent_numpy(q) -> None:
+    """:func:`_coherent` with numpy, the same flips: a point of the first column flips where
+    its dot product with the (flipped) previous point is < 0, that is where the raw product is
+    < 0 with the previous unflipped or > 0 with it flipped (the same magnitude, exactly), and
+    stays where it is 0 or NaN; so the flips of the column are the parity of the raw negative
+    products since the last such point.  The other columns, each after the previous one."""
+    def dot(x, y):
+        return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2] + \
+            x[..., 3] * y[..., 3]
+
+    na, nb = q.shape[0], q.shape[1]
+    with np.errstate(all="ignore"):
+        if na > 1:
+            d = dot(q[1:, 0], q[:-1, 0])
+            neg = np.concatenate([[0], np.cumsum(d < 0.0)])
+            reset = np.concatenate([[True], ~((d < 0.0) | (d > 0.0))])
+            last = np.maximum.accumulate(np.where(reset, np.arange(na), 0))
+            flip = (neg - neg[last]) % 2 == 1
+            q[flip, 0] = -q[flip, 0]
+        for b in range(1, nb):
+            flip = dot(q[:, b], q[:, b - 1]) < 0.0
+            q[flip, b] = -q[flip, b]
 
 
 # =================================================================== volume kernels
