@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tfi_quat import tfi
@@ -320,6 +320,59 @@ def test_fused_arclength_and_layer_is_the_two_calls_bit_for_bit(shape):
         out = np.full(xyz.shape, np.nan, order="F")
         assert wall_layer_arclength(xyz, lam, ndim, rtol=rtol, out=out) is out
         assert_same_bits(out, want)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.tuples(st.integers(1, 12), st.integers(1, 12), st.just(1)), st.integers(0, 2 ** 32 - 1),
+       st.sampled_from([0, 1, 2]), st.sampled_from([tfi.ZERO_LENGTH_RTOL, 1e-3, 0.3]))
+def test_small_2d_blocks_with_numpy_are_the_compiled_kernels(shape, seed, ndim, rtol):
+    """2-D blocks below _ARC_NUMPY_BELOW points take the numpy path (the demo compiles no
+    arclength kernel): the same bits as the compiled kernels, with collapsed, tiny and
+    repeated lines and zero, negative, tiny, huge and infinite thicknesses."""
+    from tfi_quat import blending
+    rng = np.random.default_rng(seed)
+    xyz = random_block(shape, seed)
+    ni, nj = shape[:2]
+    xyz[:, rng.integers(nj)] = xyz[rng.integers(ni), rng.integers(nj)]    # a collapsed line of i
+    xyz[rng.integers(ni), :] = xyz[rng.integers(ni), rng.integers(nj)]    # ... of j
+    i = rng.integers(ni)
+    xyz[i, :] = xyz[i, :1] + 1e-14 * rng.standard_normal((nj, 1, 3))      # zero-length by rtol
+    if ni > 2:
+        xyz[2] = xyz[1]                                                     # repeated points
+    lam = random_lam(shape, ndim, seed + 1)
+    assert ni * nj < blending._ARC_NUMPY_BELOW
+    small = blending.wall_layer_arclength(xyz, lam, ndim, rtol=rtol)
+    plain = tfi.arclength(xyz, rtol=rtol)
+    below = blending._ARC_NUMPY_BELOW
+    try:
+        blending._ARC_NUMPY_BELOW = 0                           # the compiled kernels
+        assert_same_bits(small, blending.wall_layer_arclength(xyz, lam, ndim, rtol=rtol))
+        assert_same_bits(plain, tfi.arclength(xyz, rtol=rtol))
+    finally:
+        blending._ARC_NUMPY_BELOW = below
+    assert_same_bits(plain, ref_arclength(xyz, rtol))           # the independent reference
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=40), st.sampled_from([1e-300, 1e-3, 0.7, 5.0, 1e8]),
+       st.sampled_from([0.0, -0.5, 1e-300, 0.01, 0.3, 2.0, 1e8, np.inf]),
+       st.sampled_from([0.0, -0.5, 1e-300, 0.05, 0.3, 1e8, np.inf]))
+def test_wall_layer_line_with_numpy_is_the_compiled_line(pts, length, lam0, lam1):
+    """wall_layer_line runs numpy (the demo compiles no _layer_line): the compiled kernel's bits."""
+    from tfi_quat import blending
+    s = np.sort(np.array(pts))
+    s[0], s[-1] = 0.0, 1.0
+    want = np.empty_like(s)
+    blending._layer_line(s, length, lam0, lam1, want)
+    assert_same_bits(wall_layer_line(s, length, lam0, lam1), want)
+    assert_same_bits(wall_layer_line(s[::-1] * 0.5, length, lam0, lam1),      # not an arclength
+                     _compiled_line(blending, s[::-1] * 0.5, length, lam0, lam1))
+
+
+def _compiled_line(blending, s, length, lam0, lam1):
+    out = np.empty_like(s)
+    blending._layer_line(np.ascontiguousarray(s), length, lam0, lam1, out)
+    return out
 
 
 def test_block_kernels_uncompiled_equal_compiled():

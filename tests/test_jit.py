@@ -32,9 +32,9 @@ def _run(args, jit: str, timeout: float = 600.0):
 def test_switch_off_gives_plain_python_kernels():
     code = (
         "import numba, numpy as np\n"
-        "from tfi_quat import _jit, quaternion as Q, boundary as B, tfi as T\n"
+        "from tfi_quat import _jit, quaternion as Q, boundary as B, tfi as T, blending as L\n"
         "assert not _jit.ENABLED and _jit.threads() == 1\n"
-        "for k in (Q.kmul, Q.kblend, B._motion_rows, B._interior_quaternion, T._volume_kernel(True, True, False), T._arc_dir_jk):\n"
+        "for k in (Q.kmul, Q.kblend, B._motion_rows, B._interior_quaternion, T._volume_kernel(True, True, False), L._arc_layer_jk):\n"
         "    assert not isinstance(k, numba.core.dispatcher.Dispatcher), k\n"
         "    assert k.py_func is k\n"
         "out = np.empty(4)\n"

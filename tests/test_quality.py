@@ -311,6 +311,27 @@ def test_volume_ratio_summary_matches_its_definition(seed, two_d, nan):
     assert got["min_ratio"] == want["min_ratio"] or (np.isnan(got["min_ratio"]) and np.isnan(want["min_ratio"]))
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31), ni=st.integers(2, 9), nj=st.integers(2, 7), nan=st.booleans())
+def test_small_2d_ratio_rows_with_numpy_are_the_compiled_rows(seed, ni, nj, nan):
+    """Small 2-D blocks reduce their ratios with numpy (no compiled kernel in the demo): the
+    same counts, smallest ratios (bits: -0.0 and 0.0 ties, inf rows, the first NaN) and first
+    indices as the compiled :func:`_ratio_rows`."""
+    rng = np.random.default_rng(seed)
+    vals = np.array([0.0, -0.0, 1.0, 2.0, -1.0, 0.5, np.inf])
+    xr = np.asfortranarray(rng.choice(vals[:6], (ni, nj, 1, 3)))     # many zero areas: inf
+    x = np.asfortranarray(rng.choice(vals[:6], (ni, nj, 1, 3)) * rng.choice([1.0, 1e300], (ni, nj, 1, 3)))
+    if nan:
+        x[int(rng.integers(ni)), int(rng.integers(nj)), 0, int(rng.integers(2))] = np.nan
+    out = [(np.empty(nj - 1, dtype=np.int64), np.empty(nj - 1), np.empty(nj - 1, dtype=np.int64))
+           for _ in range(2)]
+    assert (ni - 1) * (nj - 1) < Q._RATIOS_NUMPY_BELOW
+    Q._ratio_rows_2d(x, xr, *out[0])
+    parallel_for(Q._ratio_rows, 1, x, xr, None, *out[1])
+    for a, b in zip(*out):
+        assert a.tobytes() == b.tobytes()
+
+
 def _det3(u, v, w):
     """The corner determinant as the per-corner check expanded it (numpy, no fused multiply-add)."""
     return (u[..., 0] * (v[..., 1] * w[..., 2] - v[..., 2] * w[..., 1])

@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
-from tfi_quat import GridValueError, tfi
+from tfi_quat import GridValueError, blending, tfi
 from tfi_quat import quaternion as qa
 from tfi_quat.grid import Block
 from tfi_quat._jit import parallel_for
@@ -166,10 +166,13 @@ def test_arclength_kernel_uncompiled_equals_compiled():
     xyz[:, 0, :, :] = xyz[:1, 0, :, :]
     a = np.empty_like(xyz)
     b = np.empty_like(xyz)
+    # arclength runs the wall-layer arclength kernels with no layer (zero thicknesses)
     for d in range(3):
-        by_direction(tfi._arc_dir_i, tfi._arc_dir_jk, d, xyz, a, tfi.ZERO_LENGTH_RTOL)
-        by_direction(tfi._arc_dir_i.py_func, tfi._arc_dir_jk.py_func, d, xyz, b,
-                     tfi.ZERO_LENGTH_RTOL)
+        zero = np.zeros(tuple(xyz.shape[m] for m in range(3) if m != d))
+        by_direction(blending._arc_layer_i, blending._arc_layer_jk, d, xyz,
+                     tfi.ZERO_LENGTH_RTOL, zero, zero, a)
+        by_direction(blending._arc_layer_i.py_func, blending._arc_layer_jk.py_func, d, xyz,
+                     tfi.ZERO_LENGTH_RTOL, zero, zero, b)
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a, tfi.arclength(xyz))
 
@@ -758,7 +761,7 @@ def test_volume_kernels_are_task_kernels_and_cached():
     assert tfi._volume_kernel(True, True, False) is tfi._volume_kernel(True, True, False)
     # O(surface): serial, one call
     serial = (tfi._prep_kernel(True), tfi._prep_kernel(False), tfi._gather)
-    for k in (*kinds, tfi._arc_dir_i, tfi._arc_dir_jk, tfi._fields2, *serial):
+    for k in (*kinds, blending._arc_layer_i, blending._arc_layer_jk, tfi._fields2, *serial):
         if not _jit.ENABLED:                   # TFI_QUAT_JIT=0: plain Python functions
             assert k.py_func is k
             continue
@@ -1036,6 +1039,61 @@ def test_gather_kernel_uncompiled_equals_compiled():
     q0 = np.array(gq[face_index[2]], order="F")
     tfi._coherent(q0)
     np.testing.assert_array_equal(a[3][..., 0], q0)
+
+
+@given(st.integers(1, 9), st.integers(1, 4), st.integers(1, 9), st.integers(1, 30),
+       st.integers(0, 3), st.booleans(), st.integers(0, 2 ** 32 - 1))
+def test_small_2d_gather_with_numpy_is_the_compiled_gather(na, nb, ma, G, extra, hasq, seed):
+    """A small 2-D plan's tables are gathered with numpy (no compiled gather in the demo):
+    the same bits as the compiled :func:`tfi._gather`, sign-coherent quaternions included."""
+    rng = np.random.default_rng(seed)
+    gd = rng.normal(size=(G, 3))
+    gq = rng.normal(size=(G, 4)) if hasq else np.zeros((1, 4))
+    iL = rng.integers(0, G, size=(na + extra, nb, 2))
+    iM = rng.integers(0, G, size=(ma + extra, nb, 2))
+    iN = np.zeros((2, 2, 2), dtype=np.int64)
+
+    def tables():
+        F = (np.full((na, nb, 3, 2), np.nan, order="F"), np.full((ma, nb, 3, 2), np.nan, order="F"),
+             np.zeros((2, 2, 3, 2), order="F"))
+        Q = ((np.full((na, nb, 4, 2), np.nan, order="F"), np.full((ma, nb, 4, 2), np.nan, order="F"))
+             if hasq else (np.zeros((2, 2, 4, 2), order="F"),) * 2) + (np.zeros((2, 2, 4, 2), order="F"),)
+        return F + Q
+
+    a, b = tables(), tables()
+    assert 2 * (na * nb + ma * nb) < tfi._GATHER_NUMPY_BELOW      # the numpy path
+    tfi._gather_tables(gd, gq, hasq, False, iL, iM, iN, *a)
+    tfi._gather(gd, gq, hasq, False, iL, iM, iN, *b)
+    for x, y in zip(a, b):
+        assert x.tobytes() == y.tobytes()
+    np.testing.assert_array_equal(a[0][..., 1], gd[iL[:na, :, 1]])    # an independent check
+    assert not np.isnan(a[1]).any()
+
+
+@given(st.integers(1, 12), st.integers(1, 4), st.integers(0, 2 ** 32 - 1))
+def test_coherent_with_numpy_is_the_compiled_kernel(na, nb, seed):
+    """The same sign flips, with zero and NaN dot products (no flip there) and -0.0 entries."""
+    rng = np.random.default_rng(seed)
+    q = rng.choice([-1.0, -0.5, -0.0, 0.0, 0.5, 1.0, np.nan], p=[.2, .15, .1, .1, .15, .2, .1],
+                   size=(na, nb, 4))
+    a, b = q.copy(), q.copy()
+    tfi._coherent_numpy(a)
+    tfi._coherent(b)
+    assert a.tobytes() == b.tobytes()
+
+
+def test_large_2d_and_3d_gathers_are_compiled(monkeypatch):
+    """Above the threshold and in 3-D the compiled gather runs (its answer is checked above)."""
+    calls = []
+    monkeypatch.setattr(tfi, "_gather", lambda *args: calls.append(args[3]))
+    na = tfi._GATHER_NUMPY_BELOW // 4 + 1
+    F, Q = np.zeros((na, 1, 3, 2), order="F"), np.zeros((na, 1, 4, 2), order="F")
+    idx = np.zeros((na, 1, 2), dtype=np.int64)
+    gd, gq = np.zeros((1, 3)), np.zeros((1, 4))
+    tfi._gather_tables(gd, gq, True, False, idx, idx, idx, F, F, F, Q, Q, Q)      # large 2-D
+    tfi._gather_tables(gd, gq, True, True, idx[:2], idx[:2], idx[:2], F[:2], F[:2], F[:2],
+                       Q[:2], Q[:2], Q[:2])                                      # small 3-D
+    assert calls == [False, True]
 
 
 def test_gather_plan_and_deform_block_gathered_validate_arguments():

@@ -117,7 +117,14 @@ def wall_layer_line(s, length, lam0, lam1) -> np.ndarray:
     if s.ndim != 1:
         raise GridValueError(f"s: expected a 1-D array, got shape {s.shape}")
     out = np.empty_like(s)
-    _layer_line(s, float(length), float(lam0), float(lam1), out)
+    length, lam0, lam1 = float(length), float(lam0), float(lam1)
+    if s.shape[0] >= 2 and length > 0.0 and not (lam0 <= 0.0 and lam1 <= 0.0) \
+            and lam0 == lam0 and lam1 == lam1 and s.shape[0] < _ARC_NUMPY_BELOW:
+        # numpy (the same bits): a run that only meets short lines compiles no _layer_line
+        out[:] = _layer_numpy(s[:, None], np.array([length]), np.array([lam0]),
+                              np.array([lam1]))[:, 0]
+    else:
+        _layer_line(s, length, lam0, lam1, out)
     return out
 
 
@@ -414,6 +421,65 @@ def wall_layer_block(xyz, s, lam, ndim: int = 3, out=None) -> np.ndarray:
     return out
 
 
+#: points of a 2-D block (nk = 1) below which :func:`wall_layer_arclength` (and so
+#: :func:`tfi_quat.tfi.arclength`) computes with numpy (:func:`_arc_layer_numpy`, the same
+#: values bit for bit; ~10x slower, once per block at set-up) rather than the compiled
+#: kernels: a run that only meets small 2-D blocks, as the demo, does not compile them
+_ARC_NUMPY_BELOW = 1 << 15
+
+
+def _f_numpy(t, a):
+    """:func:`_f` on arrays (``a`` > 0 where it matters); ``expm1`` is the C library's, as
+    the compiled kernel's (numpy's may be a vectorised variant with other rounding)."""
+    with np.errstate(all="ignore"):
+        u = t / np.where(a > 0.0, a, 1.0)
+    out = np.ones(np.broadcast(t, a).shape)
+    far = (a <= 0.0) | (u >= EXP_CUT)
+    out[~far] = [-math.expm1(-v * v) for v in np.broadcast_to(u, out.shape)[~far].tolist()]
+    return out
+
+
+def _arc_layer_numpy(xyz, d, rtol, lam0, lam1, out) -> None:
+    """The lines of direction ``d`` (>= 2 points) of :func:`wall_layer_arclength` with numpy:
+    the operations of :func:`tfi_quat.kernels.arc_line_i` and :func:`_layer_line` in the same
+    order on every line at once (sums along the line sequential, as ``np.cumsum``)."""
+    X = np.moveaxis(xyz, d, 0)                              # (n, A, B, 3), lam: (A, B)
+    n = X.shape[0]
+    dx = X[1:, :, :, 0] - X[:-1, :, :, 0]
+    dy = X[1:, :, :, 1] - X[:-1, :, :, 1]
+    dz = X[1:, :, :, 2] - X[:-1, :, :, 2]
+    with np.errstate(all="ignore"):
+        seg = np.sqrt(dx * dx + dy * dy + dz * dz)
+        cum = np.cumsum(np.concatenate([np.zeros((1,) + seg.shape[1:]), seg]), axis=0)
+        length = cum[n - 1].copy()
+        scale = np.abs(np.concatenate([X[0], X[n - 1]], axis=-1)).max(axis=-1)
+        zero = ~(length > rtol * scale)                     # NaN: zero-length, as the kernel
+        cum[:, zero] = np.arange(n, dtype=np.float64)[:, None]
+        s = cum / np.where(zero, n - 1.0, length)
+        s[n - 1] = 1.0
+    act = ~((lam0 <= 0.0) & (lam1 <= 0.0)) & (length > 0.0)
+    if act.any():
+        s[:, act] = _layer_numpy(s[:, act], length[act], lam0[act], lam1[act])
+    np.moveaxis(out[..., d], d, 0)[...] = s
+
+
+def _layer_numpy(s, length, lam0, lam1):
+    """:func:`_layer_line` on the columns of ``s`` (n >= 2, L) with numpy, lines of length > 0
+    with a layer (``length``, ``lam0``, ``lam1``: (L,), not NaN): the same operations in the
+    same order (the trapezoid sums sequential, as ``np.cumsum``); returns the (n, L) parameters."""
+    n = s.shape[0]
+    with np.errstate(all="ignore"):
+        a0 = np.minimum(lam0 / length, AMAX)
+        a1 = np.minimum(lam1 / length, AMAX)
+        gp = _f_numpy(s, a0) * _f_numpy(1.0 - s, a1)
+        terms = 0.5 * (gp[1:] + gp[:-1]) * (s[1:] - s[:-1])
+        acc = np.cumsum(np.concatenate([np.zeros((1,) + terms.shape[1:]), terms]), axis=0)
+        pos = acc[n - 1] > 0.0
+        acc[1:n - 1] *= 1.0 / np.where(pos, acc[n - 1], 1.0)
+        acc[n - 1] = 1.0
+        return np.where(pos, acc, s)
+
+
 def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_RTOL, out=None) -> np.ndarray:
     """:func:`tfi_quat.tfi.arclength` and :func:`wall_layer_block` in one pass over the block.
 
@@ -448,6 +514,8 @@ def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_R
     elif out.shape != xyz.shape or out.dtype != S_DTYPE or not out.flags.f_contiguous:
         raise GridValueError(f"out: expected a float64 Fortran-order array of shape {xyz.shape}")
     dims = xyz.shape[:3]
+    small = (dims[2] == 1 and dims[0] * dims[1] < _ARC_NUMPY_BELOW
+             and not any(np.isnan(a).any() for a in lam[:2 * ndim]))
     for d in range(3):
         if dims[d] == 1:                        # one point per line: the parameter is 0, and
             out[..., d] = 0.0                   # a 2-D run compiles no kernel for it
@@ -458,5 +526,8 @@ def wall_layer_arclength(xyz, lam, ndim: int = 3, *, rtol: float = ZERO_LENGTH_R
             l1 = np.ascontiguousarray(lam[2 * d + 1], dtype=np.float64).reshape(others)
         else:                                   # no layer: the arclength itself
             l0 = l1 = np.zeros(others)
-        by_direction(_arc_layer_i, _arc_layer_jk, d, xyz, float(rtol), l0, l1, out)
+        if small:
+            _arc_layer_numpy(xyz, d, float(rtol), l0, l1, out)
+        else:
+            by_direction(_arc_layer_i, _arc_layer_jk, d, xyz, float(rtol), l0, l1, out)
     return out

@@ -1518,6 +1518,32 @@ def check_block(xyz: np.ndarray, ref, ndim: int, block: int = 0,
     return CellCheck(lo, at, int(res[:, 2].sum()), int(res[:, 3].sum()), first)
 
 
+#: cells of a 2-D block below which :func:`volume_ratio_summary` reduces its ratios with
+#: numpy (:func:`_ratio_rows_2d`, the same values) rather than the compiled :func:`_ratio_rows`:
+#: a run that only meets small 2-D blocks, as the demo, does not compile it
+_RATIOS_NUMPY_BELOW = 1 << 16
+
+
+def _ratio_rows_2d(x, xr, neg, low, first) -> None:
+    """:func:`_ratio_rows` of a 2-D block (``hexa`` None) with numpy: the same areas (the
+    same operations in the same order), ratios and reductions, bit for bit."""
+    def area(p):
+        d1x = p[1:, 1:, 0, 0] - p[:-1, :-1, 0, 0]
+        d1y = p[1:, 1:, 0, 1] - p[:-1, :-1, 0, 1]
+        d2x = p[:-1, 1:, 0, 0] - p[1:, :-1, 0, 0]
+        d2y = p[:-1, 1:, 0, 1] - p[1:, :-1, 0, 1]
+        return 0.5 * (d1x * d2y - d1y * d2x)
+
+    with np.errstate(all="ignore"):            # overflow, inf - inf: as the compiled kernel
+        v, vr = area(x), area(xr)
+        zero = vr == 0.0
+        q = np.where(zero, np.inf, v / np.where(zero, 1.0, vr))          # (nci, ncj)
+    neg[:] = np.count_nonzero(q <= 0.0, axis=0)
+    at = np.argmin(q, axis=0)                  # the first NaN, else the first smallest
+    low[:] = q[at, np.arange(q.shape[1])]
+    first[:] = np.where(low == np.inf, -1, at)
+
+
 def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
     """Number of negative cells and the smallest cell-volume ratio to ``reference``.
 
@@ -1544,7 +1570,11 @@ def volume_ratio_summary(grid: Grid, reference: Grid) -> dict:
         cnt = np.empty(nrows, dtype=np.int64)
         low = np.empty(nrows)
         first = np.empty(nrows, dtype=np.int64)
-        parallel_for(_ratio_rows, nck, x, xr, True if grid.ndim == 3 else None, cnt, low, first)
+        if grid.ndim == 2 and nci * nrows < _RATIOS_NUMPY_BELOW:
+            _ratio_rows_2d(x, xr, cnt, low, first)
+        else:
+            parallel_for(_ratio_rows, nck, x, xr, True if grid.ndim == 3 else None, cnt, low,
+                         first)
         neg += int(cnt.sum())
         if np.isnan(low).any():
             continue                                # NaN < best is False: as np.argmin's NaN

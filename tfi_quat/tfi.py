@@ -74,9 +74,8 @@ import numpy as np
 from ._jit import jit, parallel_for, task_jit
 from .errors import GridValueError
 from .grid import FACES
-from .kernels import (QNORM_MIN, TILE, arc_line_i, arc_tile, at, by_direction, face_coords,
-                      face_point, fallback_q, line_point, slerp_angle, slerp_weights, u_d, u_q,
-                      v_d, v_q, w_d, w_q)
+from .kernels import (QNORM_MIN, face_coords, face_point, fallback_q, slerp_angle, slerp_weights,
+                      u_d, u_q, v_d, v_q, w_d, w_q)
 
 __all__ = [
     "S_DTYPE", "QNORM_MIN", "ZERO_LENGTH_RTOL",
@@ -373,6 +372,53 @@ def _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN):
     if hasq:
         _coherent(QL[:, :, :, 0])
 
+#: face points (both faces of both directions) of a 2-D plan below which
+#: :func:`_gather_tables` copies with numpy rather than the compiled :func:`_gather` (the same
+#: values: copies; slower, but a 2-D plan's faces are lines): a run that only meets small 2-D
+#: blocks, as the demo, does not compile the gather
+_GATHER_NUMPY_BELOW = 1 << 12
+
+
+def _gather_tables(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN) -> None:
+    """:func:`_gather` (same arguments, same result), with numpy for small 2-D plans."""
+    if hasn or 2 * (FL.shape[0] * FL.shape[1] + FM.shape[0] * FM.shape[1]) >= _GATHER_NUMPY_BELOW:
+        _gather(gd, gq, hasq, hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN)
+        return
+    for idx, F, Q in ((iL, FL, QL), (iM, FM, QM)):
+        rows = idx[:F.shape[0], :F.shape[1]]
+        for c in range(3):
+            F[:, :, c, :] = gd[:, c][rows]
+        if hasq:
+            for c in range(4):
+                Q[:, :, c, :] = gq[:, c][rows]
+    if hasq:
+        _coherent_numpy(QL[:, :, :, 0])
+
+
+def _coherent_numpy(q) -> None:
+    """:func:`_coherent` with numpy, the same flips: a point of the first column flips where
+    its dot product with the (flipped) previous point is < 0, that is where the raw product is
+    < 0 with the previous unflipped or > 0 with it flipped (the same magnitude, exactly), and
+    stays where it is 0 or NaN; so the flips of the column are the parity of the raw negative
+    products since the last such point.  The other columns, each after the previous one."""
+    def dot(x, y):
+        return x[..., 0] * y[..., 0] + x[..., 1] * y[..., 1] + x[..., 2] * y[..., 2] + \
+            x[..., 3] * y[..., 3]
+
+    na, nb = q.shape[0], q.shape[1]
+    with np.errstate(all="ignore"):
+        if na > 1:
+            d = dot(q[1:, 0], q[:-1, 0])
+            neg = np.concatenate([[0], np.cumsum(d < 0.0)])
+            reset = np.concatenate([[True], ~((d < 0.0) | (d > 0.0))])
+            last = np.maximum.accumulate(np.where(reset, np.arange(na), 0))
+            flip = (neg - neg[last]) % 2 == 1
+            q[flip, 0] = -q[flip, 0]
+        for b in range(1, nb):
+            flip = dot(q[:, b], q[:, b - 1]) < 0.0
+            q[flip, b] = -q[flip, b]
+
+
 # =================================================================== volume kernels
 # One definition for the fused volume stage, specialised at compile time by
 # three flags (2-D or 3-D, quaternion or displacement only, based or not):
@@ -581,56 +627,6 @@ def _fields2(lo, hi, s, outD, outQ, hasq, L, M, lineD, lineQ, gD, gQ, hD, hQ, fb
                 outQ[i, j, 3] = qz / n
 
 
-# =================================================================== arclength kernels
-@task_jit
-def _arc_dir_i(lo, hi, xyz, s, rtol):
-    """Direction i of :func:`arclength` (ni >= 2), the lines ``lo <= jk < hi`` (``j = jk %
-    nj``, ``k = jk // nj``; contiguous in memory)."""
-    ni, nj = xyz.shape[0], xyz.shape[1]
-    buf = np.empty(ni)
-    for jk in range(lo, hi):
-        j = jk % nj
-        k = jk // nj
-        _, a = arc_line_i(xyz, rtol, j, k, buf)
-        for i in range(ni - 1):
-            s[i, j, k, 0] = buf[i] / a
-        s[ni - 1, j, k, 0] = 1.0
-
-
-@task_jit
-def _arc_dir_jk(lo, hi, xyz, s, rtol, kdir):
-    """Direction j (``kdir`` None) or k (``kdir`` True) of :func:`arclength` (n >= 2), tasks
-    ``lo <= t < hi``: one per plane of the third direction and tile of TILE lines i
-    (:func:`tfi_quat.kernels.by_direction`), the tile's parameters into ``s``.
-    Compiled once per direction, with the direction a constant, so the tile walker's index
-    arithmetic folds away."""
-    ni = xyz.shape[0]
-    nt = (ni + TILE - 1) // TILE
-    axis = 2 if kdir is not None else 1
-    n = xyz.shape[axis]
-    for t in range(lo, hi):
-        c = t // nt
-        i0 = (t % nt) * TILE
-        nw = min(TILE, ni - i0)
-        u0 = np.uint64(i0)
-        if n == 1:
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), n - 1, c)
-                s[i, j, k, axis] = 0.0
-            continue
-        cum = np.empty((n, nw))
-        ln = np.empty(nw)
-        den = np.empty(nw)
-        arc_tile(xyz, rtol, axis, u0, nw, c, cum, ln, den)
-        for m in range(n - 1):
-            for w in range(nw):
-                i, j, k = line_point(axis, at(u0, w), m, c)
-                s[i, j, k, axis] = cum[m, w] / den[w]
-        for w in range(nw):
-            i, j, k = line_point(axis, at(u0, w), n - 1, c)
-            s[i, j, k, axis] = 1.0
-
-
 @jit
 def _segment_q(q0, q1, s, out):
     """Slerp along a segment: ``out[m] = slerp(q0, q1, s[m])``, shortest arc, exact at s = 0 and 1."""
@@ -818,13 +814,10 @@ def arclength(xyz, *, rtol: float = ZERO_LENGTH_RTOL) -> np.ndarray:
         Wrong shape, dtype or memory order of ``xyz``.
     """
     check_xyz(xyz, "xyz")
-    s = np.empty(xyz.shape, dtype=S_DTYPE, order="F")
-    for d in range(3):
-        if xyz.shape[d] == 1:
-            s[..., d] = 0.0
-        else:
-            by_direction(_arc_dir_i, _arc_dir_jk, d, xyz, s, float(rtol))
-    return s
+    # the one arclength kernel family: the wall-layer arclength with no layer (blending
+    # imports this module, hence the import here); a run compiles it once for both
+    from .blending import wall_layer_arclength
+    return wall_layer_arclength(xyz, (), ndim=0, rtol=rtol)
 
 
 def arclength_curve(r) -> np.ndarray:
@@ -1322,7 +1315,8 @@ class GatherPlan:
         (FL, FM, FN, lineD, gD, hD), (QL, QM, QN, lineQ, gQ, hQ, fbM, fbN) = self._tables(hasq)
         L, M, N = self._o3()
         iL, iM, iN = self._index
-        _gather(gd, gq if hasq else _NO_Q, hasq, self._hasn, iL, iM, iN, FL, FM, FN, QL, QM, QN)
+        _gather_tables(gd, gq if hasq else _NO_Q, hasq, self._hasn, iL, iM, iN, FL, FM, FN, QL, QM,
+                       QN)
         _prep(self._SM, self._SN, self.dims[M], self.dims[N], L, M, N, self._hasn,
               FL, FM, FN, QL, QM, QN, hasq, lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN)
         return lineD, lineQ, gD, gQ, hD, hQ, fbM, fbN

@@ -75,6 +75,10 @@ def _largest_rectangle(mask):
     return best, br0, br1, bc0, bc1
 
 
+#: cells of a mask below which :func:`_rectangles` runs :func:`_largest_rectangle` as Python
+_RECT_PYTHON_BELOW = 1 << 12
+
+
 def _rectangles(mask: np.ndarray) -> list[tuple[int, int, int, int]]:
     """Split a bool array into maximal rectangles, largest first: ``(r0, r1, c0, c1)`` inclusive."""
     m = np.array(mask, dtype=np.bool_, copy=True)
@@ -87,7 +91,10 @@ def _rectangles(mask: np.ndarray) -> list[tuple[int, int, int, int]]:
         if sub.all():
             rect = (int(r0), int(rows[-1]), int(c0), int(cols[-1]))
         else:
-            area, a0, a1, b0, b1 = _largest_rectangle(np.ascontiguousarray(sub))
+            # small masks: the same code uncompiled (a run that meets only those, as the
+            # demo, compiles no kernel for them)
+            kern = _largest_rectangle.py_func if sub.size < _RECT_PYTHON_BELOW else _largest_rectangle
+            area, a0, a1, b0, b1 = kern(np.ascontiguousarray(sub))
             rect = (int(r0 + a0), int(r0 + a1), int(c0 + b0), int(c0 + b1))
         out.append(rect)
         m[rect[0]:rect[1] + 1, rect[2]:rect[3] + 1] = False
