@@ -159,7 +159,8 @@ def _dtables(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ, dD, d
     arrays (``dQ`` unused without ``hasq``)."""
     nm = dims[M]
     nn = dims[N] if hasn else 1
-    naL, nbL = _fdims(dims, L)
+    # a face's point counts are the face coordinates of the block's dims
+    naL, nbL = face_coords(dims[0], dims[1], dims[2], L)
     for b in range(nbL):
         for a in range(naL):
             g0 = iL[a, b, 0]
@@ -178,7 +179,7 @@ def _dtables(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ, dD, d
                     dw += coef[a, b, c] * dlineQ[a, b, c] + coef[a, b, 4 + c] * dlineQ[a, b, 4 + c]
                 dlineQ[a, b, 8] = dw
                 dlineQ[a, b, 9] = 0.0
-    naM, nbM = _fdims(dims, M)
+    naM, nbM = face_coords(dims[0], dims[1], dims[2], M)
     for side in range(2):
         im = 0 if side == 0 else nm - 1
         for b in range(nbM):
@@ -203,7 +204,7 @@ def _dtables(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ, dD, d
                     dgQ[a, b, o + 3] = sg * dQ[g, 3] - ez
     if not hasn:
         return
-    naN, nbN = _fdims(dims, N)
+    naN, nbN = face_coords(dims[0], dims[1], dims[2], N)
     for side in range(2):
         im = 0 if side == 0 else nn - 1
         for b in range(nbN):
@@ -231,16 +232,6 @@ def _dtables(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ, dD, d
                     dhQ[a, b, o + 3] = sg * dQ[g, 3] - (ez + um * dgQ[ma, mb, 3] + sm * dgQ[ma, mb, 7])
 
 
-@jit(inline="always")
-def _fdims(dims, d):
-    """The point counts ``(na, nb)`` of a face normal to ``d``."""
-    if d == 0:
-        return dims[1], dims[2]
-    if d == 1:
-        return dims[0], dims[2]
-    return dims[0], dims[1]
-
-
 @jit
 def _tables_bar(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ,
                 blineD, blineQ, bgD, bgQ, bhD, bhQ, Dbar, Qbar):
@@ -249,7 +240,7 @@ def _tables_bar(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ,
     nm = dims[M]
     nn = dims[N] if hasn else 1
     if hasn:
-        naN, nbN = _fdims(dims, N)
+        naN, nbN = face_coords(dims[0], dims[1], dims[2], N)
         for side in range(2):
             im = 0 if side == 0 else nn - 1
             for b in range(nbN):
@@ -283,7 +274,7 @@ def _tables_bar(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ,
                         _q_bar(bgQ, ma, mb, 0, -um, w, x, y, z)
                         _q_bar(bgQ, ma, mb, 4, -sm, w, x, y, z)
                         _du_q_bar(lineQ, blineQ, la, lb, t, -w, -x, -y, -z)
-    naM, nbM = _fdims(dims, M)
+    naM, nbM = face_coords(dims[0], dims[1], dims[2], M)
     for side in range(2):
         im = 0 if side == 0 else nm - 1
         for b in range(nbM):
@@ -310,7 +301,7 @@ def _tables_bar(dims, L, M, N, hasn, hasq, iL, iM, iN, SM, SN, gq, lineQ, gQ,
                     Qbar[g, 2] += sg * y
                     Qbar[g, 3] += sg * z
                     _du_q_bar(lineQ, blineQ, la, lb, t, -w, -x, -y, -z)
-    naL, nbL = _fdims(dims, L)
+    naL, nbL = face_coords(dims[0], dims[1], dims[2], L)
     cf = np.empty(8)
     for b in range(nbL):
         for a in range(naL):

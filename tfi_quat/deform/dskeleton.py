@@ -59,6 +59,7 @@ import numpy as np
 
 from .. import tfi
 from .._jit import jit, parallel_for, serial_below, task_jit
+from .stages import symmetry_twist
 
 __all__ = ["fields_jvp", "fields_vjp", "Linearisation", "linearise", "cs_jacobian",
            "fit_jacobian", "forward_record", "wall_jacobian", "wall_ops", "patch_ops", "RotOp",
@@ -1349,24 +1350,6 @@ def wall_copies_tan(lo, hi, pu_s, pd_s, ok, e, curve, qc, Jc, good):
                 Jc[m, c, c0] = -acc
 
 
-@jit(inline="always")
-def _twist(Y, m, nrm, tw):
-    """The symmetry twist of Q = Y[m, 3:7] about the unit normal: ``tw`` (4) and the raw
-    norm (0: no twist, the identity)."""
-    u = Y[m, 4] * nrm[0] + Y[m, 5] * nrm[1] + Y[m, 6] * nrm[2]
-    tw[0] = Y[m, 3]
-    for c in range(3):
-        tw[1 + c] = u * nrm[c]
-    nr = math.sqrt(tw[0] * tw[0] + tw[1] * tw[1] + tw[2] * tw[2] + tw[3] * tw[3])
-    if nr == 0.0:
-        tw[0] = 1.0
-        tw[1] = tw[2] = tw[3] = 0.0
-    else:
-        for c in range(4):
-            tw[c] /= nr
-    return nr
-
-
 @jit
 def sym_forward(Z, rows, c0, Y, arm, carm, point, normal):
     """Tangent of the symmetry fix (stages.symmetry_fix with Q) on rows ``rows`` (columns
@@ -1377,7 +1360,7 @@ def sym_forward(Z, rows, c0, Y, arm, carm, point, normal):
     for m in range(rows.shape[0]):
         r = rows[m]
         nrm = normal[m]
-        nr = _twist(Y, m, nrm, tw)
+        nr = symmetry_twist(Y[m, 3], Y[m, 4], Y[m, 5], Y[m, 6], nrm[0], nrm[1], nrm[2], tw)
         q = Y[m, 3:7]
         a0, a1, a2 = rot_dq(q, arm[m], Z[r, c0 + 3], Z[r, c0 + 4], Z[r, c0 + 5], Z[r, c0 + 6])
         x0 = Z[r, c0] + a0
@@ -1415,7 +1398,7 @@ def sym_backward(Zb, rows, c0, Y, arm, carm, point, normal):
     for m in range(rows.shape[0] - 1, -1, -1):
         r = rows[m]
         nrm = normal[m]
-        nr = _twist(Y, m, nrm, tw)
+        nr = symmetry_twist(Y[m, 3], Y[m, 4], Y[m, 5], Y[m, 6], nrm[0], nrm[1], nrm[2], tw)
         q = Y[m, 3:7]
         a0, a1, a2 = Zb[r, c0], Zb[r, c0 + 1], Zb[r, c0 + 2]
         for c in range(4):

@@ -456,6 +456,27 @@ def onto_planes(pos, idx, point, normal):
             pos[p, c] -= d * normal[m, c]
 
 
+@jit(forceinline=True)
+def symmetry_twist(qw, qx, qy, qz, n0, n1, n2, tw):
+    """The twist of Q = (qw, qx, qy, qz) about the unit normal n (its rotation about n
+    only), normalised into ``tw`` (4); returns the norm before normalising (0: no twist,
+    ``tw`` the identity).  The symmetry fix (:func:`symmetry_fix`) and its derivative
+    (:mod:`.dskeleton`) share it."""
+    u = qx * n0 + qy * n1 + qz * n2
+    tw[0] = qw
+    tw[1] = u * n0
+    tw[2] = u * n1
+    tw[3] = u * n2
+    nr = math.sqrt(tw[0] * tw[0] + tw[1] * tw[1] + tw[2] * tw[2] + tw[3] * tw[3])
+    if nr == 0.0:
+        tw[0] = 1.0
+        tw[1] = tw[2] = tw[3] = 0.0
+    else:
+        for c in range(4):
+            tw[c] /= nr
+    return nr
+
+
 @jit
 def symmetry_fix(F, gq, use_q, X, carm, idx, point, normal):
     """Symmetry points: on their plane, rotating about its normal only.
@@ -486,17 +507,8 @@ def symmetry_fix(F, gq, use_q, X, carm, idx, point, normal):
         for c in range(3):
             pos[c] -= d * normal[m, c]
         if use_q:
-            u = gq[p, 1] * normal[m, 0] + gq[p, 2] * normal[m, 1] + gq[p, 3] * normal[m, 2]
-            tw[0] = gq[p, 0]
-            for c in range(3):
-                tw[1 + c] = u * normal[m, c]
-            n = math.sqrt(tw[0] * tw[0] + tw[1] * tw[1] + tw[2] * tw[2] + tw[3] * tw[3])
-            if n == 0.0:
-                tw[0] = 1.0
-                tw[1] = tw[2] = tw[3] = 0.0
-            else:
-                for c in range(4):
-                    tw[c] /= n
+            symmetry_twist(gq[p, 0], gq[p, 1], gq[p, 2], gq[p, 3],
+                           normal[m, 0], normal[m, 1], normal[m, 2], tw)
             for c in range(4):
                 gq[p, c] = tw[c]
             qa.krotate(tw, arm, r)
