@@ -635,8 +635,11 @@ class Deformer:
         reference), every boundary copy from the positions, into the buffers ``dests``
         (:func:`.buffers.check_out`; None: new arrays), each block checked after it is made when
         ``check``; returns the result grid."""
+        sk = self.skeleton
         grid = self.grid
+        pos = self._work.pos
         total = len(grid) * sum(p is not None for p in passes)
+        done = 0
         arrays = []
         # check="raise" into buffers: every block into the kept scratch first, so that a
         # folded grid leaves the buffers as they were
@@ -646,7 +649,45 @@ class Deformer:
         overlap = bool(check) and threads() > 1
         reports = []
         try:
-            self._block_loop(passes, dests, hold, check, overlap, callback, total, arrays, reports)
+            for n, (b, blk) in enumerate(zip(self.blocks, grid)):
+                dest = None if dests is None else dests[n]
+                # a layout the kernels do not write: through the block scratch (reused by
+                # the next block)
+                via_scratch = dest is not None and not hold and not buffers.is_kernel_array(dest)
+                if dest is None:
+                    dst = np.empty_like(blk.xyz, order="F")
+                elif hold:
+                    dst = self._scratch.grid()[n]
+                elif via_scratch:
+                    dst = self._scratch.block(n)
+                else:
+                    dst = dest
+                base = blk.xyz
+                for p in passes:
+                    if p is None:
+                        np.copyto(dst, base)
+                    else:
+                        gd, gq, c, tables = p
+                        stages.volume(sk, self._all, b, base, gd, gq, c, dst,
+                                      None if tables is None else tables[b])
+                        done += 1
+                        if callback is not None:
+                            callback(done, total)
+                    base = dst
+                local, gid = sk.scatter[b]
+                stages.scatter_rows(pos, gid, local, dst.reshape(-1, 3, order="F"))
+                if sk.ndim == 2:
+                    dst[..., 2] = 0.0
+                if check:
+                    if overlap and not via_scratch and blk.npoints < SERIAL_BELOW:
+                        reports.append(self._checker().submit(self._check_one, b, blk, dst))
+                    else:
+                        tc = time.perf_counter()
+                        reports.append(self._check_one(b, blk, dst))
+                        self._check_seconds += time.perf_counter() - tc
+                if via_scratch:
+                    buffers.copy_out(dst, dest)
+                arrays.append(dst if dest is None else dest)
         finally:
             # every check finished (or failed) before the buffers are used or the step ends;
             # timings.check: the checks on this thread and the wait for the others
@@ -674,52 +715,6 @@ class Deformer:
                           connectivity=grid.connectivity)
         result.quality = report
         return result
-
-    def _block_loop(self, passes, dests, hold, check, overlap, callback, total, arrays, reports):
-        """The block loop of :meth:`_volumes`: appends each block's array to ``arrays`` and its
-        check (a report, or a future of one when ``overlap``) to ``reports``."""
-        sk = self.skeleton
-        grid = self.grid
-        pos = self._work.pos
-        done = [0]
-        for n, (b, blk) in enumerate(zip(self.blocks, grid)):
-            dest = None if dests is None else dests[n]
-            if dest is None:
-                dst = np.empty_like(blk.xyz, order="F")
-            elif hold:
-                dst = self._scratch.grid()[n]
-            elif buffers.is_kernel_array(dest):
-                dst = dest
-            else:
-                dst = self._scratch.block(n)
-            base = blk.xyz
-            for p in passes:
-                if p is None:
-                    np.copyto(dst, base)
-                else:
-                    gd, gq, c, tables = p
-                    stages.volume(sk, self._all, b, base, gd, gq, c, dst,
-                                  None if tables is None else tables[b])
-                    done[0] += 1
-                    if callback is not None:
-                        callback(done[0], total)
-                base = dst
-            local, gid = sk.scatter[b]
-            stages.scatter_rows(pos, gid, local, dst.reshape(-1, 3, order="F"))
-            if sk.ndim == 2:
-                dst[..., 2] = 0.0
-            if check:
-                # not the block scratch: it is reused by the next block
-                reused = dest is not None and not hold and not buffers.is_kernel_array(dest)
-                if overlap and not reused and blk.npoints < SERIAL_BELOW:
-                    reports.append(self._checker().submit(self._check_one, b, blk, dst))
-                else:
-                    tc = time.perf_counter()
-                    reports.append(self._check_one(b, blk, dst))
-                    self._check_seconds += time.perf_counter() - tc
-            if dst is not dest and dest is not None and not hold:
-                buffers.copy_out(dst, dest)
-            arrays.append(dst if dest is None else dest)
 
     def _check_one(self, b, blk, dst):
         """:func:`tfi_quat.quality.check_block` of block ``b`` (its reference made once and kept)."""
